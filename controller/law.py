@@ -1,0 +1,244 @@
+"""The distributed hybrid feedback (`ex_controller`) in two views, and the gradient baseline.
+
+Sampled-data semantics at a communication point of length h:
+    1. every edge k in its jump set 𝒥_k (μ_U ≥ δ) jumps, θ_k⁺ = argmin_{θ'∈Θ} U(X̄_k, θ');
+    2. the wrench u_i is computed with the post-jump θ;
+    3. θ_k flows over h: θ_k ← θ_k − h k_θ ∇_θU(X̄_k, θ_k) (forward Euler, held X̄_k).
+Agent i owns θ_k for k ∈ 𝓜_i⁺.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from . import _kernels as K
+from . import se3
+from .design import SynergyDesign, WeightingMatrix
+from .errors import Se3SyncError
+from .graph import Graph
+
+__all__ = ["Gains", "JumpEvent", "HybridController", "GradientController", "AgentStepper",
+           "pack_state", "V_bar", "jump_bound"]
+
+
+@dataclass(frozen=True)
+class Gains:
+    """k_X, k_ξ, k_e, k_θ of `hybridcontroller`, all > 0."""
+
+    k_X: float
+    k_xi: float
+    k_e: float
+    k_theta: float = 1.0
+
+    def __post_init__(self):
+        for name in ("k_X", "k_xi", "k_e", "k_theta"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
+                raise Se3SyncError(f"gains: {name} must be a finite number > 0, got {v!r}")
+
+
+class JumpEvent(NamedTuple):
+    """θ_k jumped at a communication point: edge k (from 1), θ⁻, θ⁺, and μ_U(X̄_k, θ⁻)."""
+
+    edge: int
+    theta_before: float
+    theta_after: float
+    mu: float
+
+
+def pack_state(X, xi) -> np.ndarray:
+    """S (N, 18) = [p, R row-major, ξ] from poses X (N, 4, 4) and velocities ξ (N, 6)."""
+    X = np.asarray(X, float)
+    xi = np.asarray(xi, float)
+    N = X.shape[0]
+    S = np.empty((N, K.S_WIDTH))
+    S[:, K.S_P:K.S_P + 3] = X[:, :3, 3]
+    S[:, K.S_R:K.S_R + 9] = X[:, :3, :3].reshape(N, 9)
+    S[:, K.S_XI:K.S_XI + 6] = xi
+    return S
+
+
+def _params(weighting: WeightingMatrix, design: SynergyDesign | None, gains: Gains):
+    if design is None:  # gradient baseline: θ ≡ 0, so u_c and Θ never enter
+        u1, u2, gamma, delta, Theta = np.zeros(3), np.zeros(3), 0.0, np.inf, (0.0,)
+    else:
+        u1, u2 = design.u_c1, design.u_c2
+        gamma, delta, Theta = design.gamma, design.delta, design.Theta
+    return K.pack(weighting.A, weighting.b, weighting.d, u1, u2, gamma, delta, Theta,
+                  gains.k_X, gains.k_xi, gains.k_e, gains.k_theta)
+
+
+class HybridController:
+    """The network view: one call computes every agent's wrench at a communication point.
+
+    State: θ (M,). `step_state(S, h)` is the fast path (S as the plant FMU returns it);
+    `step(X, xi, h)` accepts poses (N, 4, 4). Both return (u, events), u (N, 6) being a buffer
+    that the next call overwrites.
+    """
+
+    hybrid = True
+
+    def __init__(self, graph: Graph, weighting: WeightingMatrix, design: SynergyDesign | None,
+                 gains: Gains, theta0=None):
+        if self.hybrid and design is None:
+            raise Se3SyncError("the hybrid controller needs a synergy design")
+        self.graph = graph
+        self.weighting = weighting
+        self.design = design
+        self.gains = gains
+        self.P = _params(weighting, design, gains)
+        self.edges = np.ascontiguousarray(graph.edges)
+        M = graph.M
+        self.theta = np.zeros(M)
+        self.reset(theta0)
+        self.u = np.zeros((graph.n, 6))
+        self.mu = np.zeros(M)
+        self.jumped = np.zeros(M, dtype=np.bool_)
+        self.theta_prev = np.zeros(M)
+        self.theta_jump = np.zeros(M)
+
+    def reset(self, theta0=None):
+        M = self.graph.M
+        if theta0 is None or not self.hybrid:
+            self.theta[:] = 0.0
+        else:
+            t = np.asarray(theta0, float).ravel()
+            if t.shape != (M,) or not np.all(np.isfinite(t)):
+                raise Se3SyncError(f"theta0 must hold {M} finite values, got {t.tolist()}")
+            self.theta[:] = t
+
+    def step_state(self, S, h: float):
+        n = K.network_step(S, self.theta, self.edges, self.P, float(h), self.hybrid,
+                           self.u, self.mu, self.jumped, self.theta_prev, self.theta_jump)
+        if n == 0:
+            return self.u, ()
+        return self.u, tuple(
+            JumpEvent(int(k) + 1, float(self.theta_prev[k]), float(self.theta_jump[k]),
+                      float(self.mu[k]))
+            for k in np.flatnonzero(self.jumped))
+
+    def step(self, X, xi, h: float):
+        return self.step_state(pack_state(X, xi), h)
+
+    def U_edges(self, S) -> np.ndarray:
+        out = np.empty(self.graph.M)
+        K.network_U(np.asarray(S, float), self.theta, self.edges, self.P, out)
+        return out
+
+
+class GradientController(HybridController):
+    """The gradient-only baseline: θ ≡ 0 and no jumps (smooth, hence at best almost global)."""
+
+    hybrid = False
+
+    def __init__(self, graph: Graph, weighting: WeightingMatrix, gains: Gains,
+                 design: SynergyDesign | None = None, theta0=None):
+        super().__init__(graph, weighting, None, gains)
+
+
+def V_bar(graph: Graph, weighting: WeightingMatrix, design: SynergyDesign | None, gains: Gains,
+          S, theta, inertia) -> float:
+    """V̄ = k_X Σ_k U(X̄_k, θ_k) + Σ_i ξ_iᵀ 𝕀_i ξ_i (`V_def`); inertia (N, 6, 6) or (6, 6)."""
+    P = _params(weighting, design, gains)
+    S = np.asarray(S, float)
+    out = np.empty(graph.M)
+    K.network_U(S, np.asarray(theta, float) if design is not None else np.zeros(graph.M),
+                graph.edges, P, out)
+    xi = S[:, K.S_XI:K.S_XI + 6]
+    I = np.broadcast_to(np.asarray(inertia, float), (graph.n, 6, 6))
+    return float(gains.k_X * out.sum() + np.einsum("ni,nij,nj->", xi, I, xi))
+
+
+def jump_bound(V0: float, k_X: float, delta: float) -> int:
+    """⌈V̄(0)/(k_X δ)⌉, Theorem 1's bound on the number of jumps."""
+    return int(math.ceil(V0 / (k_X * delta)))
+
+
+class AgentStepper:
+    """The per-agent view: agent i computes u_i from what it can know.
+
+    It is handed its own edges only ({k: (positive, negative)}), and at each communication
+    point the relative poses X̄_k of those edges, its own ξ_i, its neighbours' ξ_j and the θ_k
+    of the edges its neighbours own (as published after their jumps). It owns θ_k, k ∈ 𝓜_i⁺.
+    Call `jump` on every agent, exchange `theta_owned`, then `wrench`, then `flow`; or `step`.
+    """
+
+    def __init__(self, agent: int, local_edges: dict, weighting: WeightingMatrix,
+                 design: SynergyDesign | None, gains: Gains, theta0: dict | None = None):
+        self.agent = int(agent)
+        self.hybrid = design is not None
+        self.local_edges = {int(k): (int(a), int(b)) for k, (a, b) in sorted(local_edges.items())}
+        for k, (a, b) in self.local_edges.items():
+            if self.agent not in (a, b):
+                raise Se3SyncError(f"agent {self.agent}: edge {k} = ({a}, {b}) is not one of its edges")
+        self.owned = [k for k, (a, _) in self.local_edges.items() if a == self.agent]
+        self.P = _params(weighting, design, gains)
+        self.theta = {k: float((theta0 or {}).get(k, 0.0)) if self.hybrid else 0.0 for k in self.owned}
+        self._Ra = np.empty((3, 3))
+        self._g = np.empty(6)
+        self._gn = np.empty(6)
+
+    @property
+    def theta_owned(self) -> dict:
+        return dict(self.theta)
+
+    @staticmethod
+    def _split(Xk):
+        Xk = np.asarray(Xk, float)
+        return np.ascontiguousarray(Xk[:3, :3]), np.ascontiguousarray(Xk[:3, 3])
+
+    def jump(self, rel: dict) -> tuple:
+        """Phase 1: jump every owned edge in its jump set. rel: {k: X̄_k (4, 4)}."""
+        if not self.hybrid:
+            return ()
+        events = []
+        for k in self.owned:
+            Rb, pb = self._split(rel[k])
+            mu, jstar = K.edge_mu(Rb, pb, self.theta[k], self.P, self._Ra)
+            if mu >= self.P[K.P_DELTA]:
+                before = self.theta[k]
+                self.theta[k] = float(self.P[K.P_THETA + jstar])
+                events.append(JumpEvent(k, before, self.theta[k], float(mu)))
+        return tuple(events)
+
+    def wrench(self, rel: dict, xi_i, xi_nbrs: dict, theta_nbrs: dict) -> np.ndarray:
+        """Phase 2: u_i from X̄_k (k ∈ 𝓜_i), ξ_i, {j: ξ_j} and {k: θ_k} for k ∈ 𝓜_i⁻."""
+        P = self.P
+        xi_i = np.asarray(xi_i, float)
+        u = -P[K.P_KXI] * xi_i
+        for k, (a, b) in self.local_edges.items():
+            Rb, pb = self._split(rel[k])
+            if a == self.agent:
+                th = self.theta[k]
+                other = b
+            else:
+                th = float(theta_nbrs[k]) if self.hybrid else 0.0
+                other = a
+            K.edge_gradient(Rb, pb, th, P, self._Ra, self._g)
+            xi_j = np.asarray(xi_nbrs[other], float)
+            if a == self.agent:
+                dxi = xi_i - xi_j
+                u = u + (-P[K.P_KX] * self._g - P[K.P_KE] * dxi)
+            else:
+                K.Ad_inv_T_apply(Rb, pb, self._g, self._gn)
+                dxi = xi_j - xi_i
+                u = u + (P[K.P_KX] * self._gn + P[K.P_KE] * dxi)
+        return u
+
+    def flow(self, rel: dict, h: float):
+        """Phase 3: θ_k ← θ_k − h k_θ ∇_θU for every owned edge."""
+        if not self.hybrid:
+            return
+        for k in self.owned:
+            Rb, pb = self._split(rel[k])
+            grad = K.edge_gradient(Rb, pb, self.theta[k], self.P, self._Ra, self._g)
+            self.theta[k] = self.theta[k] - h * self.P[K.P_KTH] * grad
+
+    def step(self, rel, xi_i, xi_nbrs, theta_nbrs, h):
+        events = self.jump(rel)
+        u = self.wrench(rel, xi_i, xi_nbrs, theta_nbrs)
+        self.flow(rel, h)
+        return u, events

@@ -1,0 +1,560 @@
+/*
+ * se3sync plant: model equations, RKMK4 integrator on SE(3) x R^6, validation.
+ * No FMI types here (see fmi2.c).  Every function works on the ModelData it is given;
+ * there is no global or static mutable data.
+ */
+#include "model.h"
+
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+/* ------------------------------------------------------------------ small helpers */
+
+#define PI_ 3.14159265358979323846
+
+static int is_finite(double x) { return isfinite(x); }
+
+static void cross(const double a[3], const double b[3], double c[3])
+{
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static void mat3_vec(const double M[9], const double x[3], double y[3])
+{
+    y[0] = M[0] * x[0] + M[1] * x[1] + M[2] * x[2];
+    y[1] = M[3] * x[0] + M[4] * x[1] + M[5] * x[2];
+    y[2] = M[6] * x[0] + M[7] * x[1] + M[8] * x[2];
+}
+
+static void mat3T_vec(const double M[9], const double x[3], double y[3])
+{
+    y[0] = M[0] * x[0] + M[3] * x[1] + M[6] * x[2];
+    y[1] = M[1] * x[0] + M[4] * x[1] + M[7] * x[2];
+    y[2] = M[2] * x[0] + M[5] * x[1] + M[8] * x[2];
+}
+
+/* unit quaternion (w, x, y, z) -> rotation matrix, row-major */
+static void R_from_quat(const double q[4], double R[9])
+{
+    const double w = q[0], x = q[1], y = q[2], z = q[3];
+    R[0] = 1.0 - 2.0 * (y * y + z * z);
+    R[1] = 2.0 * (x * y - w * z);
+    R[2] = 2.0 * (x * z + w * y);
+    R[3] = 2.0 * (x * y + w * z);
+    R[4] = 1.0 - 2.0 * (x * x + z * z);
+    R[5] = 2.0 * (y * z - w * x);
+    R[6] = 2.0 * (x * z - w * y);
+    R[7] = 2.0 * (y * z + w * x);
+    R[8] = 1.0 - 2.0 * (x * x + y * y);
+}
+
+void model_quat_from_R(const double R[9], double q[4])
+{
+    /* Shepperd (1978): pick the largest of 1+tr, 1+2R00-tr, ... to avoid cancellation */
+    const double tr = R[0] + R[4] + R[8];
+    double w, x, y, z, s;
+    if (tr >= R[0] && tr >= R[4] && tr >= R[8]) {
+        w = 0.5 * sqrt(1.0 + tr);
+        s = 0.25 / w;
+        x = (R[7] - R[5]) * s;
+        y = (R[2] - R[6]) * s;
+        z = (R[3] - R[1]) * s;
+    } else if (R[0] >= R[4] && R[0] >= R[8]) {
+        x = 0.5 * sqrt(1.0 + R[0] - R[4] - R[8]);
+        s = 0.25 / x;
+        w = (R[7] - R[5]) * s;
+        y = (R[1] + R[3]) * s;
+        z = (R[2] + R[6]) * s;
+    } else if (R[4] >= R[8]) {
+        y = 0.5 * sqrt(1.0 - R[0] + R[4] - R[8]);
+        s = 0.25 / y;
+        w = (R[2] - R[6]) * s;
+        x = (R[1] + R[3]) * s;
+        z = (R[5] + R[7]) * s;
+    } else {
+        z = 0.5 * sqrt(1.0 - R[0] - R[4] + R[8]);
+        s = 0.25 / z;
+        w = (R[3] - R[1]) * s;
+        x = (R[2] + R[6]) * s;
+        y = (R[5] + R[7]) * s;
+    }
+    if (w < 0.0) {
+        w = -w; x = -x; y = -y; z = -z;
+    }
+    q[0] = w; q[1] = x; q[2] = y; q[3] = z;
+}
+
+/* ------------------------------------------------------------------ variables */
+
+void model_set_defaults(ModelData *d)
+{
+    memset(d, 0, sizeof *d);
+    d->h_internal = 1e-4;
+    for (int b = 0; b < N_BODIES; b++) {
+        double *par = d->body[b].par;
+        par[PAR_M] = 1.0;
+        par[PAR_J + 0] = 1.0;
+        par[PAR_J + 4] = 1.0;
+        par[PAR_J + 8] = 1.0;
+        par[PAR_Q0] = 1.0;
+    }
+    model_preview(d);
+}
+
+double *model_lookup(ModelData *d, unsigned int vr, int *kind)
+{
+    *kind = VAR_UNKNOWN;
+    if (vr >= VR_GRAVITY && vr < VR_GRAVITY + 3) {
+        *kind = VAR_PARAMETER;
+        return &d->g[vr - VR_GRAVITY];
+    }
+    if (vr == VR_H_INTERNAL) {
+        *kind = VAR_PARAMETER;
+        return &d->h_internal;
+    }
+    if (vr < VR_BODY_BASE) return NULL;
+    {
+        const unsigned int k = vr - VR_BODY_BASE;
+        const unsigned int b = k / VR_BODY_STRIDE, off = k % VR_BODY_STRIDE;
+        if (b >= (unsigned int)N_BODIES) return NULL;
+        if (off < N_OUT) {
+            *kind = VAR_OUTPUT;
+            return &d->body[b].out[off];
+        }
+        if (off >= OFF_U && off < OFF_U + N_U) {
+            *kind = VAR_INPUT;
+            return &d->body[b].u[off - OFF_U];
+        }
+        if (off >= OFF_PAR && off < OFF_PAR + N_PAR) {
+            *kind = VAR_PARAMETER;
+            return &d->body[b].par[off - OFF_PAR];
+        }
+    }
+    return NULL;
+}
+
+void model_variable_name(unsigned int vr, char *buf, size_t n)
+{
+    if (vr >= VR_GRAVITY && vr < VR_GRAVITY + 3) {
+        snprintf(buf, n, "g[%u]", vr - VR_GRAVITY + 1);
+        return;
+    }
+    if (vr == VR_H_INTERNAL) {
+        snprintf(buf, n, "h_internal");
+        return;
+    }
+    if (vr >= VR_BODY_BASE) {
+        const unsigned int k = vr - VR_BODY_BASE;
+        const unsigned int b = k / VR_BODY_STRIDE, off = k % VR_BODY_STRIDE;
+        if (b < (unsigned int)N_BODIES) {
+            const unsigned int i = b + 1;
+            if (off < OFF_R) { snprintf(buf, n, "body[%u].p[%u]", i, off - OFF_P + 1); return; }
+            if (off < OFF_XI) {
+                snprintf(buf, n, "body[%u].R[%u,%u]", i, (off - OFF_R) / 3 + 1, (off - OFF_R) % 3 + 1);
+                return;
+            }
+            if (off < OFF_Q) { snprintf(buf, n, "body[%u].xi[%u]", i, off - OFF_XI + 1); return; }
+            if (off < N_OUT) { snprintf(buf, n, "body[%u].q[%u]", i, off - OFF_Q + 1); return; }
+            if (off >= OFF_U && off < OFF_U + N_U) { snprintf(buf, n, "body[%u].u[%u]", i, off - OFF_U + 1); return; }
+            if (off >= OFF_PAR && off < OFF_PAR + N_PAR) {
+                const unsigned int j = off - OFF_PAR;
+                if (j == PAR_M) { snprintf(buf, n, "body[%u].m", i); return; }
+                if (j < PAR_P0) {
+                    snprintf(buf, n, "body[%u].J[%u,%u]", i, (j - PAR_J) / 3 + 1, (j - PAR_J) % 3 + 1);
+                    return;
+                }
+                if (j < PAR_Q0) { snprintf(buf, n, "body[%u].p0[%u]", i, j - PAR_P0 + 1); return; }
+                if (j < PAR_XI0) { snprintf(buf, n, "body[%u].q0[%u]", i, j - PAR_Q0 + 1); return; }
+                snprintf(buf, n, "body[%u].xi0[%u]", i, j - PAR_XI0 + 1);
+                return;
+            }
+        }
+    }
+    snprintf(buf, n, "<unknown value reference %u>", vr);
+}
+
+/* ------------------------------------------------------------------ validation */
+
+/* eigenvalues of a symmetric 3x3 matrix, ascending (closed form, Smith 1961) */
+static void sym3_eigenvalues(const double A[9], double ev[3])
+{
+    const double p1 = A[1] * A[1] + A[2] * A[2] + A[5] * A[5];
+    const double q = (A[0] + A[4] + A[8]) / 3.0;
+    const double a0 = A[0] - q, a1 = A[4] - q, a2 = A[8] - q;
+    const double p2 = a0 * a0 + a1 * a1 + a2 * a2 + 2.0 * p1;
+    if (p2 <= 0.0) {
+        ev[0] = ev[1] = ev[2] = q;
+        return;
+    }
+    {
+        const double p = sqrt(p2 / 6.0);
+        const double b0 = a0 / p, b1 = a1 / p, b2 = a2 / p;
+        const double b01 = A[1] / p, b02 = A[2] / p, b12 = A[5] / p;
+        double r = 0.5 * (b0 * (b1 * b2 - b12 * b12) - b01 * (b01 * b2 - b12 * b02)
+                          + b02 * (b01 * b12 - b1 * b02));
+        double phi, e1, e3;
+        if (r <= -1.0) phi = PI_ / 3.0;
+        else if (r >= 1.0) phi = 0.0;
+        else phi = acos(r) / 3.0;
+        e1 = q + 2.0 * p * cos(phi);                 /* largest */
+        e3 = q + 2.0 * p * cos(phi + 2.0 * PI_ / 3.0); /* smallest */
+        ev[0] = e3;
+        ev[1] = 3.0 * q - e1 - e3;
+        ev[2] = e1;
+    }
+}
+
+static void sym3_inverse(const double A[9], double Ai[9])
+{
+    const double c00 = A[4] * A[8] - A[5] * A[7];
+    const double c01 = A[5] * A[6] - A[3] * A[8];
+    const double c02 = A[3] * A[7] - A[4] * A[6];
+    const double det = A[0] * c00 + A[1] * c01 + A[2] * c02;
+    const double id = 1.0 / det;
+    Ai[0] = c00 * id;
+    Ai[1] = (A[2] * A[7] - A[1] * A[8]) * id;
+    Ai[2] = (A[1] * A[5] - A[2] * A[4]) * id;
+    Ai[3] = c01 * id;
+    Ai[4] = (A[0] * A[8] - A[2] * A[6]) * id;
+    Ai[5] = (A[2] * A[3] - A[0] * A[5]) * id;
+    Ai[6] = c02 * id;
+    Ai[7] = (A[1] * A[6] - A[0] * A[7]) * id;
+    Ai[8] = (A[0] * A[4] - A[1] * A[3]) * id;
+}
+
+#define LOGF(status, cat, ...)                                    \
+    do {                                                          \
+        if (log) {                                                \
+            char msg_[512];                                       \
+            snprintf(msg_, sizeof msg_, __VA_ARGS__);             \
+            log(env, status, cat, msg_);                          \
+        }                                                         \
+    } while (0)
+
+#define Q0_TOL        1e-3   /* | |q0| - 1 | above this: refused */
+#define Q0_SILENT     1e-12  /* below this: normalised without a message */
+#define J_SYM_TOL     1e-9   /* relative asymmetry allowed in J */
+#define J_TRI_TOL     1e-9   /* relative slack in the triangle inequality */
+#define J_PD_TOL      1e-14  /* smallest eigenvalue must exceed this times the largest */
+
+static int validate_body(const ModelData *d, int b, ModelLogger log, void *env, double Jsym[9],
+                         double q0n[4], int *normalised)
+{
+    const double *par = d->body[b].par;
+    const int i = b + 1;
+    char name[64];
+    int ok = 1;
+    *normalised = 0;
+    for (int j = 0; j < N_PAR; j++) {
+        if (!is_finite(par[j])) {
+            model_variable_name(VR_BODY_BASE + VR_BODY_STRIDE * (unsigned)b + OFF_PAR + (unsigned)j, name,
+                                sizeof name);
+            LOGF(MODEL_ERROR, "logStatusError", "%s = %g is not finite", name, par[j]);
+            ok = 0;
+        }
+    }
+    if (!ok) return 0;
+    if (!(par[PAR_M] > 0.0)) {
+        LOGF(MODEL_ERROR, "logStatusError", "body[%d].m = %g must be > 0", i, par[PAR_M]);
+        ok = 0;
+    }
+    {
+        const double *J = par + PAR_J;
+        double scale = 0.0, asym = 0.0, ev[3], tr;
+        for (int k = 0; k < 9; k++) scale = fmax(scale, fabs(J[k]));
+        for (int r = 0; r < 3; r++)
+            for (int c = 0; c < 3; c++) asym = fmax(asym, fabs(J[3 * r + c] - J[3 * c + r]));
+        if (scale == 0.0) {
+            LOGF(MODEL_ERROR, "logStatusError", "body[%d].J is zero (not positive definite)", i);
+            return 0;
+        }
+        if (asym > J_SYM_TOL * scale) {
+            LOGF(MODEL_ERROR, "logStatusError",
+                 "body[%d].J is not symmetric (max |J[r,c]-J[c,r]| = %g > %g * max|J|)", i, asym, J_SYM_TOL);
+            return 0;
+        }
+        for (int r = 0; r < 3; r++)
+            for (int c = 0; c < 3; c++) Jsym[3 * r + c] = 0.5 * (J[3 * r + c] + J[3 * c + r]);
+        sym3_eigenvalues(Jsym, ev);
+        if (!(ev[0] > J_PD_TOL * fabs(ev[2])) || !(ev[2] > 0.0)) {
+            LOGF(MODEL_ERROR, "logStatusError",
+                 "body[%d].J is not positive definite (eigenvalues %.17g, %.17g, %.17g)", i, ev[0], ev[1], ev[2]);
+            ok = 0;
+        } else {
+            tr = ev[0] + ev[1] + ev[2];
+            /* ev ascending: only the largest can break the triangle inequality */
+            if (ev[2] > ev[0] + ev[1] + J_TRI_TOL * tr) {
+                LOGF(MODEL_ERROR, "logStatusError",
+                     "body[%d].J: principal moments %.17g, %.17g, %.17g break the triangle inequality "
+                     "(%.17g > %.17g + %.17g)", i, ev[0], ev[1], ev[2], ev[2], ev[0], ev[1]);
+                ok = 0;
+            }
+        }
+    }
+    {
+        const double *q = par + PAR_Q0;
+        const double nq = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+        if (!(nq > 0.0) || fabs(nq - 1.0) > Q0_TOL) {
+            LOGF(MODEL_ERROR, "logStatusError",
+                 "body[%d].q0 = (%g, %g, %g, %g) has norm %g: not a unit quaternion (tolerance %g)", i, q[0], q[1],
+                 q[2], q[3], nq, Q0_TOL);
+            ok = 0;
+        } else {
+            for (int k = 0; k < 4; k++) q0n[k] = q[k] / nq;
+            if (fabs(nq - 1.0) > Q0_SILENT) *normalised = 1;
+        }
+    }
+    return ok;
+}
+
+static void set_initial_state(Body *B, const double q0n[4])
+{
+    const double *par = B->par;
+    double *out = B->out;
+    memcpy(out + OFF_P, par + PAR_P0, 3 * sizeof(double));
+    R_from_quat(q0n, out + OFF_R);
+    memcpy(out + OFF_XI, par + PAR_XI0, 6 * sizeof(double));
+    model_quat_from_R(out + OFF_R, out + OFF_Q);
+}
+
+int model_initialize(ModelData *d, ModelLogger log, void *env)
+{
+    int ok = 1, warn = 0;
+    for (int k = 0; k < 3; k++) {
+        if (!is_finite(d->g[k])) {
+            LOGF(MODEL_ERROR, "logStatusError", "g[%d] = %g is not finite", k + 1, d->g[k]);
+            ok = 0;
+        }
+    }
+    if (!is_finite(d->h_internal) || !(d->h_internal > 0.0)) {
+        LOGF(MODEL_ERROR, "logStatusError", "h_internal = %g must be finite and > 0", d->h_internal);
+        ok = 0;
+    }
+    for (int b = 0; b < N_BODIES; b++) {
+        double Jsym[9], q0n[4];
+        int normalised;
+        if (!validate_body(d, b, log, env, Jsym, q0n, &normalised)) ok = 0;
+    }
+    if (!ok) return MODEL_ERROR;
+    for (int b = 0; b < N_BODIES; b++) {
+        Body *B = &d->body[b];
+        double Jsym[9], q0n[4];
+        int normalised;
+        validate_body(d, b, NULL, NULL, Jsym, q0n, &normalised);
+        if (normalised) {
+            const double *q = B->par + PAR_Q0;
+            LOGF(MODEL_WARNING, "logStatusWarning",
+                 "body[%d].q0 = (%.17g, %.17g, %.17g, %.17g) was normalised to unit length", b + 1, q[0], q[1], q[2],
+                 q[3]);
+            warn = 1;
+        }
+        memcpy(B->J, Jsym, sizeof Jsym);
+        sym3_inverse(Jsym, B->Jinv);
+        set_initial_state(B, q0n);
+    }
+    return warn ? MODEL_WARNING : MODEL_OK;
+}
+
+void model_preview(ModelData *d)
+{
+    for (int b = 0; b < N_BODIES; b++) {
+        Body *B = &d->body[b];
+        const double *q = B->par + PAR_Q0;
+        double nq = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+        double q0n[4] = {1.0, 0.0, 0.0, 0.0};
+        if (nq > 0.0 && is_finite(nq))
+            for (int k = 0; k < 4; k++) q0n[k] = q[k] / nq;
+        set_initial_state(B, q0n);
+    }
+}
+
+/* ------------------------------------------------------------------ integrator */
+
+/*
+ * Coefficients of exp on so(3)/se(3) for theta^2 = |phi|^2:
+ *   A = sin(t)/t,  B = (1 - cos t)/t^2,  C = (t - sin t)/t^3
+ * with Taylor series (through t^6, truncation < 1e-22 relative) for t < 1e-2, where the
+ * closed forms lose digits.
+ */
+static void exp_coeffs(double th2, double *A, double *B, double *C)
+{
+    if (th2 < 1e-4) {
+        *A = 1.0 - th2 / 6.0 * (1.0 - th2 / 20.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0)));
+        *B = 0.5 * (1.0 - th2 / 12.0 * (1.0 - th2 / 30.0 * (1.0 - th2 / 56.0)));
+        *C = (1.0 - th2 / 20.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0))) / 6.0;
+    } else {
+        const double th = sqrt(th2), s = sin(th), hs = sin(0.5 * th);
+        *A = s / th;
+        *B = 2.0 * hs * hs / th2;
+        *C = (th - s) / (th2 * th);
+    }
+}
+
+/* body-frame acceleration a = I^{-1}(ad_xi^T I xi + u) + [0; R^T g] */
+static void accel(const Body *B, const double xi[6], const double *gb, double a[6])
+{
+    const double *w = xi, *v = xi + 3;
+    double Jw[3], t[3], vw[3];
+    const double im = 1.0 / B->par[PAR_M];
+    mat3_vec(B->J, w, Jw);
+    cross(Jw, w, t);
+    t[0] += B->u[0];
+    t[1] += B->u[1];
+    t[2] += B->u[2];
+    mat3_vec(B->Jinv, t, a);
+    cross(v, w, vw);
+    a[3] = vw[0] + B->u[3] * im;
+    a[4] = vw[1] + B->u[4] * im;
+    a[5] = vw[2] + B->u[5] * im;
+    if (gb) {
+        a[3] += gb[0];
+        a[4] += gb[1];
+        a[5] += gb[2];
+    }
+}
+
+/* Lie bracket on se(3): [a, b] = ad_a b = [wa x wb; wa x vb + va x wb] */
+static void bracket(const double a[6], const double b[6], double c[6])
+{
+    double t1[3], t2[3];
+    cross(a, b, c);
+    cross(a, b + 3, t1);
+    cross(a + 3, b, t2);
+    c[3] = t1[0] + t2[0];
+    c[4] = t1[1] + t2[1];
+    c[5] = t1[2] + t2[2];
+}
+
+/* dexp^{-1}_{-Theta}(xi) = xi + [Theta, xi]/2 + [Theta, [Theta, xi]]/12 (+ O(Theta^4)) */
+static void dexpinv(const double th[6], const double xi[6], double out[6])
+{
+    double c1[6], c2[6];
+    bracket(th, xi, c1);
+    bracket(th, c1, c2);
+    for (int k = 0; k < 6; k++) out[k] = xi[k] + 0.5 * c1[k] + c2[k] / 12.0;
+}
+
+/* gb = exp(phi)^T g0 (gravity in the frame of R0 exp(phi), given g0 = R0^T g) */
+static void rotate_gravity(const double phi[3], const double g0[3], double gb[3])
+{
+    double A, B, C, c1[3], c2[3];
+    exp_coeffs(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2], &A, &B, &C);
+    (void)C;
+    cross(phi, g0, c1);
+    cross(phi, c1, c2);
+    for (int k = 0; k < 3; k++) gb[k] = g0[k] - A * c1[k] + B * c2[k];
+}
+
+/* X <- X exp(theta^) on SE(3); R <- R + R (exp(phi) - I) keeps the rounding small */
+static void se3_update(double *p, double *R, const double th[6])
+{
+    const double *phi = th, *rho = th + 3;
+    const double x = phi[0], y = phi[1], z = phi[2];
+    const double th2 = x * x + y * y + z * z;
+    double A, B, C, D[9], c1[3], c2[3], Vr[3], dp[3], Rn[9];
+    exp_coeffs(th2, &A, &B, &C);
+    D[0] = -B * (y * y + z * z);
+    D[1] = -A * z + B * x * y;
+    D[2] = A * y + B * x * z;
+    D[3] = A * z + B * x * y;
+    D[4] = -B * (x * x + z * z);
+    D[5] = -A * x + B * y * z;
+    D[6] = -A * y + B * x * z;
+    D[7] = A * x + B * y * z;
+    D[8] = -B * (x * x + y * y);
+    cross(phi, rho, c1);
+    cross(phi, c1, c2);
+    for (int k = 0; k < 3; k++) Vr[k] = rho[k] + B * c1[k] + C * c2[k];
+    mat3_vec(R, Vr, dp);
+    p[0] += dp[0];
+    p[1] += dp[1];
+    p[2] += dp[2];
+    for (int r = 0; r < 3; r++)
+        for (int c = 0; c < 3; c++)
+            Rn[3 * r + c] = R[3 * r + c]
+                            + (R[3 * r] * D[c] + R[3 * r + 1] * D[3 + c] + R[3 * r + 2] * D[6 + c]);
+    memcpy(R, Rn, sizeof Rn);
+}
+
+/* one RKMK4 step of length h for one body */
+static void rkmk4_step(Body *Bd, const double *gw, double h)
+{
+    double *p = Bd->out + OFF_P, *R = Bd->out + OFF_R, *xi = Bd->out + OFF_XI;
+    double g0[3], gb[3], *gp = NULL;
+    double k1v[6], k2x[6], k2v[6], k3x[6], k3v[6], k4x[6], k4v[6], th[6], xs[6];
+    const double h2 = 0.5 * h, h6 = h / 6.0;
+    if (gw) {
+        mat3T_vec(R, gw, g0);
+        gp = gb;
+        memcpy(gb, g0, sizeof g0);
+    }
+    /* stage 1: Theta = 0, K1 = F(y0) */
+    accel(Bd, xi, gp, k1v);
+    /* stage 2: Theta = h/2 K1 */
+    for (int k = 0; k < 6; k++) {
+        th[k] = h2 * xi[k];
+        xs[k] = xi[k] + h2 * k1v[k];
+    }
+    if (gw) rotate_gravity(th, g0, gb);
+    dexpinv(th, xs, k2x);
+    accel(Bd, xs, gp, k2v);
+    /* stage 3: Theta = h/2 K2 */
+    for (int k = 0; k < 6; k++) {
+        th[k] = h2 * k2x[k];
+        xs[k] = xi[k] + h2 * k2v[k];
+    }
+    if (gw) rotate_gravity(th, g0, gb);
+    dexpinv(th, xs, k3x);
+    accel(Bd, xs, gp, k3v);
+    /* stage 4: Theta = h K3 */
+    for (int k = 0; k < 6; k++) {
+        th[k] = h * k3x[k];
+        xs[k] = xi[k] + h * k3v[k];
+    }
+    if (gw) rotate_gravity(th, g0, gb);
+    dexpinv(th, xs, k4x);
+    accel(Bd, xs, gp, k4v);
+    /* update */
+    for (int k = 0; k < 6; k++) {
+        th[k] = h6 * (xi[k] + 2.0 * k2x[k] + 2.0 * k3x[k] + k4x[k]);
+        xs[k] = xi[k] + h6 * (k1v[k] + 2.0 * k2v[k] + 2.0 * k3v[k] + k4v[k]);
+    }
+    se3_update(p, R, th);
+    memcpy(xi, xs, sizeof xs);
+}
+
+int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
+{
+    const double ratio = h / d->h_internal;
+    double n_d, hs;
+    long long n;
+    int ok = 1;
+    const double *gw = (d->g[0] != 0.0 || d->g[1] != 0.0 || d->g[2] != 0.0) ? d->g : NULL;
+    if (!(ratio < 1e15)) {
+        LOGF(MODEL_ERROR, "logStatusError", "communication step %g needs too many internal steps of %g", h,
+             d->h_internal);
+        return MODEL_ERROR;
+    }
+    n_d = ceil(ratio - 1e-9);
+    n = n_d < 1.0 ? 1 : (long long)n_d;
+    hs = h / (double)n;
+    for (int b = 0; b < N_BODIES; b++) {
+        Body *B = &d->body[b];
+        for (long long s = 0; s < n; s++) rkmk4_step(B, gw, hs);
+        model_quat_from_R(B->out + OFF_R, B->out + OFF_Q);
+        for (int k = 0; k < N_OUT; k++) {
+            if (!is_finite(B->out[k])) {
+                ok = 0;
+                LOGF(MODEL_ERROR, "logStatusError", "body[%d]: state is no longer finite at t = %g", b + 1,
+                     d->time + h);
+                break;
+            }
+        }
+    }
+    if (!ok) return MODEL_ERROR;
+    d->time += h;
+    return MODEL_OK;
+}

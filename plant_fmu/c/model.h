@@ -1,0 +1,103 @@
+/*
+ * se3sync plant: N rigid bodies on SE(3) -- model equations, integrator and parameter
+ * validation.  This file knows nothing about FMI; fmi2.c wraps it.
+ *
+ * Per body (body frame velocity xi = [w; v], wrench u = [tau; f]):
+ *     dX/dt = X xi^                  (X = [[R, p], [0, 1]])
+ *     J dw/dt = (J w) x w + tau
+ *     m dv/dt = m v x w + f + m R^T g
+ *
+ * Integrator: Runge-Kutta-Munthe-Kaas of order 4 (classical RK4 tableau) on the group
+ * SE(3) x R^6, with dexp^{-1} truncated after the second commutator.  See README.md.
+ */
+#ifndef SE3SYNC_MODEL_H
+#define SE3SYNC_MODEL_H
+
+#include <stddef.h>
+
+#ifndef N_BODIES
+#include "config.h"
+#endif
+#ifndef N_BODIES
+#define N_BODIES 1
+#endif
+#ifndef FMU_GUID
+#define FMU_GUID "{00000000-0000-0000-0000-000000000000}"
+#endif
+
+#if N_BODIES < 1
+#error "N_BODIES must be >= 1"
+#endif
+
+/* ---- value reference layout (fixed contract, mirrored by plant_fmu/layout.py) ---- */
+#define VR_GRAVITY      1u   /* g[1..3] at 1..3 */
+#define VR_H_INTERNAL   4u
+#define VR_BODY_BASE    1000u
+#define VR_BODY_STRIDE  100u
+
+#define OFF_P    0   /* p[3]  */
+#define OFF_R    3   /* R[9] row-major */
+#define OFF_XI   12  /* xi[6] = [w; v] */
+#define OFF_Q    18  /* q[4], w first, w >= 0 */
+#define N_OUT    22
+#define OFF_U    30  /* u[6] = [tau; f] */
+#define N_U      6
+#define OFF_PAR  40  /* parameters: m, J[9], p0[3], q0[4], xi0[6] */
+#define N_PAR    23
+#define PAR_M    0
+#define PAR_J    1
+#define PAR_P0   10
+#define PAR_Q0   13
+#define PAR_XI0  17
+
+/* status codes of the model layer (numerically equal to fmi2OK / fmi2Warning / fmi2Error) */
+#define MODEL_OK      0
+#define MODEL_WARNING 1
+#define MODEL_ERROR   3
+
+typedef struct {
+    double out[N_OUT];  /* p, R (row-major), xi, q -- the state and its outputs */
+    double u[N_U];      /* input wrench, body frame, held constant over a step */
+    double par[N_PAR];  /* parameters as set by the importer */
+    double J[9];        /* symmetrised inertia (valid after model_initialize) */
+    double Jinv[9];     /* its inverse */
+} Body;
+
+typedef struct {
+    double g[3];        /* gravity, world frame */
+    double h_internal;  /* internal integration step */
+    double time;        /* current time */
+    Body body[N_BODIES];
+} ModelData;
+
+/* kinds of variables returned by model_lookup */
+enum { VAR_UNKNOWN = 0, VAR_OUTPUT, VAR_INPUT, VAR_PARAMETER };
+
+typedef void (*ModelLogger)(void *env, int status, const char *category, const char *message);
+
+void model_set_defaults(ModelData *d);
+
+/* Pointer to the Real variable with value reference vr, or NULL; *kind receives its kind. */
+double *model_lookup(ModelData *d, unsigned int vr, int *kind);
+
+/* Writes the structured name of vr (e.g. "body[2].u[4]") into buf. */
+void model_variable_name(unsigned int vr, char *buf, size_t n);
+
+/* Validates every parameter and, if valid, sets the state from the initial values.
+ * Returns MODEL_OK, MODEL_WARNING (something was corrected, e.g. q0 normalised) or
+ * MODEL_ERROR (nothing changed); each problem is reported through log. */
+int model_initialize(ModelData *d, ModelLogger log, void *env);
+
+/* State and outputs computed from the current parameters without validation
+ * (used to answer fmi2GetReal during initialization mode). */
+void model_preview(ModelData *d);
+
+/* Advances all bodies by h (h > 0 checked by the caller) in n = ceil(h/h_internal - 1e-9)
+ * equal substeps.  Returns MODEL_ERROR (and leaves the state unchanged) if the result is
+ * not finite. */
+int model_do_step(ModelData *d, double h, ModelLogger log, void *env);
+
+/* quaternion (w first, w >= 0) of a rotation matrix, Shepperd's method */
+void model_quat_from_R(const double R[9], double q[4]);
+
+#endif
