@@ -128,14 +128,23 @@ def ad(xi):
 
 
 def _coeffs(theta):
-    """A = sinθ/θ, B = (1−cosθ)/θ², C = (θ−sinθ)/θ³, each with a series near 0."""
+    """A = sinθ/θ, B = (1−cosθ)/θ², C = (θ−sinθ)/θ³.
+
+    B is formed as 2 sin²(θ/2)/θ², which has no cancellation. C's closed form loses ~6ε/θ²
+    relative, so below θ = 0.1 it is its Taylor series (truncation < 1e-20 there).
+    """
     t = np.asarray(theta, dtype=float)
     t2 = t * t
-    small = np.abs(t) < _SMALL
-    safe = np.where(small, 1.0, t)
-    A = np.where(small, 1 - t2 / 6 + t2 * t2 / 120, np.sin(safe) / safe)
-    B = np.where(small, 0.5 - t2 / 24 + t2 * t2 / 720, (1 - np.cos(safe)) / safe**2)
-    C = np.where(small, 1 / 6 - t2 / 120 + t2 * t2 / 5040, (safe - np.sin(safe)) / safe**3)
+    tiny = np.abs(t) < _SMALL
+    safe = np.where(tiny, 1.0, t)
+    A = np.where(tiny, 1 - t2 / 6 + t2 * t2 / 120, np.sin(safe) / safe)
+    sh = np.sin(0.5 * safe) / safe
+    B = np.where(tiny, 0.5 - t2 / 24 + t2 * t2 / 720, 2 * sh * sh)
+    small = np.abs(t) < 0.1
+    safe_c = np.where(small, 1.0, t)
+    C_series = 1 / 6 - t2 * (1 / 120 - t2 * (1 / 5040 - t2 * (1 / 362880 - t2 * (
+        1 / 39916800 - t2 / 6227020800))))
+    C = np.where(small, C_series, (safe_c - np.sin(safe_c)) / safe_c**3)
     return A, B, C
 
 
@@ -207,9 +216,12 @@ def log_se3(X):
     theta = np.linalg.norm(w, axis=-1)
     A, B, _ = _coeffs(theta)
     # V⁻¹ = I − ½ω^× + D (ω^×)², D = (1 − A/(2B))/θ² with series 1/12 + θ²/720 + θ⁴/30240.
+    # Below 0.1 rad the closed form cancels (1 − A/2B ≈ θ²/12): use the series of
+    # (1 − (θ/2)cot(θ/2))/θ², whose next term is below 1e-20 there.
     t2 = theta * theta
-    small = theta < 1e-2
-    D = np.where(small, 1 / 12 + t2 / 720 + t2 * t2 / 30240,
+    small = theta < 0.1
+    D_series = 1 / 12 + t2 * (1 / 720 + t2 * (1 / 30240 + t2 * (1 / 1209600 + t2 / 47900160)))
+    D = np.where(small, D_series,
                  (1 - A / (2 * np.where(B == 0, 1.0, B))) / np.where(small, 1.0, t2))
     W = skew(w)
     Vinv = np.eye(3) - 0.5 * W + D[..., None, None] * (W @ W)
