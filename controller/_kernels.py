@@ -29,8 +29,9 @@ P_KX = 31
 P_KXI = 32
 P_KE = 33
 P_KTH = 34
-P_M = 35       # m = |Θ|
-P_THETA = 36   # Θ (m), then K_j = W R_a(θ_j)ᵀ (9 m), then γθ_j²/2 (m)
+P_C = 35       # c = b/d, 3 (so that no edge divides)
+P_M = 38       # m = |Θ|
+P_THETA = 39   # Θ (m), then K_j = W R_a(θ_j)ᵀ (9 m), then γθ_j²/2 (m)
 
 S_P = 0
 S_R = 3
@@ -56,6 +57,7 @@ def pack(A, b, d, u_c1, u_c2, gamma, delta, Theta, k_X, k_xi, k_e, k_theta):
     P[P_DELTA] = delta
     P[P_TRW] = np.trace(W)
     P[P_KX], P[P_KXI], P[P_KE], P[P_KTH] = k_X, k_xi, k_e, k_theta
+    P[P_C:P_C + 3] = b / d
     P[P_M] = m
     P[P_THETA:P_THETA + m] = Theta
     Ra = np.empty((3, 3))
@@ -66,7 +68,7 @@ def pack(A, b, d, u_c1, u_c2, gamma, delta, Theta, k_X, k_xi, k_e, k_theta):
     return P
 
 
-@jit
+@jit(inline=True)
 def rot_axis_angle(theta, u0, u1, u2, Ra):
     """ℛ_a(θ, u) = I + sinθ u^× + (1 − cosθ)(u^×)² into Ra; (u^×)² = uuᵀ − I for unit u."""
     sh = math.sin(0.5 * theta)
@@ -84,7 +86,7 @@ def rot_axis_angle(theta, u0, u1, u2, Ra):
     Ra[2, 2] = 1.0 + c1 * (u2 * u2 - 1.0)
 
 
-@jit
+@jit(inline=True)
 def rel_pose(S, i, j, Rb, pb):
     """X̄ = X_j⁻¹ X_i: R̄ = R_jᵀ R_i, p̄ = R_jᵀ (p_i − p_j)."""
     for a in range(3):
@@ -100,44 +102,57 @@ def rel_pose(S, i, j, Rb, pb):
         pb[a] = acc
 
 
-@jit
-def _trace_W_R(P, Rb, Ra):
-    """tr(W R̄ R_a)."""
+@jit(inline=True)
+def mat_mul3(X, Y, out):
+    """out = X Y for 3×3 arrays."""
+    for a in range(3):
+        x0 = X[a, 0]
+        x1 = X[a, 1]
+        x2 = X[a, 2]
+        out[a, 0] = x0 * Y[0, 0] + x1 * Y[1, 0] + x2 * Y[2, 0]
+        out[a, 1] = x0 * Y[0, 1] + x1 * Y[1, 1] + x2 * Y[2, 1]
+        out[a, 2] = x0 * Y[0, 2] + x1 * Y[1, 2] + x2 * Y[2, 2]
+
+
+@jit(inline=True)
+def prepare(Rb, theta, P, Ra, Rg):
+    """R_a = ℛ_a(θ, u_c1) and R_g = R̄ R_a, the rotation of Γ = X̄ 𝒯_uc(θ): shared by μ_U,
+    U and the gradients so that each edge evaluates sin and cos once."""
+    rot_axis_angle(theta, P[P_UC1], P[P_UC1 + 1], P[P_UC1 + 2], Ra)
+    mat_mul3(Rb, Ra, Rg)
+
+
+@jit(inline=True)
+def _trace_W(P, Rg):
+    """tr(W R_g) (W symmetric)."""
     acc = 0.0
     for a in range(3):
         for c in range(3):
-            rg = Rb[a, 0] * Ra[0, c] + Rb[a, 1] * Ra[1, c] + Rb[a, 2] * Ra[2, c]
-            acc += P[P_W + 3 * c + a] * rg  # W symmetric: Σ W[c,a] (R̄R_a)[a,c]
+            acc += P[P_W + 3 * a + c] * Rg[a, c]
     return acc
 
 
-@jit
-def edge_U(Rb, pb, theta, P, Ra):
+@jit(inline=True)
+def U_core(Rb, pb, theta, P, Rg):
     """U(X̄, θ) by `U_explicit`: tr(W(I − R̄ℛ_a)) + γθ²/2 + d/2‖p̄ − (I − R̄)b/d‖²."""
-    rot_axis_angle(theta, P[P_UC1], P[P_UC1 + 1], P[P_UC1 + 2], Ra)
-    d = P[P_D]
     e2 = 0.0
     for a in range(3):
-        ca = P[P_B + a] / d
-        ea = pb[a] - ca
-        for c in range(3):
-            ea += Rb[a, c] * P[P_B + c] / d
+        ea = pb[a] - P[P_C + a] + Rb[a, 0] * P[P_C] + Rb[a, 1] * P[P_C + 1] + Rb[a, 2] * P[P_C + 2]
         e2 += ea * ea
-    return P[P_TRW] - _trace_W_R(P, Rb, Ra) + 0.5 * P[P_GAMMA] * theta * theta + 0.5 * d * e2
+    return P[P_TRW] - _trace_W(P, Rg) + 0.5 * P[P_GAMMA] * theta * theta + 0.5 * P[P_D] * e2
 
 
-@jit
-def edge_mu(Rb, pb, theta, P, Ra):
+@jit(inline=True)
+def mu_core(Rb, theta, P, Rg):
     """(μ_U, j*) with μ_U = U(X̄, θ) − min_{θ'∈Θ} U(X̄, θ') (`mu_U_def`) and j* the index of
     the minimiser in Θ (`eqn: gtheta`).
 
     Terms of U that do not depend on θ cancel in μ_U and are left out. Ties go to the first
     element of Θ: a later candidate must be lower by more than rounding to win.
     """
-    rot_axis_angle(theta, P[P_UC1], P[P_UC1 + 1], P[P_UC1 + 2], Ra)
-    s_cur = -_trace_W_R(P, Rb, Ra) + 0.5 * P[P_GAMMA] * theta * theta
+    s_cur = -_trace_W(P, Rg) + 0.5 * P[P_GAMMA] * theta * theta
     m = int(P[P_M])
-    best = np.inf
+    best = 0.0
     jstar = 0
     for j in range(m):
         off = P_THETA + m + 9 * j
@@ -152,8 +167,8 @@ def edge_mu(Rb, pb, theta, P, Ra):
     return s_cur - best, jstar
 
 
-@jit
-def edge_gradient(Rb, pb, theta, P, Ra, g):
+@jit(inline=True)
+def gradient_core(Rb, pb, theta, P, Ra, Rg, g):
     """ψ̄_∇(X̄, θ) (`st_b`) into g (6,); returns ∇_θU(X̄, θ) (`st_c`).
 
     With Γ = X̄ 𝒯_uc(θ) = 𝒯(R_g, p_g), c = b/d and q = R_gᵀp_g = R_aᵀ(c + R̄ᵀp̄) − c:
@@ -161,14 +176,13 @@ def edge_gradient(Rb, pb, theta, P, Ra, g):
         ψ̄_∇ = Ad⁻ᵀ_{𝒯_uc(θ)} [a; w] = [R_a a + p_T × (R_a w); R_a w],  p_T = (I − R_a)c
         ∇_θU = γθ + 2 (u_c1·a + u_c2·w)
     """
-    rot_axis_angle(theta, P[P_UC1], P[P_UC1 + 1], P[P_UC1 + 2], Ra)
     d = P[P_D]
     b0 = P[P_B]
     b1 = P[P_B + 1]
     b2 = P[P_B + 2]
-    c0 = b0 / d
-    c1 = b1 / d
-    c2 = b2 / d
+    c0 = P[P_C]
+    c1 = P[P_C + 1]
+    c2 = P[P_C + 2]
     # y = c + R̄ᵀ p̄
     y0 = c0 + Rb[0, 0] * pb[0] + Rb[1, 0] * pb[1] + Rb[2, 0] * pb[2]
     y1 = c1 + Rb[0, 1] * pb[0] + Rb[1, 1] * pb[1] + Rb[2, 1] * pb[2]
@@ -177,36 +191,26 @@ def edge_gradient(Rb, pb, theta, P, Ra, g):
     q0 = Ra[0, 0] * y0 + Ra[1, 0] * y1 + Ra[2, 0] * y2 - c0
     q1 = Ra[0, 1] * y0 + Ra[1, 1] * y1 + Ra[2, 1] * y2 - c1
     q2 = Ra[0, 2] * y0 + Ra[1, 2] * y1 + Ra[2, 2] * y2 - c2
-    # R_g = R̄ R_a, kept in g's scratch only as needed: M = R_gᵀ A, ψ(M) needs six entries.
-    Rg00 = Rb[0, 0] * Ra[0, 0] + Rb[0, 1] * Ra[1, 0] + Rb[0, 2] * Ra[2, 0]
-    Rg01 = Rb[0, 0] * Ra[0, 1] + Rb[0, 1] * Ra[1, 1] + Rb[0, 2] * Ra[2, 1]
-    Rg02 = Rb[0, 0] * Ra[0, 2] + Rb[0, 1] * Ra[1, 2] + Rb[0, 2] * Ra[2, 2]
-    Rg10 = Rb[1, 0] * Ra[0, 0] + Rb[1, 1] * Ra[1, 0] + Rb[1, 2] * Ra[2, 0]
-    Rg11 = Rb[1, 0] * Ra[0, 1] + Rb[1, 1] * Ra[1, 1] + Rb[1, 2] * Ra[2, 1]
-    Rg12 = Rb[1, 0] * Ra[0, 2] + Rb[1, 1] * Ra[1, 2] + Rb[1, 2] * Ra[2, 2]
-    Rg20 = Rb[2, 0] * Ra[0, 0] + Rb[2, 1] * Ra[1, 0] + Rb[2, 2] * Ra[2, 0]
-    Rg21 = Rb[2, 0] * Ra[0, 1] + Rb[2, 1] * Ra[1, 1] + Rb[2, 2] * Ra[2, 1]
-    Rg22 = Rb[2, 0] * Ra[0, 2] + Rb[2, 1] * Ra[1, 2] + Rb[2, 2] * Ra[2, 2]
     A00 = P[P_A]
     A01 = P[P_A + 1]
     A02 = P[P_A + 2]
     A11 = P[P_A + 4]
     A12 = P[P_A + 5]
     A22 = P[P_A + 8]
-    # M[r, s] = Σ_e R_g[e, r] A[e, s]
-    M21 = Rg02 * A01 + Rg12 * A11 + Rg22 * A12
-    M12 = Rg01 * A02 + Rg11 * A12 + Rg21 * A22
-    M02 = Rg00 * A02 + Rg10 * A12 + Rg20 * A22
-    M20 = Rg02 * A00 + Rg12 * A01 + Rg22 * A02
-    M10 = Rg01 * A00 + Rg11 * A01 + Rg21 * A02
-    M01 = Rg00 * A01 + Rg10 * A11 + Rg20 * A12
+    # M = R_gᵀ A, M[r, s] = Σ_e R_g[e, r] A[e, s]; ψ(M) needs six entries
+    M21 = Rg[0, 2] * A01 + Rg[1, 2] * A11 + Rg[2, 2] * A12
+    M12 = Rg[0, 1] * A02 + Rg[1, 1] * A12 + Rg[2, 1] * A22
+    M02 = Rg[0, 0] * A02 + Rg[1, 0] * A12 + Rg[2, 0] * A22
+    M20 = Rg[0, 2] * A00 + Rg[1, 2] * A01 + Rg[2, 2] * A02
+    M10 = Rg[0, 1] * A00 + Rg[1, 1] * A01 + Rg[2, 1] * A02
+    M01 = Rg[0, 0] * A01 + Rg[1, 0] * A11 + Rg[2, 0] * A12
     a0 = -0.5 * (M21 - M12) + 0.5 * (b1 * q2 - b2 * q1)
     a1 = -0.5 * (M02 - M20) + 0.5 * (b2 * q0 - b0 * q2)
     a2 = -0.5 * (M10 - M01) + 0.5 * (b0 * q1 - b1 * q0)
     # R_gᵀ b
-    r0 = Rg00 * b0 + Rg10 * b1 + Rg20 * b2
-    r1 = Rg01 * b0 + Rg11 * b1 + Rg21 * b2
-    r2 = Rg02 * b0 + Rg12 * b1 + Rg22 * b2
+    r0 = Rg[0, 0] * b0 + Rg[1, 0] * b1 + Rg[2, 0] * b2
+    r1 = Rg[0, 1] * b0 + Rg[1, 1] * b1 + Rg[2, 1] * b2
+    r2 = Rg[0, 2] * b0 + Rg[1, 2] * b1 + Rg[2, 2] * b2
     w0 = 0.5 * (b0 - r0 + d * q0)
     w1 = 0.5 * (b1 - r1 + d * q1)
     w2 = 0.5 * (b2 - r2 + d * q2)
@@ -234,6 +238,24 @@ def edge_gradient(Rb, pb, theta, P, Ra, g):
 
 
 @jit
+def edge_U(Rb, pb, theta, P, Ra, Rg):
+    prepare(Rb, theta, P, Ra, Rg)
+    return U_core(Rb, pb, theta, P, Rg)
+
+
+@jit
+def edge_mu(Rb, pb, theta, P, Ra, Rg):
+    prepare(Rb, theta, P, Ra, Rg)
+    return mu_core(Rb, theta, P, Rg)
+
+
+@jit
+def edge_gradient(Rb, pb, theta, P, Ra, Rg, g):
+    prepare(Rb, theta, P, Ra, Rg)
+    return gradient_core(Rb, pb, theta, P, Ra, Rg, g)
+
+
+@jit(inline=True)
 def Ad_inv_T_apply(Rb, pb, g, out):
     """out = Ad⁻ᵀ_{X̄} g = [R̄ g_ω + p̄ × (R̄ g_v); R̄ g_v], so that B̄_jk g = −out (`Bt_def`)."""
     rv0 = Rb[0, 0] * g[3] + Rb[0, 1] * g[4] + Rb[0, 2] * g[5]
@@ -247,22 +269,24 @@ def Ad_inv_T_apply(Rb, pb, g, out):
     out[5] = rv2
 
 
-@jit
-def edge_update(Rb, pb, theta, hybrid, P, h, Ra, g, gn):
+@jit(inline=True)
+def edge_update(Rb, pb, theta, hybrid, P, h, Ra, Rg, g, gn):
     """One edge at a communication point: jump if in 𝒥_k, gradient, then flow of θ over h.
 
     Returns (θ⁺ after the flow, θ after the jump, μ_U before the jump, jumped). g receives
     ψ̄_∇ (the positive end's term, B̄_ik = I) and gn receives Ad⁻ᵀ_{X̄}ψ̄_∇ (the negative end's
     term with its sign flipped). Used by both the network and the per-agent views.
     """
+    prepare(Rb, theta, P, Ra, Rg)
     mu = 0.0
     jumped = False
     if hybrid:
-        mu, jstar = edge_mu(Rb, pb, theta, P, Ra)
+        mu, jstar = mu_core(Rb, theta, P, Rg)
         if mu >= P[P_DELTA]:
             theta = P[P_THETA + jstar]
             jumped = True
-    grad_theta = edge_gradient(Rb, pb, theta, P, Ra, g)
+            prepare(Rb, theta, P, Ra, Rg)
+    grad_theta = gradient_core(Rb, pb, theta, P, Ra, Rg, g)
     Ad_inv_T_apply(Rb, pb, g, gn)
     theta_next = theta - h * P[P_KTH] * grad_theta if hybrid else theta
     return theta_next, theta, mu, jumped
@@ -289,6 +313,7 @@ def network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev, theta
     Rb = np.empty((3, 3))
     pb = np.empty(3)
     Ra = np.empty((3, 3))
+    Rg = np.empty((3, 3))
     g = np.empty(6)
     gn = np.empty(6)
     n_jumps = 0
@@ -296,7 +321,7 @@ def network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev, theta
         i = edges[k, 0]
         j = edges[k, 1]
         rel_pose(S, i, j, Rb, pb)
-        th_next, th_jump, mu_k, jumped_k = edge_update(Rb, pb, theta[k], hybrid, P, h, Ra, g, gn)
+        th_next, th_jump, mu_k, jumped_k = edge_update(Rb, pb, theta[k], hybrid, P, h, Ra, Rg, g, gn)
         mu[k] = mu_k
         jumped[k] = jumped_k
         theta_prev[k] = theta[k]
@@ -317,6 +342,7 @@ def network_U(S, theta, edges, P, out):
     Rb = np.empty((3, 3))
     pb = np.empty(3)
     Ra = np.empty((3, 3))
+    Rg = np.empty((3, 3))
     for k in range(edges.shape[0]):
         rel_pose(S, edges[k, 0], edges[k, 1], Rb, pb)
-        out[k] = edge_U(Rb, pb, theta[k], P, Ra)
+        out[k] = edge_U(Rb, pb, theta[k], P, Ra, Rg)

@@ -305,14 +305,17 @@ fmi2Status fmi2GetReal(fmi2Component comp, const fmi2ValueReference vr[], size_t
     }
     d = &c->s.data;
     if (c->mode & (M_INSTANTIATED | M_INIT)) model_preview(d);
-    for (size_t k = 0; k < nvr; k++) {
+    for (size_t k = 0, run; k < nvr; k += run) {
         int kind;
-        const double *p = model_lookup(d, vr[k], &kind);
+        unsigned int off;
+        const double *p = model_lookup_run(d, vr + k, nvr - k, &kind, &run, &off);
         if (!p) {
             LOG_ERROR(c, "fmi2GetReal: unknown value reference %u", (unsigned)vr[k]);
             return fmi2Error;
         }
-        value[k] = *p;
+        if (kind == VAR_OUTPUT && !d->q_valid && off + run > OFF_Q)
+            model_update_quaternions(d); /* quaternions are computed on demand */
+        memcpy(value + k, p, run * sizeof(double));
     }
     return fmi2OK;
 }
@@ -330,9 +333,10 @@ fmi2Status fmi2SetReal(fmi2Component comp, const fmi2ValueReference vr[], size_t
     }
     d = &c->s.data;
     /* check everything first: a refused call changes nothing */
-    for (size_t k = 0; k < nvr; k++) {
+    for (size_t k = 0, run; k < nvr; k += run) {
         int kind;
-        (void)model_lookup(d, vr[k], &kind);
+        unsigned int off;
+        (void)model_lookup_run(d, vr + k, nvr - k, &kind, &run, &off);
         if (kind == VAR_UNKNOWN) {
             LOG_ERROR(c, "fmi2SetReal: unknown value reference %u", (unsigned)vr[k]);
             return fmi2Error;
@@ -349,16 +353,20 @@ fmi2Status fmi2SetReal(fmi2Component comp, const fmi2ValueReference vr[], size_t
                          "initialization", name, (unsigned)vr[k]);
             return fmi2Error;
         }
-        if (!isfinite(value[k])) {
-            model_variable_name(vr[k], name, sizeof name);
-            LOG_ERROR(c, "fmi2SetReal: %s = %g is not finite (value reference %u)", name, value[k],
-                      (unsigned)vr[k]);
-            return fmi2Error;
+        for (size_t j = k; j < k + run; j++) {
+            if (!isfinite(value[j])) {
+                model_variable_name(vr[j], name, sizeof name);
+                LOG_ERROR(c, "fmi2SetReal: %s = %g is not finite (value reference %u)", name, value[j],
+                          (unsigned)vr[j]);
+                return fmi2Error;
+            }
         }
     }
-    for (size_t k = 0; k < nvr; k++) {
+    for (size_t k = 0, run; k < nvr; k += run) {
         int kind;
-        *model_lookup(d, vr[k], &kind) = value[k];
+        unsigned int off;
+        double *p = model_lookup_run(d, vr + k, nvr - k, &kind, &run, &off);
+        memcpy(p, value + k, run * sizeof(double));
     }
     return fmi2OK;
 }
@@ -517,9 +525,8 @@ fmi2Status fmi2DeSerializeFMUstate(fmi2Component comp, const fmi2Byte serialized
         LOG_ERROR(c, "fmi2DeSerializeFMUstate: NULL argument");
         return fmi2Error;
     }
-    if (size != sizeof h + sizeof(Snapshot)) {
-        LOG_ERROR(c, "fmi2DeSerializeFMUstate: size %lu does not match the expected %lu bytes",
-                  (unsigned long)size, (unsigned long)(sizeof h + sizeof(Snapshot)));
+    if (size < sizeof h) {
+        LOG_ERROR(c, "fmi2DeSerializeFMUstate: %lu bytes is too short for a serialized state", (unsigned long)size);
         return fmi2Error;
     }
     memcpy(&h, serializedState, sizeof h);
@@ -530,6 +537,11 @@ fmi2Status fmi2DeSerializeFMUstate(fmi2Component comp, const fmi2Byte serialized
     if (h.n_bodies != (uint32_t)N_BODIES || h.payload != (uint64_t)sizeof(Snapshot)) {
         LOG_ERROR(c, "fmi2DeSerializeFMUstate: state of a %u-body FMU, this FMU has %d bodies", (unsigned)h.n_bodies,
                   N_BODIES);
+        return fmi2Error;
+    }
+    if (size != sizeof h + sizeof(Snapshot)) {
+        LOG_ERROR(c, "fmi2DeSerializeFMUstate: size %lu does not match the expected %lu bytes (truncated?)",
+                  (unsigned long)size, (unsigned long)(sizeof h + sizeof(Snapshot)));
         return fmi2Error;
     }
     s = (Snapshot *)*FMUstate;

@@ -8,6 +8,15 @@
 #include <math.h>
 #include <stdio.h>
 #include <string.h>
+/* The small vector helpers must be inlined into rkmk4_step so that the stage vectors
+ * live in registers: this halves the cost per step at -O2. */
+#if defined(__GNUC__) || defined(__clang__)
+#define ALWAYS_INLINE inline __attribute__((always_inline))
+#elif defined(_MSC_VER)
+#define ALWAYS_INLINE __forceinline
+#else
+#define ALWAYS_INLINE inline
+#endif
 
 /* ------------------------------------------------------------------ small helpers */
 
@@ -15,21 +24,21 @@
 
 static int is_finite(double x) { return isfinite(x); }
 
-static void cross(const double a[3], const double b[3], double c[3])
+static ALWAYS_INLINE void cross(const double a[3], const double b[3], double c[3])
 {
     c[0] = a[1] * b[2] - a[2] * b[1];
     c[1] = a[2] * b[0] - a[0] * b[2];
     c[2] = a[0] * b[1] - a[1] * b[0];
 }
 
-static void mat3_vec(const double M[9], const double x[3], double y[3])
+static ALWAYS_INLINE void mat3_vec(const double M[9], const double x[3], double y[3])
 {
     y[0] = M[0] * x[0] + M[1] * x[1] + M[2] * x[2];
     y[1] = M[3] * x[0] + M[4] * x[1] + M[5] * x[2];
     y[2] = M[6] * x[0] + M[7] * x[1] + M[8] * x[2];
 }
 
-static void mat3T_vec(const double M[9], const double x[3], double y[3])
+static ALWAYS_INLINE void mat3T_vec(const double M[9], const double x[3], double y[3])
 {
     y[0] = M[0] * x[0] + M[3] * x[1] + M[6] * x[2];
     y[1] = M[1] * x[0] + M[4] * x[1] + M[7] * x[2];
@@ -89,6 +98,13 @@ void model_quat_from_R(const double R[9], double q[4])
 
 /* ------------------------------------------------------------------ variables */
 
+void model_update_quaternions(ModelData *d)
+{
+    if (d->q_valid) return;
+    for (int b = 0; b < N_BODIES; b++) model_quat_from_R(d->body[b].out + OFF_R, d->body[b].out + OFF_Q);
+    d->q_valid = 1;
+}
+
 void model_set_defaults(ModelData *d)
 {
     memset(d, 0, sizeof *d);
@@ -134,6 +150,30 @@ double *model_lookup(ModelData *d, unsigned int vr, int *kind)
         }
     }
     return NULL;
+}
+
+double *model_lookup_run(ModelData *d, const unsigned int *vr, size_t nvr, int *kind, size_t *run,
+                         unsigned int *offset)
+{
+    double *p = model_lookup(d, vr[0], kind);
+    size_t r = 1, limit;
+    unsigned int off = 0, end = 1;
+    if (!p) {
+        *run = 0;
+        return NULL;
+    }
+    if (vr[0] >= VR_BODY_BASE) {
+        off = (vr[0] - VR_BODY_BASE) % VR_BODY_STRIDE;
+        end = *kind == VAR_OUTPUT ? N_OUT : *kind == VAR_INPUT ? OFF_U + N_U : OFF_PAR + N_PAR;
+    } else if (vr[0] < VR_GRAVITY + 3) {
+        off = vr[0] - VR_GRAVITY;
+        end = 3;
+    }
+    limit = end - off < nvr ? end - off : nvr;
+    while (r < limit && vr[r] == vr[0] + r) r++;
+    *run = r;
+    *offset = off;
+    return p;
 }
 
 void model_variable_name(unsigned int vr, char *buf, size_t n)
@@ -352,9 +392,11 @@ int model_initialize(ModelData *d, ModelLogger log, void *env)
             warn = 1;
         }
         memcpy(B->J, Jsym, sizeof Jsym);
+        B->minv = 1.0 / B->par[PAR_M];
         sym3_inverse(Jsym, B->Jinv);
         set_initial_state(B, q0n);
     }
+    d->q_valid = 1;
     return warn ? MODEL_WARNING : MODEL_OK;
 }
 
@@ -369,6 +411,7 @@ void model_preview(ModelData *d)
             for (int k = 0; k < 4; k++) q0n[k] = q[k] / nq;
         set_initial_state(B, q0n);
     }
+    d->q_valid = 1;
 }
 
 /* ------------------------------------------------------------------ integrator */
@@ -379,12 +422,14 @@ void model_preview(ModelData *d)
  * with Taylor series (through t^6, truncation < 1e-22 relative) for t < 1e-2, where the
  * closed forms lose digits.
  */
-static void exp_coeffs(double th2, double *A, double *B, double *C)
+static ALWAYS_INLINE void exp_coeffs(double th2, double *A, double *B, double *C)
 {
     if (th2 < 1e-4) {
-        *A = 1.0 - th2 / 6.0 * (1.0 - th2 / 20.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0)));
-        *B = 0.5 * (1.0 - th2 / 12.0 * (1.0 - th2 / 30.0 * (1.0 - th2 / 56.0)));
-        *C = (1.0 - th2 / 20.0 * (1.0 - th2 / 42.0 * (1.0 - th2 / 72.0))) / 6.0;
+        /* multiplications by constant reciprocals: no divisions in the hot path */
+        const double c = 1.0 - th2 * (1.0 / 20.0) * (1.0 - th2 * (1.0 / 42.0) * (1.0 - th2 * (1.0 / 72.0)));
+        *A = 1.0 - th2 * (1.0 / 6.0) * c;
+        *B = 0.5 * (1.0 - th2 * (1.0 / 12.0) * (1.0 - th2 * (1.0 / 30.0) * (1.0 - th2 * (1.0 / 56.0))));
+        *C = c * (1.0 / 6.0);
     } else {
         const double th = sqrt(th2), s = sin(th), hs = sin(0.5 * th);
         *A = s / th;
@@ -394,11 +439,11 @@ static void exp_coeffs(double th2, double *A, double *B, double *C)
 }
 
 /* body-frame acceleration a = I^{-1}(ad_xi^T I xi + u) + [0; R^T g] */
-static void accel(const Body *B, const double xi[6], const double *gb, double a[6])
+static ALWAYS_INLINE void accel(const Body *B, const double xi[6], const double *gb, double a[6])
 {
     const double *w = xi, *v = xi + 3;
     double Jw[3], t[3], vw[3];
-    const double im = 1.0 / B->par[PAR_M];
+    const double im = B->minv;
     mat3_vec(B->J, w, Jw);
     cross(Jw, w, t);
     t[0] += B->u[0];
@@ -417,7 +462,7 @@ static void accel(const Body *B, const double xi[6], const double *gb, double a[
 }
 
 /* Lie bracket on se(3): [a, b] = ad_a b = [wa x wb; wa x vb + va x wb] */
-static void bracket(const double a[6], const double b[6], double c[6])
+static ALWAYS_INLINE void bracket(const double a[6], const double b[6], double c[6])
 {
     double t1[3], t2[3];
     cross(a, b, c);
@@ -429,16 +474,18 @@ static void bracket(const double a[6], const double b[6], double c[6])
 }
 
 /* dexp^{-1}_{-Theta}(xi) = xi + [Theta, xi]/2 + [Theta, [Theta, xi]]/12 (+ O(Theta^4)) */
-static void dexpinv(const double th[6], const double xi[6], double out[6])
+static ALWAYS_INLINE void dexpinv(const double th[6], const double xi[6], double out[6])
 {
     double c1[6], c2[6];
     bracket(th, xi, c1);
     bracket(th, c1, c2);
-    for (int k = 0; k < 6; k++) out[k] = xi[k] + 0.5 * c1[k] + c2[k] / 12.0;
+#define DX(k) out[k] = xi[k] + 0.5 * c1[k] + c2[k] * (1.0 / 12.0);
+    DX(0) DX(1) DX(2) DX(3) DX(4) DX(5)
+#undef DX
 }
 
 /* gb = exp(phi)^T g0 (gravity in the frame of R0 exp(phi), given g0 = R0^T g) */
-static void rotate_gravity(const double phi[3], const double g0[3], double gb[3])
+static ALWAYS_INLINE void rotate_gravity(const double phi[3], const double g0[3], double gb[3])
 {
     double A, B, C, c1[3], c2[3];
     exp_coeffs(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2], &A, &B, &C);
@@ -449,7 +496,7 @@ static void rotate_gravity(const double phi[3], const double g0[3], double gb[3]
 }
 
 /* X <- X exp(theta^) on SE(3); R <- R + R (exp(phi) - I) keeps the rounding small */
-static void se3_update(double *p, double *R, const double th[6])
+static ALWAYS_INLINE void se3_update(double *p, double *R, const double th[6])
 {
     const double *phi = th, *rho = th + 3;
     const double x = phi[0], y = phi[1], z = phi[2];
@@ -479,7 +526,8 @@ static void se3_update(double *p, double *R, const double th[6])
     memcpy(R, Rn, sizeof Rn);
 }
 
-/* one RKMK4 step of length h for one body */
+/* one RKMK4 step of length h for one body (the 6-component loops are unrolled by hand:
+ * gcc -O2 does not unroll them and they dominate the cost) */
 static void rkmk4_step(Body *Bd, const double *gw, double h)
 {
     double *p = Bd->out + OFF_P, *R = Bd->out + OFF_R, *xi = Bd->out + OFF_XI;
@@ -494,34 +542,66 @@ static void rkmk4_step(Body *Bd, const double *gw, double h)
     /* stage 1: Theta = 0, K1 = F(y0) */
     accel(Bd, xi, gp, k1v);
     /* stage 2: Theta = h/2 K1 */
-    for (int k = 0; k < 6; k++) {
-        th[k] = h2 * xi[k];
-        xs[k] = xi[k] + h2 * k1v[k];
-    }
+    th[0] = h2 * xi[0];
+    xs[0] = xi[0] + h2 * k1v[0];
+    th[1] = h2 * xi[1];
+    xs[1] = xi[1] + h2 * k1v[1];
+    th[2] = h2 * xi[2];
+    xs[2] = xi[2] + h2 * k1v[2];
+    th[3] = h2 * xi[3];
+    xs[3] = xi[3] + h2 * k1v[3];
+    th[4] = h2 * xi[4];
+    xs[4] = xi[4] + h2 * k1v[4];
+    th[5] = h2 * xi[5];
+    xs[5] = xi[5] + h2 * k1v[5];
     if (gw) rotate_gravity(th, g0, gb);
     dexpinv(th, xs, k2x);
     accel(Bd, xs, gp, k2v);
     /* stage 3: Theta = h/2 K2 */
-    for (int k = 0; k < 6; k++) {
-        th[k] = h2 * k2x[k];
-        xs[k] = xi[k] + h2 * k2v[k];
-    }
+    th[0] = h2 * k2x[0];
+    xs[0] = xi[0] + h2 * k2v[0];
+    th[1] = h2 * k2x[1];
+    xs[1] = xi[1] + h2 * k2v[1];
+    th[2] = h2 * k2x[2];
+    xs[2] = xi[2] + h2 * k2v[2];
+    th[3] = h2 * k2x[3];
+    xs[3] = xi[3] + h2 * k2v[3];
+    th[4] = h2 * k2x[4];
+    xs[4] = xi[4] + h2 * k2v[4];
+    th[5] = h2 * k2x[5];
+    xs[5] = xi[5] + h2 * k2v[5];
     if (gw) rotate_gravity(th, g0, gb);
     dexpinv(th, xs, k3x);
     accel(Bd, xs, gp, k3v);
     /* stage 4: Theta = h K3 */
-    for (int k = 0; k < 6; k++) {
-        th[k] = h * k3x[k];
-        xs[k] = xi[k] + h * k3v[k];
-    }
+    th[0] = h * k3x[0];
+    xs[0] = xi[0] + h * k3v[0];
+    th[1] = h * k3x[1];
+    xs[1] = xi[1] + h * k3v[1];
+    th[2] = h * k3x[2];
+    xs[2] = xi[2] + h * k3v[2];
+    th[3] = h * k3x[3];
+    xs[3] = xi[3] + h * k3v[3];
+    th[4] = h * k3x[4];
+    xs[4] = xi[4] + h * k3v[4];
+    th[5] = h * k3x[5];
+    xs[5] = xi[5] + h * k3v[5];
     if (gw) rotate_gravity(th, g0, gb);
     dexpinv(th, xs, k4x);
     accel(Bd, xs, gp, k4v);
     /* update */
-    for (int k = 0; k < 6; k++) {
-        th[k] = h6 * (xi[k] + 2.0 * k2x[k] + 2.0 * k3x[k] + k4x[k]);
-        xs[k] = xi[k] + h6 * (k1v[k] + 2.0 * k2v[k] + 2.0 * k3v[k] + k4v[k]);
-    }
+    th[0] = h6 * (xi[0] + 2.0 * k2x[0] + 2.0 * k3x[0] + k4x[0]);
+    xs[0] = xi[0] + h6 * (k1v[0] + 2.0 * k2v[0] + 2.0 * k3v[0] + k4v[0]);
+    th[1] = h6 * (xi[1] + 2.0 * k2x[1] + 2.0 * k3x[1] + k4x[1]);
+    xs[1] = xi[1] + h6 * (k1v[1] + 2.0 * k2v[1] + 2.0 * k3v[1] + k4v[1]);
+    th[2] = h6 * (xi[2] + 2.0 * k2x[2] + 2.0 * k3x[2] + k4x[2]);
+    xs[2] = xi[2] + h6 * (k1v[2] + 2.0 * k2v[2] + 2.0 * k3v[2] + k4v[2]);
+    th[3] = h6 * (xi[3] + 2.0 * k2x[3] + 2.0 * k3x[3] + k4x[3]);
+    xs[3] = xi[3] + h6 * (k1v[3] + 2.0 * k2v[3] + 2.0 * k3v[3] + k4v[3]);
+    th[4] = h6 * (xi[4] + 2.0 * k2x[4] + 2.0 * k3x[4] + k4x[4]);
+    xs[4] = xi[4] + h6 * (k1v[4] + 2.0 * k2v[4] + 2.0 * k3v[4] + k4v[4]);
+    th[5] = h6 * (xi[5] + 2.0 * k2x[5] + 2.0 * k3x[5] + k4x[5]);
+    xs[5] = xi[5] + h6 * (k1v[5] + 2.0 * k2v[5] + 2.0 * k3v[5] + k4v[5]);
     se3_update(p, R, th);
     memcpy(xi, xs, sizeof xs);
 }
@@ -544,8 +624,7 @@ int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
     for (int b = 0; b < N_BODIES; b++) {
         Body *B = &d->body[b];
         for (long long s = 0; s < n; s++) rkmk4_step(B, gw, hs);
-        model_quat_from_R(B->out + OFF_R, B->out + OFF_Q);
-        for (int k = 0; k < N_OUT; k++) {
+        for (int k = 0; k < OFF_Q; k++) {
             if (!is_finite(B->out[k])) {
                 ok = 0;
                 LOGF(MODEL_ERROR, "logStatusError", "body[%d]: state is no longer finite at t = %g", b + 1,
@@ -554,6 +633,7 @@ int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
             }
         }
     }
+    d->q_valid = 0; /* quaternions are computed on demand (model_update_quaternions) */
     if (!ok) return MODEL_ERROR;
     d->time += h;
     return MODEL_OK;

@@ -15,9 +15,7 @@
 
 #include <stddef.h>
 
-#ifndef N_BODIES
-#include "config.h"
-#endif
+#include "config.h" /* N_BODIES and FMU_GUID (generated into the FMU's sources/) */
 #ifndef N_BODIES
 #define N_BODIES 1
 #endif
@@ -61,12 +59,14 @@ typedef struct {
     double par[N_PAR];  /* parameters as set by the importer */
     double J[9];        /* symmetrised inertia (valid after model_initialize) */
     double Jinv[9];     /* its inverse */
+    double minv;        /* 1 / m */
 } Body;
 
 typedef struct {
     double g[3];        /* gravity, world frame */
     double h_internal;  /* internal integration step */
     double time;        /* current time */
+    int q_valid;        /* quaternion outputs up to date with R */
     Body body[N_BODIES];
 } ModelData;
 
@@ -79,6 +79,12 @@ void model_set_defaults(ModelData *d);
 
 /* Pointer to the Real variable with value reference vr, or NULL; *kind receives its kind. */
 double *model_lookup(ModelData *d, unsigned int vr, int *kind);
+
+/* Like model_lookup for vr[0], and *run receives how many of vr[0..nvr-1] are consecutive
+ * value references stored consecutively from the returned pointer (same kind); *offset is
+ * the offset of vr[0] within its block (body variables: 0..99). */
+double *model_lookup_run(ModelData *d, const unsigned int *vr, size_t nvr, int *kind, size_t *run,
+                         unsigned int *offset);
 
 /* Writes the structured name of vr (e.g. "body[2].u[4]") into buf. */
 void model_variable_name(unsigned int vr, char *buf, size_t n);
@@ -96,6 +102,9 @@ void model_preview(ModelData *d);
  * equal substeps.  Returns MODEL_ERROR (and leaves the state unchanged) if the result is
  * not finite. */
 int model_do_step(ModelData *d, double h, ModelLogger log, void *env);
+
+/* brings the quaternion outputs up to date (they are computed on demand) */
+void model_update_quaternions(ModelData *d);
 
 /* quaternion (w first, w >= 0) of a rotation matrix, Shepperd's method */
 void model_quat_from_R(const double R[9], double q[4]);

@@ -1,0 +1,114 @@
+"""Benchmark of the plant FMU.  Run: /work/venv/bin/python benchmarks/bench_plant.py [--quick]
+
+Prints a table:
+  * C cost per body per internal step (1000-body fleet, one big communication step);
+  * cost per communication step (h = 1e-4 = one internal step) of a 6-body FMU:
+    fmpy's high-level API (setReal(36) + doStep + getReal(108)) versus the FleetFMU fast path;
+  * a 1000-body fleet per communication step (fast path).
+Times are the best of several repeats (wall clock, perf_counter).
+"""
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from plant_fmu import build, layout
+from plant_fmu.fast import FleetFMU
+
+
+def best_of(fn, number, repeat=5):
+    best = float("inf")
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn(number)
+        best = min(best, (time.perf_counter() - t0) / number)
+    return best
+
+
+def fleet(n):
+    rng = np.random.default_rng(0)
+    f = FleetFMU(n)
+    J = np.array([np.diag(rng.uniform(1.0, 1.4, 3)) + 0.05 * (np.ones((3, 3)) - np.eye(3)) for _ in range(n)])
+    f.set_parameters(J=J, xi0=rng.normal(size=(n, 6)), gravity=[0.0, 0.0, -9.81])
+    f.initialize()
+    return f
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="fewer iterations")
+    args = ap.parse_args(argv)
+    k = 0.2 if args.quick else 1.0
+    rows = []
+
+    # 1. C cost per body per internal step
+    n_big = 1000
+    f = fleet(n_big)
+    steps = int(1000 * k)
+    t = best_of(lambda m: [f.do_step(0.0, steps * 1e-4) for _ in range(m)], 1, repeat=3)
+    rows.append(("C integrator, per body per internal step (1000 bodies, g != 0)", t / (n_big * steps)))
+    f.close()
+
+    # 2. 6 bodies, one internal step per communication step
+    n = 6
+    f = fleet(n)
+    u = np.zeros((n, 6))
+    s = f._slave
+    vr_in, vr_st, uu = [int(v) for v in layout.vr_input(n)], [int(v) for v in layout.vr_state(n)], [0.0] * 36
+    number = int(20000 * k)
+
+    def high_level(m):
+        for _ in range(m):
+            s.setReal(vr_in, uu)
+            s.doStep(0.0, 1e-4)
+            s.getReal(vr_st)
+
+    def fast(m):
+        set_input, do_step, get_state = f.set_input, f.do_step, f.get_state
+        for _ in range(m):
+            set_input(u)
+            do_step(0.0, 1e-4)
+            get_state()
+
+    def fast_buffer(m):
+        set_input, do_step, get_state = f.set_input, f.do_step, f.get_state
+        f.u[:] = u
+        for _ in range(m):
+            set_input()  # the wrench was written into f.u
+            do_step(0.0, 1e-4)
+            get_state()
+
+    def step_only(m):
+        do_step = f.do_step
+        for _ in range(m):
+            do_step(0.0, 1e-4)
+
+    rows.append(("6 bodies, fmpy high-level setReal(36)+doStep+getReal(108)", best_of(high_level, number // 4)))
+    rows.append(("6 bodies, FleetFMU fast path set_input+do_step+get_state", best_of(fast, number)))
+    rows.append(("6 bodies, fast path writing into FleetFMU.u (no copy)", best_of(fast_buffer, number)))
+    rows.append(("6 bodies, FleetFMU do_step alone", best_of(step_only, number)))
+    f.close()
+
+    # 3. 1000 bodies per communication step
+    f = fleet(n_big)
+    u = np.zeros((n_big, 6))
+
+    def fast_big(m):
+        for _ in range(m):
+            f.set_input(u)
+            f.do_step(0.0, 1e-4)
+            f.get_state()
+
+    rows.append(("1000 bodies, fast path per communication step (1 internal step)", best_of(fast_big, int(500 * k))))
+    f.close()
+
+    print(f"plant FMU benchmark ({build.platform_tag()}, FMU compiled with {' '.join(build.CFLAGS)})")
+    print(f"{'case':<70} {'time':>12}")
+    for name, sec in rows:
+        print(f"{name:<70} {sec * 1e6:>9.3f} us")
+
+
+if __name__ == "__main__":
+    main()

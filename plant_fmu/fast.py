@@ -1,0 +1,368 @@
+"""FleetFMU: the plant FMU loaded with fmpy, plus a low-overhead stepping path.
+
+The fast path (``set_input`` / ``do_step`` / ``get_state`` / ``get_quat``) calls the FMU's
+C functions directly through ctypes prototypes with plain-integer pointer arguments computed
+once, on preallocated numpy buffers: no per-call allocation.
+"""
+from __future__ import annotations
+
+import atexit
+import ctypes
+import shutil
+import threading
+from ctypes import c_double, c_int, c_size_t, c_void_p
+from pathlib import Path
+
+import numpy as np
+
+from controller.errors import Se3SyncError
+
+from . import layout
+
+fmi2OK, fmi2Warning, fmi2Discard, fmi2Error, fmi2Fatal = 0, 1, 2, 3, 4
+_STATUS = {0: "OK", 1: "Warning", 2: "Discard", 3: "Error", 4: "Fatal", 5: "Pending"}
+
+# one extraction per FMU file per process: instances share the loaded library
+_extract_lock = threading.Lock()
+_extracted: dict[tuple[str, float], str] = {}
+
+
+def _cleanup_extracted() -> None:
+    for d in _extracted.values():
+        shutil.rmtree(d, ignore_errors=True)
+
+
+atexit.register(_cleanup_extracted)
+
+
+class FMUError(Se3SyncError):
+    """An FMI call returned fmi2Error or fmi2Fatal; the message includes what the FMU logged."""
+
+    def __init__(self, function: str, status: int, messages: list[str]):
+        self.function = function
+        self.status = status
+        self.messages = list(messages)
+        detail = "; ".join(messages) if messages else "no message logged"
+        super().__init__(f"{function} returned fmi2{_STATUS.get(status, status)}: {detail}")
+
+
+def _as_array(x, shape, name) -> np.ndarray:
+    a = np.asarray(x, dtype=np.float64)
+    try:
+        return np.broadcast_to(a, shape).astype(np.float64, copy=True)
+    except ValueError:
+        raise Se3SyncError(f"{name} must have shape {shape}, got {a.shape}") from None
+
+
+def quat_from_R(R: np.ndarray) -> np.ndarray:
+    """(n,3,3) rotation matrices -> (n,4) unit quaternions (w first, w >= 0), Shepperd's method."""
+    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
+    q = np.empty((R.shape[0], 4))
+    for i, M in enumerate(R):
+        tr = M[0, 0] + M[1, 1] + M[2, 2]
+        k = int(np.argmax([tr, M[0, 0], M[1, 1], M[2, 2]]))
+        if k == 0:
+            w = 0.5 * np.sqrt(1 + tr); s = 0.25 / w
+            v = (w, (M[2, 1] - M[1, 2]) * s, (M[0, 2] - M[2, 0]) * s, (M[1, 0] - M[0, 1]) * s)
+        elif k == 1:
+            x = 0.5 * np.sqrt(1 + M[0, 0] - M[1, 1] - M[2, 2]); s = 0.25 / x
+            v = ((M[2, 1] - M[1, 2]) * s, x, (M[0, 1] + M[1, 0]) * s, (M[0, 2] + M[2, 0]) * s)
+        elif k == 2:
+            y = 0.5 * np.sqrt(1 - M[0, 0] + M[1, 1] - M[2, 2]); s = 0.25 / y
+            v = ((M[0, 2] - M[2, 0]) * s, (M[0, 1] + M[1, 0]) * s, y, (M[1, 2] + M[2, 1]) * s)
+        else:
+            z = 0.5 * np.sqrt(1 - M[0, 0] - M[1, 1] + M[2, 2]); s = 0.25 / z
+            v = ((M[1, 0] - M[0, 1]) * s, (M[0, 2] + M[2, 0]) * s, (M[1, 2] + M[2, 1]) * s, z)
+        q[i] = v
+        if q[i, 0] < 0:
+            q[i] = -q[i]
+    return q
+
+
+class FleetFMU:
+    """N rigid bodies in one instance of the plant FMU.
+
+    Typical use::
+
+        with FleetFMU(6) as fleet:
+            fleet.set_parameters(mass=m, J=J, p0=p0, R0=R0, xi0=xi0)
+            fleet.initialize()
+            for k in range(steps):
+                fleet.set_input(u)            # (6, 6) body wrenches
+                fleet.do_step(k * h, h)
+                X = fleet.get_state()         # (6, 18) [p, R row-major, xi] (buffer reused)
+    """
+
+    def __init__(self, n_bodies: int, fmu_path=None, instance_name: str = "plant", logger=None):
+        from fmpy import extract, read_model_description
+        from fmpy.fmi2 import FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
+
+        self.n = n = int(n_bodies)
+        if fmu_path is None:
+            from .build import fmu_path as _fmu_path
+
+            fmu_path = _fmu_path(n)
+        self.fmu_path = Path(fmu_path)
+        self.messages: list[tuple[str, int, str]] = []
+        self._user_logger = logger
+        self._closed = True
+        self._slave = None
+
+        md = read_model_description(str(self.fmu_path))
+        n_in = sum(1 for v in md.modelVariables if v.causality == "input")
+        if n_in != 6 * n:
+            raise Se3SyncError(f"{self.fmu_path} has {n_in // 6} bodies, expected {n}")
+        key = (str(self.fmu_path.resolve()), self.fmu_path.stat().st_mtime)
+        with _extract_lock:
+            unzipdir = _extracted.get(key)
+            if unzipdir is None:
+                unzipdir = _extracted[key] = extract(str(self.fmu_path))
+        self.model_description = md
+
+        def _log(env, name, status, category, message):
+            cat = category.decode("utf-8", "replace") if category else ""
+            text = message.decode("utf-8", "replace") if message else ""
+            self.messages.append((cat, int(status), text))
+            if self._user_logger is not None:
+                try:
+                    self._user_logger(cat, int(status), text)
+                except Exception:  # never let a Python exception cross the C boundary
+                    pass
+
+        self._logger_cb = fmi2CallbackLoggerTYPE(_log)
+        self._callbacks = fmi2CallbackFunctions()
+        self._callbacks.logger = self._logger_cb
+        slave = FMU2Slave(guid=md.guid, unzipDirectory=unzipdir,
+                          modelIdentifier=md.coSimulation.modelIdentifier, instanceName=instance_name)
+        self._mark = len(self.messages)
+        try:
+            slave.instantiate(callbacks=self._callbacks)
+        except Exception:
+            raise FMUError("fmi2Instantiate", fmi2Error, [m[2] for m in self.messages]) from None
+        self._slave = slave
+        self._closed = False
+        comp = slave.component
+
+        def raw(name, *argtypes, keep_gil=False):
+            addr = ctypes.cast(getattr(slave.dll, name), c_void_p).value
+            proto = ctypes.PYFUNCTYPE if keep_gil else ctypes.CFUNCTYPE
+            f = proto(c_int, *argtypes)(addr)
+            if not argtypes:
+                f.argtypes = None  # arguments are passed as ready-made ctypes objects (fastest)
+            return f
+
+        # get/set are short: keep the GIL (PYFUNCTYPE) and pass prebuilt ctypes objects;
+        # doStep releases the GIL so that other threads can run during long steps
+        self._SetReal = raw("fmi2SetReal", keep_gil=True)
+        self._GetReal = raw("fmi2GetReal", keep_gil=True)
+        self._DoStep = raw("fmi2DoStep", c_void_p, c_double, c_double, c_int)
+        self._GetFMUstate = raw("fmi2GetFMUstate", c_void_p, c_void_p)
+        self._SetFMUstate = raw("fmi2SetFMUstate", c_void_p, c_void_p)
+        self._FreeFMUstate = raw("fmi2FreeFMUstate", c_void_p, c_void_p)
+        self._c = c_void_p(comp)
+
+        # preallocated buffers and their raw addresses
+        self._vr_state = np.ascontiguousarray(layout.vr_state(n))
+        self._vr_quat = np.ascontiguousarray(layout.vr_quat(n))
+        self._vr_input = np.ascontiguousarray(layout.vr_input(n))
+        self._state = np.zeros((n, layout.N_STATE))
+        self._quat = np.zeros((n, 4))
+        self._u = np.zeros((n, 6))
+        self._n_state, self._n_quat, self._n_input = (c_size_t(n * layout.N_STATE), c_size_t(n * 4),
+                                                      c_size_t(n * 6))
+        self._p_vr_state = c_void_p(self._vr_state.ctypes.data)
+        self._p_vr_quat = c_void_p(self._vr_quat.ctypes.data)
+        self._p_vr_input = c_void_p(self._vr_input.ctypes.data)
+        self._p_state = c_void_p(self._state.ctypes.data)
+        self._p_quat = c_void_p(self._quat.ctypes.data)
+        self._p_u = c_void_p(self._u.ctypes.data)
+
+    # ------------------------------------------------------------------ helpers
+    def _fail(self, function: str, status: int):
+        msgs = [m[2] for m in self.messages[self._mark:] if m[1] >= fmi2Warning] or [m[2] for m in self.messages[-3:]]
+        self._mark = len(self.messages)
+        raise FMUError(function, status, msgs)
+
+    def _check_open(self):
+        if self._closed:
+            raise Se3SyncError("the FMU instance is closed")
+
+    def _call(self, function: str, f, *args):
+        self._check_open()
+        self._mark = len(self.messages)
+        try:
+            status = f(*args)
+        except Exception as exc:  # fmpy raises FMICallException for status > warning
+            status = getattr(exc, "status", fmi2Error)
+        if status >= fmi2Error:
+            self._fail(function, status)
+        return status
+
+    def set_real(self, vrs, values) -> None:
+        """Sets Real variables by value reference (any phase; checked by the FMU)."""
+        self._check_open()
+        vr = np.ascontiguousarray(vrs, dtype=np.uint32).reshape(-1)
+        val = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+        if vr.size != val.size:
+            raise Se3SyncError(f"{vr.size} value references but {val.size} values")
+        self._mark = len(self.messages)
+        st = self._SetReal(self._c, c_void_p(vr.ctypes.data), c_size_t(vr.size), c_void_p(val.ctypes.data))
+        if st >= fmi2Error:
+            self._fail("fmi2SetReal", st)
+
+    def get_real(self, vrs) -> np.ndarray:
+        self._check_open()
+        vr = np.ascontiguousarray(vrs, dtype=np.uint32).reshape(-1)
+        out = np.empty(vr.size)
+        self._mark = len(self.messages)
+        st = self._GetReal(self._c, c_void_p(vr.ctypes.data), c_size_t(vr.size), c_void_p(out.ctypes.data))
+        if st >= fmi2Error:
+            self._fail("fmi2GetReal", st)
+        return out
+
+    # ------------------------------------------------------------------ setup
+    def set_parameters(self, mass=None, J=None, p0=None, R0=None, q0=None, xi0=None, gravity=None,
+                       h_internal=None) -> None:
+        """Sets the parameters (before ``initialize``); None leaves the FMU's default
+        (m = 1, J = I, p0 = 0, q0 = identity, xi0 = 0, g = 0, h_internal = 1e-4)."""
+        n = self.n
+        vrs, vals = [], []
+        if mass is not None:
+            vrs.append(layout.vr_mass(n)); vals.append(_as_array(mass, (n,), "mass").reshape(-1))
+        if J is not None:
+            vrs.append(layout.vr_inertia(n)); vals.append(_as_array(J, (n, 3, 3), "J").reshape(-1))
+        if p0 is not None:
+            vrs.append(layout.vr_p0(n)); vals.append(_as_array(p0, (n, 3), "p0").reshape(-1))
+        if R0 is not None and q0 is not None:
+            raise Se3SyncError("give either R0 or q0, not both")
+        if R0 is not None:
+            R = _as_array(R0, (n, 3, 3), "R0")
+            err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+            det = np.linalg.det(R)
+            bad = np.flatnonzero((err > 1e-6) | (det <= 0) | ~np.isfinite(err))
+            if bad.size:
+                i = int(bad[0])
+                raise Se3SyncError(f"R0 of body {i + 1} is not a rotation matrix (|R^T R - I| = {err[i]:.3g}, "
+                                   f"det = {det[i]:.6g})")
+            q0 = quat_from_R(R)
+        if q0 is not None:
+            vrs.append(layout.vr_q0(n)); vals.append(_as_array(q0, (n, 4), "q0").reshape(-1))
+        if xi0 is not None:
+            vrs.append(layout.vr_xi0(n)); vals.append(_as_array(xi0, (n, 6), "xi0").reshape(-1))
+        if gravity is not None:
+            vrs.append(layout.VR_GRAVITY); vals.append(_as_array(gravity, (3,), "gravity"))
+        if h_internal is not None:
+            vrs.append(np.array([layout.VR_H_INTERNAL], dtype=np.uint32)); vals.append(np.array([float(h_internal)]))
+        if vrs:
+            self.set_real(np.concatenate(vrs), np.concatenate(vals))
+
+    def initialize(self, t0: float = 0.0) -> None:
+        """setupExperiment(t0) + enter/exit initialization mode (parameters are validated here)."""
+        self._check_open()
+        s = self._slave
+        self._call("fmi2SetupExperiment", s.setupExperiment, None, float(t0))
+        self._call("fmi2EnterInitializationMode", s.enterInitializationMode)
+        self._call("fmi2ExitInitializationMode", s.exitInitializationMode)
+        self.time = float(t0)
+
+    # ------------------------------------------------------------------ fast path
+    @property
+    def u(self) -> np.ndarray:
+        """The preallocated (n, 6) input buffer: write into it and call ``set_input()`` to skip a copy."""
+        return self._u
+
+    def set_input(self, u: np.ndarray | None = None) -> None:
+        """u: (n, 6) body wrenches [tau; f] (copied into the preallocated input buffer);
+        None sends the buffer ``self.u`` as it is."""
+        if u is not None and u is not self._u:
+            np.copyto(self._u, u)
+        st = self._SetReal(self._c, self._p_vr_input, self._n_input, self._p_u)
+        if st >= fmi2Error:
+            self._fail("fmi2SetReal", st)
+
+    def do_step(self, t: float, h: float) -> None:
+        st = self._DoStep(self._c, t, h, 1)
+        if st >= fmi2Error:
+            self._fail("fmi2DoStep", st)
+        self.time = t + h
+
+    def get_state(self) -> np.ndarray:
+        """(n, 18) [p, R row-major, xi] -- a view of a buffer that the next call overwrites."""
+        st = self._GetReal(self._c, self._p_vr_state, self._n_state, self._p_state)
+        if st >= fmi2Error:
+            self._fail("fmi2GetReal", st)
+        return self._state
+
+    def get_quat(self) -> np.ndarray:
+        """(n, 4) unit quaternions (w first, w >= 0) -- a view of a reused buffer."""
+        st = self._GetReal(self._c, self._p_vr_quat, self._n_quat, self._p_quat)
+        if st >= fmi2Error:
+            self._fail("fmi2GetReal", st)
+        return self._quat
+
+    # ------------------------------------------------------------------ FMU state
+    def get_fmu_state(self) -> c_void_p:
+        state = c_void_p()
+        self._call("fmi2GetFMUstate", self._GetFMUstate, self._c, ctypes.addressof(state))
+        return state
+
+    def set_fmu_state(self, state: c_void_p) -> None:
+        self._call("fmi2SetFMUstate", self._SetFMUstate, self._c, state)
+
+    def free_fmu_state(self, state: c_void_p) -> None:
+        if state is not None and state.value:
+            self._call("fmi2FreeFMUstate", self._FreeFMUstate, self._c, ctypes.addressof(state))
+
+    def serialize_fmu_state(self, state: c_void_p) -> bytes:
+        self._check_open()
+        self._mark = len(self.messages)
+        try:
+            return self._slave.serializeFMUstate(state)
+        except Exception as exc:
+            self._fail("fmi2SerializeFMUstate", getattr(exc, "status", fmi2Error))
+
+    def deserialize_fmu_state(self, data: bytes) -> c_void_p:
+        self._check_open()
+        self._mark = len(self.messages)
+        try:
+            return self._slave.deSerializeFMUstate(bytes(data))
+        except Exception as exc:
+            self._fail("fmi2DeSerializeFMUstate", getattr(exc, "status", fmi2Error))
+
+    # ------------------------------------------------------------------ life cycle
+    def reset(self) -> None:
+        self._check_open()
+        self._call("fmi2Reset", self._slave.reset)
+
+    def terminate(self) -> None:
+        self._check_open()
+        self._call("fmi2Terminate", self._slave.terminate)
+
+    def close(self) -> None:
+        """Frees the instance (and unloads the library); safe to call more than once."""
+        if self._closed:
+            return
+        self._closed = True
+
+        def closed(*args):
+            raise Se3SyncError("the FMU instance is closed")
+
+        # the fast path must never reach the freed instance
+        self._SetReal = self._GetReal = self._DoStep = closed
+        self._GetFMUstate = self._SetFMUstate = self._FreeFMUstate = closed
+        try:
+            self._slave.freeInstance()
+        finally:
+            self._slave = None
+
+    def __enter__(self) -> "FleetFMU":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:
+            pass
