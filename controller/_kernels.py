@@ -7,6 +7,12 @@ State layout, one row per agent, matching the plant FMU's output block:
     S[i] = [p (3), R row-major (9), ξ = [ω; v] (6)]            (N, 18)
 Parameter vector P (see `pack`): the weighting matrix, the synergy design and the gains,
 with W R_a(θ_j)ᵀ precomputed for every θ_j ∈ Θ so that a candidate costs nine products.
+
+The per-edge pieces pass 3×3 matrices as 9-tuples (row-major) and vectors as tuples: inlined
+into the network loop, LLVM keeps them in registers, where small scratch arrays would make
+every intermediate a store and a reload (measured: 87 → see benchmarks/bench_controller.py).
+The array-taking functions (`edge_U`, `edge_mu`, `edge_gradient`, ...) wrap the same cores
+for the per-agent view and `potential`, so both views run identical arithmetic.
 """
 from __future__ import annotations
 
@@ -60,86 +66,93 @@ def pack(A, b, d, u_c1, u_c2, gamma, delta, Theta, k_X, k_xi, k_e, k_theta):
     P[P_C:P_C + 3] = b / d
     P[P_M] = m
     P[P_THETA:P_THETA + m] = Theta
-    Ra = np.empty((3, 3))
     for j, th in enumerate(Theta):
-        rot_axis_angle(th, u_c1[0], u_c1[1], u_c1[2], Ra)
+        Ra = np.array(rot_axis_angle(th, u_c1[0], u_c1[1], u_c1[2])).reshape(3, 3)
         P[P_THETA + m + 9 * j:P_THETA + m + 9 * (j + 1)] = (W @ Ra.T).ravel()
         P[P_THETA + 10 * m + j] = 0.5 * gamma * th * th
     return P
 
 
 @jit(inline=True)
-def rot_axis_angle(theta, u0, u1, u2, Ra):
-    """ℛ_a(θ, u) = I + sinθ u^× + (1 − cosθ)(u^×)² into Ra; (u^×)² = uuᵀ − I for unit u."""
+def rot_axis_angle(theta, u0, u1, u2):
+    """ℛ_a(θ, u) = I + sinθ u^× + (1 − cosθ)(u^×)², (u^×)² = uuᵀ − I for unit u; a 9-tuple."""
     sh = math.sin(0.5 * theta)
     ch = math.cos(0.5 * theta)
     s = 2.0 * sh * ch
     c1 = 2.0 * sh * sh  # 1 − cosθ without cancellation
-    Ra[0, 0] = 1.0 + c1 * (u0 * u0 - 1.0)
-    Ra[0, 1] = -s * u2 + c1 * u0 * u1
-    Ra[0, 2] = s * u1 + c1 * u0 * u2
-    Ra[1, 0] = s * u2 + c1 * u1 * u0
-    Ra[1, 1] = 1.0 + c1 * (u1 * u1 - 1.0)
-    Ra[1, 2] = -s * u0 + c1 * u1 * u2
-    Ra[2, 0] = -s * u1 + c1 * u2 * u0
-    Ra[2, 1] = s * u0 + c1 * u2 * u1
-    Ra[2, 2] = 1.0 + c1 * (u2 * u2 - 1.0)
+    return (1.0 + c1 * (u0 * u0 - 1.0), -s * u2 + c1 * u0 * u1, s * u1 + c1 * u0 * u2,
+            s * u2 + c1 * u1 * u0, 1.0 + c1 * (u1 * u1 - 1.0), -s * u0 + c1 * u1 * u2,
+            -s * u1 + c1 * u2 * u0, s * u0 + c1 * u2 * u1, 1.0 + c1 * (u2 * u2 - 1.0))
 
 
 @jit(inline=True)
-def rel_pose(S, i, j, Rb, pb):
-    """X̄ = X_j⁻¹ X_i: R̄ = R_jᵀ R_i, p̄ = R_jᵀ (p_i − p_j)."""
-    for a in range(3):
-        for c in range(3):
-            acc = 0.0
-            for e in range(3):
-                acc += S[j, S_R + 3 * e + a] * S[i, S_R + 3 * e + c]
-            Rb[a, c] = acc
-    for a in range(3):
-        acc = 0.0
-        for e in range(3):
-            acc += S[j, S_R + 3 * e + a] * (S[i, S_P + e] - S[j, S_P + e])
-        pb[a] = acc
+def rel_pose(S, i, j):
+    """X̄ = X_j⁻¹ X_i: (R̄ = R_jᵀ R_i as a 9-tuple, p̄ = R_jᵀ (p_i − p_j) as a 3-tuple)."""
+    a0 = S[j, 3]
+    a1 = S[j, 4]
+    a2 = S[j, 5]
+    a3 = S[j, 6]
+    a4 = S[j, 7]
+    a5 = S[j, 8]
+    a6 = S[j, 9]
+    a7 = S[j, 10]
+    a8 = S[j, 11]
+    b0 = S[i, 3]
+    b1 = S[i, 4]
+    b2 = S[i, 5]
+    b3 = S[i, 6]
+    b4 = S[i, 7]
+    b5 = S[i, 8]
+    b6 = S[i, 9]
+    b7 = S[i, 10]
+    b8 = S[i, 11]
+    d0 = S[i, 0] - S[j, 0]
+    d1 = S[i, 1] - S[j, 1]
+    d2 = S[i, 2] - S[j, 2]
+    R = (a0 * b0 + a3 * b3 + a6 * b6, a0 * b1 + a3 * b4 + a6 * b7, a0 * b2 + a3 * b5 + a6 * b8,
+         a1 * b0 + a4 * b3 + a7 * b6, a1 * b1 + a4 * b4 + a7 * b7, a1 * b2 + a4 * b5 + a7 * b8,
+         a2 * b0 + a5 * b3 + a8 * b6, a2 * b1 + a5 * b4 + a8 * b7, a2 * b2 + a5 * b5 + a8 * b8)
+    p = (a0 * d0 + a3 * d1 + a6 * d2, a1 * d0 + a4 * d1 + a7 * d2, a2 * d0 + a5 * d1 + a8 * d2)
+    return R, p
 
 
 @jit(inline=True)
-def mat_mul3(X, Y, out):
-    """out = X Y for 3×3 arrays."""
-    for a in range(3):
-        x0 = X[a, 0]
-        x1 = X[a, 1]
-        x2 = X[a, 2]
-        out[a, 0] = x0 * Y[0, 0] + x1 * Y[1, 0] + x2 * Y[2, 0]
-        out[a, 1] = x0 * Y[0, 1] + x1 * Y[1, 1] + x2 * Y[2, 1]
-        out[a, 2] = x0 * Y[0, 2] + x1 * Y[1, 2] + x2 * Y[2, 2]
+def mul3(X, Y):
+    """X Y for 3×3 matrices as row-major 9-tuples."""
+    return (X[0] * Y[0] + X[1] * Y[3] + X[2] * Y[6], X[0] * Y[1] + X[1] * Y[4] + X[2] * Y[7],
+            X[0] * Y[2] + X[1] * Y[5] + X[2] * Y[8],
+            X[3] * Y[0] + X[4] * Y[3] + X[5] * Y[6], X[3] * Y[1] + X[4] * Y[4] + X[5] * Y[7],
+            X[3] * Y[2] + X[4] * Y[5] + X[5] * Y[8],
+            X[6] * Y[0] + X[7] * Y[3] + X[8] * Y[6], X[6] * Y[1] + X[7] * Y[4] + X[8] * Y[7],
+            X[6] * Y[2] + X[7] * Y[5] + X[8] * Y[8])
 
 
 @jit(inline=True)
-def prepare(Rb, theta, P, Ra, Rg):
-    """R_a = ℛ_a(θ, u_c1) and R_g = R̄ R_a, the rotation of Γ = X̄ 𝒯_uc(θ): shared by μ_U,
-    U and the gradients so that each edge evaluates sin and cos once."""
-    rot_axis_angle(theta, P[P_UC1], P[P_UC1 + 1], P[P_UC1 + 2], Ra)
-    mat_mul3(Rb, Ra, Rg)
+def prepare(Rb, theta, P):
+    """(R_a, R_g) = (ℛ_a(θ, u_c1), R̄ R_a), R_g being the rotation of Γ = X̄ 𝒯_uc(θ)."""
+    Ra = rot_axis_angle(theta, P[P_UC1], P[P_UC1 + 1], P[P_UC1 + 2])
+    return Ra, mul3(Rb, Ra)
 
 
 @jit(inline=True)
 def _trace_W(P, Rg):
     """tr(W R_g) (W symmetric)."""
-    acc = 0.0
-    for a in range(3):
-        for c in range(3):
-            acc += P[P_W + 3 * a + c] * Rg[a, c]
-    return acc
+    return (P[P_W] * Rg[0] + P[P_W + 1] * Rg[1] + P[P_W + 2] * Rg[2]
+            + P[P_W + 3] * Rg[3] + P[P_W + 4] * Rg[4] + P[P_W + 5] * Rg[5]
+            + P[P_W + 6] * Rg[6] + P[P_W + 7] * Rg[7] + P[P_W + 8] * Rg[8])
 
 
 @jit(inline=True)
 def U_core(Rb, pb, theta, P, Rg):
     """U(X̄, θ) by `U_explicit`: tr(W(I − R̄ℛ_a)) + γθ²/2 + d/2‖p̄ − (I − R̄)b/d‖²."""
-    e2 = 0.0
-    for a in range(3):
-        ea = pb[a] - P[P_C + a] + Rb[a, 0] * P[P_C] + Rb[a, 1] * P[P_C + 1] + Rb[a, 2] * P[P_C + 2]
-        e2 += ea * ea
-    return P[P_TRW] - _trace_W(P, Rg) + 0.5 * P[P_GAMMA] * theta * theta + 0.5 * P[P_D] * e2
+    c0 = P[P_C]
+    c1 = P[P_C + 1]
+    c2 = P[P_C + 2]
+    e0 = pb[0] - c0 + Rb[0] * c0 + Rb[1] * c1 + Rb[2] * c2
+    e1 = pb[1] - c1 + Rb[3] * c0 + Rb[4] * c1 + Rb[5] * c2
+    e2 = pb[2] - c2 + Rb[6] * c0 + Rb[7] * c1 + Rb[8] * c2
+    return (P[P_TRW] - _trace_W(P, Rg) + 0.5 * P[P_GAMMA] * theta * theta
+            + 0.5 * P[P_D] * (e0 * e0 + e1 * e1 + e2 * e2))
 
 
 @jit(inline=True)
@@ -155,11 +168,10 @@ def mu_core(Rb, theta, P, Rg):
     best = 0.0
     jstar = 0
     for j in range(m):
-        off = P_THETA + m + 9 * j
-        acc = 0.0
-        for a in range(3):
-            for c in range(3):
-                acc += Rb[a, c] * P[off + 3 * a + c]
+        o = P_THETA + m + 9 * j
+        acc = (Rb[0] * P[o] + Rb[1] * P[o + 1] + Rb[2] * P[o + 2] + Rb[3] * P[o + 3]
+               + Rb[4] * P[o + 4] + Rb[5] * P[o + 5] + Rb[6] * P[o + 6] + Rb[7] * P[o + 7]
+               + Rb[8] * P[o + 8])
         s_j = -acc + P[P_THETA + 10 * m + j]
         if j == 0 or s_j < best - 1e-12 * (1.0 + abs(best)):
             best = s_j
@@ -168,8 +180,8 @@ def mu_core(Rb, theta, P, Rg):
 
 
 @jit(inline=True)
-def gradient_core(Rb, pb, theta, P, Ra, Rg, g):
-    """ψ̄_∇(X̄, θ) (`st_b`) into g (6,); returns ∇_θU(X̄, θ) (`st_c`).
+def gradient_core(Rb, pb, theta, P, Ra, Rg):
+    """(ψ̄_∇(X̄, θ) (`st_b`) as a 6-tuple, ∇_θU(X̄, θ) (`st_c`)).
 
     With Γ = X̄ 𝒯_uc(θ) = 𝒯(R_g, p_g), c = b/d and q = R_gᵀp_g = R_aᵀ(c + R̄ᵀp̄) − c:
         ψ̄((I − Γ⁻¹)𝔸) = [−ψ(R_gᵀA) + ½ b×q ;  ½(b − R_gᵀb + d q)]  =: [a; w]
@@ -184,13 +196,13 @@ def gradient_core(Rb, pb, theta, P, Ra, Rg, g):
     c1 = P[P_C + 1]
     c2 = P[P_C + 2]
     # y = c + R̄ᵀ p̄
-    y0 = c0 + Rb[0, 0] * pb[0] + Rb[1, 0] * pb[1] + Rb[2, 0] * pb[2]
-    y1 = c1 + Rb[0, 1] * pb[0] + Rb[1, 1] * pb[1] + Rb[2, 1] * pb[2]
-    y2 = c2 + Rb[0, 2] * pb[0] + Rb[1, 2] * pb[1] + Rb[2, 2] * pb[2]
+    y0 = c0 + Rb[0] * pb[0] + Rb[3] * pb[1] + Rb[6] * pb[2]
+    y1 = c1 + Rb[1] * pb[0] + Rb[4] * pb[1] + Rb[7] * pb[2]
+    y2 = c2 + Rb[2] * pb[0] + Rb[5] * pb[1] + Rb[8] * pb[2]
     # q = R_aᵀ y − c
-    q0 = Ra[0, 0] * y0 + Ra[1, 0] * y1 + Ra[2, 0] * y2 - c0
-    q1 = Ra[0, 1] * y0 + Ra[1, 1] * y1 + Ra[2, 1] * y2 - c1
-    q2 = Ra[0, 2] * y0 + Ra[1, 2] * y1 + Ra[2, 2] * y2 - c2
+    q0 = Ra[0] * y0 + Ra[3] * y1 + Ra[6] * y2 - c0
+    q1 = Ra[1] * y0 + Ra[4] * y1 + Ra[7] * y2 - c1
+    q2 = Ra[2] * y0 + Ra[5] * y1 + Ra[8] * y2 - c2
     A00 = P[P_A]
     A01 = P[P_A + 1]
     A02 = P[P_A + 2]
@@ -198,86 +210,63 @@ def gradient_core(Rb, pb, theta, P, Ra, Rg, g):
     A12 = P[P_A + 5]
     A22 = P[P_A + 8]
     # M = R_gᵀ A, M[r, s] = Σ_e R_g[e, r] A[e, s]; ψ(M) needs six entries
-    M21 = Rg[0, 2] * A01 + Rg[1, 2] * A11 + Rg[2, 2] * A12
-    M12 = Rg[0, 1] * A02 + Rg[1, 1] * A12 + Rg[2, 1] * A22
-    M02 = Rg[0, 0] * A02 + Rg[1, 0] * A12 + Rg[2, 0] * A22
-    M20 = Rg[0, 2] * A00 + Rg[1, 2] * A01 + Rg[2, 2] * A02
-    M10 = Rg[0, 1] * A00 + Rg[1, 1] * A01 + Rg[2, 1] * A02
-    M01 = Rg[0, 0] * A01 + Rg[1, 0] * A11 + Rg[2, 0] * A12
+    M21 = Rg[2] * A01 + Rg[5] * A11 + Rg[8] * A12
+    M12 = Rg[1] * A02 + Rg[4] * A12 + Rg[7] * A22
+    M02 = Rg[0] * A02 + Rg[3] * A12 + Rg[6] * A22
+    M20 = Rg[2] * A00 + Rg[5] * A01 + Rg[8] * A02
+    M10 = Rg[1] * A00 + Rg[4] * A01 + Rg[7] * A02
+    M01 = Rg[0] * A01 + Rg[3] * A11 + Rg[6] * A12
     a0 = -0.5 * (M21 - M12) + 0.5 * (b1 * q2 - b2 * q1)
     a1 = -0.5 * (M02 - M20) + 0.5 * (b2 * q0 - b0 * q2)
     a2 = -0.5 * (M10 - M01) + 0.5 * (b0 * q1 - b1 * q0)
     # R_gᵀ b
-    r0 = Rg[0, 0] * b0 + Rg[1, 0] * b1 + Rg[2, 0] * b2
-    r1 = Rg[0, 1] * b0 + Rg[1, 1] * b1 + Rg[2, 1] * b2
-    r2 = Rg[0, 2] * b0 + Rg[1, 2] * b1 + Rg[2, 2] * b2
+    r0 = Rg[0] * b0 + Rg[3] * b1 + Rg[6] * b2
+    r1 = Rg[1] * b0 + Rg[4] * b1 + Rg[7] * b2
+    r2 = Rg[2] * b0 + Rg[5] * b1 + Rg[8] * b2
     w0 = 0.5 * (b0 - r0 + d * q0)
     w1 = 0.5 * (b1 - r1 + d * q1)
     w2 = 0.5 * (b2 - r2 + d * q2)
     # R_a w and R_a a
-    rw0 = Ra[0, 0] * w0 + Ra[0, 1] * w1 + Ra[0, 2] * w2
-    rw1 = Ra[1, 0] * w0 + Ra[1, 1] * w1 + Ra[1, 2] * w2
-    rw2 = Ra[2, 0] * w0 + Ra[2, 1] * w1 + Ra[2, 2] * w2
-    ra0 = Ra[0, 0] * a0 + Ra[0, 1] * a1 + Ra[0, 2] * a2
-    ra1 = Ra[1, 0] * a0 + Ra[1, 1] * a1 + Ra[1, 2] * a2
-    ra2 = Ra[2, 0] * a0 + Ra[2, 1] * a1 + Ra[2, 2] * a2
+    rw0 = Ra[0] * w0 + Ra[1] * w1 + Ra[2] * w2
+    rw1 = Ra[3] * w0 + Ra[4] * w1 + Ra[5] * w2
+    rw2 = Ra[6] * w0 + Ra[7] * w1 + Ra[8] * w2
+    ra0 = Ra[0] * a0 + Ra[1] * a1 + Ra[2] * a2
+    ra1 = Ra[3] * a0 + Ra[4] * a1 + Ra[5] * a2
+    ra2 = Ra[6] * a0 + Ra[7] * a1 + Ra[8] * a2
     # p_T = c − R_a c
-    pt0 = c0 - (Ra[0, 0] * c0 + Ra[0, 1] * c1 + Ra[0, 2] * c2)
-    pt1 = c1 - (Ra[1, 0] * c0 + Ra[1, 1] * c1 + Ra[1, 2] * c2)
-    pt2 = c2 - (Ra[2, 0] * c0 + Ra[2, 1] * c1 + Ra[2, 2] * c2)
-    g[0] = ra0 + pt1 * rw2 - pt2 * rw1
-    g[1] = ra1 + pt2 * rw0 - pt0 * rw2
-    g[2] = ra2 + pt0 * rw1 - pt1 * rw0
-    g[3] = rw0
-    g[4] = rw1
-    g[5] = rw2
-    return P[P_GAMMA] * theta + 2.0 * (
+    pt0 = c0 - (Ra[0] * c0 + Ra[1] * c1 + Ra[2] * c2)
+    pt1 = c1 - (Ra[3] * c0 + Ra[4] * c1 + Ra[5] * c2)
+    pt2 = c2 - (Ra[6] * c0 + Ra[7] * c1 + Ra[8] * c2)
+    g = (ra0 + pt1 * rw2 - pt2 * rw1, ra1 + pt2 * rw0 - pt0 * rw2, ra2 + pt0 * rw1 - pt1 * rw0,
+         rw0, rw1, rw2)
+    grad_theta = P[P_GAMMA] * theta + 2.0 * (
         P[P_UC1] * a0 + P[P_UC1 + 1] * a1 + P[P_UC1 + 2] * a2
         + P[P_UC2] * w0 + P[P_UC2 + 1] * w1 + P[P_UC2 + 2] * w2
     )
-
-
-@jit
-def edge_U(Rb, pb, theta, P, Ra, Rg):
-    prepare(Rb, theta, P, Ra, Rg)
-    return U_core(Rb, pb, theta, P, Rg)
-
-
-@jit
-def edge_mu(Rb, pb, theta, P, Ra, Rg):
-    prepare(Rb, theta, P, Ra, Rg)
-    return mu_core(Rb, theta, P, Rg)
-
-
-@jit
-def edge_gradient(Rb, pb, theta, P, Ra, Rg, g):
-    prepare(Rb, theta, P, Ra, Rg)
-    return gradient_core(Rb, pb, theta, P, Ra, Rg, g)
+    return g, grad_theta
 
 
 @jit(inline=True)
-def Ad_inv_T_apply(Rb, pb, g, out):
-    """out = Ad⁻ᵀ_{X̄} g = [R̄ g_ω + p̄ × (R̄ g_v); R̄ g_v], so that B̄_jk g = −out (`Bt_def`)."""
-    rv0 = Rb[0, 0] * g[3] + Rb[0, 1] * g[4] + Rb[0, 2] * g[5]
-    rv1 = Rb[1, 0] * g[3] + Rb[1, 1] * g[4] + Rb[1, 2] * g[5]
-    rv2 = Rb[2, 0] * g[3] + Rb[2, 1] * g[4] + Rb[2, 2] * g[5]
-    out[0] = Rb[0, 0] * g[0] + Rb[0, 1] * g[1] + Rb[0, 2] * g[2] + pb[1] * rv2 - pb[2] * rv1
-    out[1] = Rb[1, 0] * g[0] + Rb[1, 1] * g[1] + Rb[1, 2] * g[2] + pb[2] * rv0 - pb[0] * rv2
-    out[2] = Rb[2, 0] * g[0] + Rb[2, 1] * g[1] + Rb[2, 2] * g[2] + pb[0] * rv1 - pb[1] * rv0
-    out[3] = rv0
-    out[4] = rv1
-    out[5] = rv2
+def Ad_inv_T(Rb, pb, g):
+    """Ad⁻ᵀ_{X̄} g = [R̄ g_ω + p̄ × (R̄ g_v); R̄ g_v], so that B̄_jk g = −Ad⁻ᵀ_{X̄} g (`Bt_def`)."""
+    rv0 = Rb[0] * g[3] + Rb[1] * g[4] + Rb[2] * g[5]
+    rv1 = Rb[3] * g[3] + Rb[4] * g[4] + Rb[5] * g[5]
+    rv2 = Rb[6] * g[3] + Rb[7] * g[4] + Rb[8] * g[5]
+    return (Rb[0] * g[0] + Rb[1] * g[1] + Rb[2] * g[2] + pb[1] * rv2 - pb[2] * rv1,
+            Rb[3] * g[0] + Rb[4] * g[1] + Rb[5] * g[2] + pb[2] * rv0 - pb[0] * rv2,
+            Rb[6] * g[0] + Rb[7] * g[1] + Rb[8] * g[2] + pb[0] * rv1 - pb[1] * rv0,
+            rv0, rv1, rv2)
 
 
 @jit(inline=True)
-def edge_update(Rb, pb, theta, hybrid, P, h, Ra, Rg, g, gn):
+def edge_update(Rb, pb, theta, hybrid, P, h):
     """One edge at a communication point: jump if in 𝒥_k, gradient, then flow of θ over h.
 
-    Returns (θ⁺ after the flow, θ after the jump, μ_U before the jump, jumped). g receives
-    ψ̄_∇ (the positive end's term, B̄_ik = I) and gn receives Ad⁻ᵀ_{X̄}ψ̄_∇ (the negative end's
-    term with its sign flipped). Used by both the network and the per-agent views.
+    Returns (g, gn, θ⁺ after the flow, θ after the jump, μ_U before the jump, jumped): g is
+    ψ̄_∇ (the positive end's term, B̄_ik = I) and gn is Ad⁻ᵀ_{X̄}ψ̄_∇ (the negative end's term
+    with its sign flipped).
     """
-    prepare(Rb, theta, P, Ra, Rg)
+    Ra, Rg = prepare(Rb, theta, P)
     mu = 0.0
     jumped = False
     if hybrid:
@@ -285,11 +274,60 @@ def edge_update(Rb, pb, theta, hybrid, P, h, Ra, Rg, g, gn):
         if mu >= P[P_DELTA]:
             theta = P[P_THETA + jstar]
             jumped = True
-            prepare(Rb, theta, P, Ra, Rg)
-    grad_theta = gradient_core(Rb, pb, theta, P, Ra, Rg, g)
-    Ad_inv_T_apply(Rb, pb, g, gn)
+            Ra, Rg = prepare(Rb, theta, P)
+    g, grad_theta = gradient_core(Rb, pb, theta, P, Ra, Rg)
+    gn = Ad_inv_T(Rb, pb, g)
     theta_next = theta - h * P[P_KTH] * grad_theta if hybrid else theta
-    return theta_next, theta, mu, jumped
+    return g, gn, theta_next, theta, mu, jumped
+
+
+@jit(inline=True)
+def _t9(M):
+    return (M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2])
+
+
+@jit(inline=True)
+def _t3(v):
+    return (v[0], v[1], v[2])
+
+
+# ---- array-taking entry points (per-agent view, `potential`): the same cores as the network
+
+
+@jit
+def edge_U(Rb, pb, theta, P):
+    """U(X̄, θ) for R̄ (3, 3), p̄ (3,)."""
+    R = _t9(Rb)
+    Ra, Rg = prepare(R, theta, P)
+    return U_core(R, _t3(pb), theta, P, Rg)
+
+
+@jit
+def edge_mu(Rb, pb, theta, P):
+    """(μ_U, j*) for R̄ (3, 3), p̄ (3,)."""
+    R = _t9(Rb)
+    Ra, Rg = prepare(R, theta, P)
+    return mu_core(R, theta, P, Rg)
+
+
+@jit
+def edge_gradient(Rb, pb, theta, P, g):
+    """ψ̄_∇ into g (6,); returns ∇_θU."""
+    R = _t9(Rb)
+    Ra, Rg = prepare(R, theta, P)
+    gt, grad_theta = gradient_core(R, _t3(pb), theta, P, Ra, Rg)
+    for a in range(6):
+        g[a] = gt[a]
+    return grad_theta
+
+
+@jit
+def Ad_inv_T_apply(Rb, pb, g, out):
+    """out = Ad⁻ᵀ_{X̄} g for R̄ (3, 3), p̄ (3,)."""
+    gt = (g[0], g[1], g[2], g[3], g[4], g[5])
+    o = Ad_inv_T(_t9(Rb), _t3(pb), gt)
+    for a in range(6):
+        out[a] = o[a]
 
 
 @jit
@@ -298,9 +336,9 @@ def network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev, theta
 
     theta (M,) is updated in place (jumps, then flow over h); u (N, 6) receives the wrench;
     mu (μ_U before any jump), jumped, theta_prev (θ on entry) and theta_jump (θ after the jump
-    stage) describe each edge. Returns the number of
-    jumps. Each agent accumulates −k_ξ ξ_i, then its edges' terms in ascending edge order, the
-    same order as the per-agent view, so the two agree to rounding.
+    stage) describe each edge. Returns the number of jumps. Each agent accumulates −k_ξ ξ_i,
+    then its edges' terms in ascending edge order, the same order as the per-agent view, so
+    the two agree to rounding.
     """
     N = S.shape[0]
     M = edges.shape[0]
@@ -310,18 +348,12 @@ def network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev, theta
     for i in range(N):
         for a in range(6):
             u[i, a] = -kxi * S[i, S_XI + a]
-    Rb = np.empty((3, 3))
-    pb = np.empty(3)
-    Ra = np.empty((3, 3))
-    Rg = np.empty((3, 3))
-    g = np.empty(6)
-    gn = np.empty(6)
     n_jumps = 0
     for k in range(M):
         i = edges[k, 0]
         j = edges[k, 1]
-        rel_pose(S, i, j, Rb, pb)
-        th_next, th_jump, mu_k, jumped_k = edge_update(Rb, pb, theta[k], hybrid, P, h, Ra, Rg, g, gn)
+        Rb, pb = rel_pose(S, i, j)
+        g, gn, th_next, th_jump, mu_k, jumped_k = edge_update(Rb, pb, theta[k], hybrid, P, h)
         mu[k] = mu_k
         jumped[k] = jumped_k
         theta_prev[k] = theta[k]
@@ -339,10 +371,7 @@ def network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev, theta
 @jit
 def network_U(S, theta, edges, P, out):
     """U(X̄_k, θ_k) for every edge into out (M,)."""
-    Rb = np.empty((3, 3))
-    pb = np.empty(3)
-    Ra = np.empty((3, 3))
-    Rg = np.empty((3, 3))
     for k in range(edges.shape[0]):
-        rel_pose(S, edges[k, 0], edges[k, 1], Rb, pb)
-        out[k] = edge_U(Rb, pb, theta[k], P, Ra, Rg)
+        Rb, pb = rel_pose(S, edges[k, 0], edges[k, 1])
+        Ra, Rg = prepare(Rb, theta[k], P)
+        out[k] = U_core(Rb, pb, theta[k], P, Rg)

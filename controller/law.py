@@ -177,8 +177,6 @@ class AgentStepper:
         self.owned = [k for k, (a, _) in self.local_edges.items() if a == self.agent]
         self.P = _params(weighting, design, gains)
         self.theta = {k: float((theta0 or {}).get(k, 0.0)) if self.hybrid else 0.0 for k in self.owned}
-        self._Ra = np.empty((3, 3))
-        self._Rg = np.empty((3, 3))
         self._g = np.empty(6)
         self._gn = np.empty(6)
 
@@ -198,7 +196,7 @@ class AgentStepper:
         events = []
         for k in self.owned:
             Rb, pb = self._split(rel[k])
-            mu, jstar = K.edge_mu(Rb, pb, self.theta[k], self.P, self._Ra, self._Rg)
+            mu, jstar = K.edge_mu(Rb, pb, self.theta[k], self.P)
             if mu >= self.P[K.P_DELTA]:
                 before = self.theta[k]
                 self.theta[k] = float(self.P[K.P_THETA + jstar])
@@ -218,7 +216,7 @@ class AgentStepper:
             else:
                 th = float(theta_nbrs[k]) if self.hybrid else 0.0
                 other = a
-            K.edge_gradient(Rb, pb, th, P, self._Ra, self._Rg, self._g)
+            K.edge_gradient(Rb, pb, th, P, self._g)
             xi_j = np.asarray(xi_nbrs[other], float)
             if a == self.agent:
                 dxi = xi_i - xi_j
@@ -235,7 +233,7 @@ class AgentStepper:
             return
         for k in self.owned:
             Rb, pb = self._split(rel[k])
-            grad = K.edge_gradient(Rb, pb, self.theta[k], self.P, self._Ra, self._Rg, self._g)
+            grad = K.edge_gradient(Rb, pb, self.theta[k], self.P, self._g)
             self.theta[k] = self.theta[k] - h * self.P[K.P_KTH] * grad
 
     def step(self, rel, xi_i, xi_nbrs, theta_nbrs, h):

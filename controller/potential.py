@@ -48,41 +48,36 @@ def _loop(fn, Xbar, theta, out_shape):
 def U(weighting, design, Xbar, theta):
     """U(X̄, θ) (`U_explicit`)."""
     P = params(weighting, design)
-    Ra, Rg = np.empty((3, 3)), np.empty((3, 3))
-    return _loop(lambda R, p, t: K.edge_U(R, p, t, P, Ra, Rg), Xbar, theta, ())
+    return _loop(lambda R, p, t: K.edge_U(R, p, t, P), Xbar, theta, ())
 
 
 def mu_U(weighting, design, Xbar, theta):
     """μ_U(X̄, θ) = U(X̄, θ) − min_{θ'∈Θ} U(X̄, θ') (`mu_U_def`)."""
     P = params(weighting, design)
-    Ra, Rg = np.empty((3, 3)), np.empty((3, 3))
-    return _loop(lambda R, p, t: K.edge_mu(R, p, t, P, Ra, Rg)[0], Xbar, theta, ())
+    return _loop(lambda R, p, t: K.edge_mu(R, p, t, P)[0], Xbar, theta, ())
 
 
 def jump_map(weighting, design, Xbar):
     """g(X̄) = argmin_{θ'∈Θ} U(X̄, θ') (`eqn: gtheta`), ties to the first element of Θ."""
     P = params(weighting, design)
-    Ra, Rg = np.empty((3, 3)), np.empty((3, 3))
     Theta = np.asarray(design.Theta)
-    return _loop(lambda R, p, t: Theta[K.edge_mu(R, p, 0.0, P, Ra, Rg)[1]], Xbar, 0.0, ())
+    return _loop(lambda R, p, t: Theta[K.edge_mu(R, p, 0.0, P)[1]], Xbar, 0.0, ())
 
 
 def grad_theta_U(weighting, design, Xbar, theta):
     """∇_θU(X̄, θ) (`st_c`)."""
     P = params(weighting, design)
-    Ra, Rg = np.empty((3, 3)), np.empty((3, 3))
     g = np.empty(6)
-    return _loop(lambda R, p, t: K.edge_gradient(R, p, t, P, Ra, Rg, g), Xbar, theta, ())
+    return _loop(lambda R, p, t: K.edge_gradient(R, p, t, P, g), Xbar, theta, ())
 
 
 def psi_bar_nabla(weighting, design, Xbar, theta):
     """ψ̄_∇(X̄, θ) = ψ̄(X̄⁻¹∇_X̄ U) (`st_b`), shape (..., 6)."""
     P = params(weighting, design)
-    Ra, Rg = np.empty((3, 3)), np.empty((3, 3))
     g = np.empty(6)
 
     def f(R, p, t):
-        K.edge_gradient(R, p, t, P, Ra, Rg, g)
+        K.edge_gradient(R, p, t, P, g)
         return g.copy()
 
     return _loop(f, Xbar, theta, (6,))
