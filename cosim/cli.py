@@ -8,6 +8,7 @@ import sys
 # Modules that add sub-commands. Each exposes register(subparsers) and keeps its heavy
 # imports inside the handlers so that `se3sync --help` stays fast.
 _COMMAND_MODULES = (
+    "cosim.commands",
     "plant_fmu.cli",
 )
 

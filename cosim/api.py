@@ -1,0 +1,109 @@
+"""Library entry points for other packages (sweeps, the MAVLink bridge): run a scenario."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import tempfile
+from pathlib import Path
+
+__all__ = ["run_scenario", "with_timing", "write_json_atomic"]
+
+
+def with_timing(scenario, duration=None, step=None):
+    """A copy of the scenario with another duration and/or communication step (the internal
+    step follows h unless the scenario sets plant.internal_step)."""
+    from .scenario import MAX_DEFAULT_INTERNAL_STEP, ScenarioError
+
+    if duration is None and step is None:
+        return scenario
+    changes = {}
+    if duration is not None:
+        duration = float(duration)
+        if not (math.isfinite(duration) and duration > 0):
+            raise ScenarioError("simulation.duration", f"must be > 0, got {duration}", scenario.path)
+        changes["duration"] = duration
+    if step is not None:
+        step = float(step)
+        if not (math.isfinite(step) and step > 0):
+            raise ScenarioError("simulation.step", f"must be > 0, got {step}", scenario.path)
+        changes["step"] = step
+        if "internal_step" not in scenario.values.get("plant", {}):
+            changes["internal_step"] = min(step, MAX_DEFAULT_INTERNAL_STEP)
+    return dataclasses.replace(scenario, **changes)
+
+
+def _umask_mode() -> int:
+    old = os.umask(0o022)
+    os.umask(old)
+    return 0o666 & ~old
+
+
+def write_json_atomic(path, obj) -> None:
+    """Writes JSON to a temporary file in the same directory, then renames it into place."""
+    path = Path(path)
+    d = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=d)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(obj, f, indent=1, allow_nan=True)
+            f.write("\n")
+        os.chmod(tmp, _umask_mode())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
+                 summary_path=None, duration=None, step=None, progress=False,
+                 fmu_path=None) -> dict:
+    """Runs a scenario (a Scenario or a path to a TOML file) and returns the summary dict.
+
+    plant: "fleet" | "per-body" | a Plant instance (closed by the caller);
+    controller: "hybrid" | "gradient" | a controller instance. log_path: MCAP written
+    (streamed) there; summary_path: summary JSON written atomically. On Ctrl-C the run stops
+    cleanly, the log is finished and the summary has "interrupted": true.
+    """
+    from .master import Master, make_controller
+    from .mcaplog import McapLogger
+    from .plant import make_plant
+    from .scenario import Scenario, load_scenario
+
+    if not isinstance(scenario, Scenario):
+        scenario = load_scenario(scenario)
+    scenario = with_timing(scenario, duration, step)
+    own_plant = isinstance(plant, str)
+    plant_kind = plant if own_plant else type(plant).__name__
+    ctrl = make_controller(controller, scenario) if isinstance(controller, str) else controller
+    ctrl_kind = controller if isinstance(controller, str) else (
+        "hybrid" if getattr(controller, "hybrid", True) else "gradient")
+    p = make_plant(plant, scenario, fmu_path) if own_plant else plant
+    logger = None
+    try:
+        if log_path is not None:
+            md = getattr(p, "model_description", None)
+            logger = McapLogger(log_path, scenario, controller=ctrl_kind,
+                                model_description=md() if md is not None else None,
+                                extra_metadata={"plant": plant_kind})
+        master = Master(scenario, p, ctrl, logger)
+        master.controller_kind = ctrl_kind
+        summary = master.run(scenario.n_steps(), progress=progress)
+    finally:
+        try:
+            if logger is not None:
+                logger.close()
+        finally:
+            if own_plant:
+                p.close()
+    summary["plant"] = plant_kind
+    if log_path is not None:
+        summary["log"] = str(log_path)
+        summary["log_messages"] = dict(logger.counts)
+    if summary_path is not None:
+        write_json_atomic(summary_path, summary)
+    return summary

@@ -1,0 +1,301 @@
+"""MCAP logs of a run: JSON messages on JSON-schema channels that Foxglove understands.
+
+Channels (log time = nanoseconds of SIMULATED time in co-simulation, see the ``se3sync``
+metadata record's ``time_base``):
+
+- ``/tf``        foxglove.FrameTransforms: every agent's pose, parent "world", child "agent_i"
+- ``/edges``     se3sync.Edges: per edge θ, μ_U, ‖I − R̄‖_F, ‖p̄‖, U and mode ("flow"/"jump")
+- ``/agents``    se3sync.Agents: per agent ω, v (body frame), torque τ, force f
+- ``/lyapunov``  se3sync.Lyapunov: V̄ and k_X ΣU
+- ``/jumps``     se3sync.Jump: one message per jump, never decimated
+- ``/link/stats`` se3sync.LinkStats: link statistics of a hardware plant, 1 Hz (only if any)
+
+The file is written in chunks as the run goes (the summary section only on close), so the
+messages of the complete chunks of a killed process stay readable by a streaming reader.
+"""
+from __future__ import annotations
+
+import json
+import time
+
+from mcap.writer import CompressionType, Writer
+
+__all__ = ["McapLogger", "SCHEMAS", "read_log"]
+
+TIME = {"type": "object", "title": "time",
+        "properties": {"sec": {"type": "integer", "minimum": 0},
+                       "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999}}}
+VEC3 = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
+
+FRAME_TRANSFORMS = {
+    "title": "foxglove.FrameTransforms",
+    "description": "An array of FrameTransform messages",
+    "type": "object",
+    "properties": {
+        "transforms": {
+            "type": "array",
+            "items": {
+                "title": "foxglove.FrameTransform",
+                "description": "A transform between two reference frames in 3D space",
+                "type": "object",
+                "properties": {
+                    "timestamp": dict(TIME, description="Timestamp of transform"),
+                    "parent_frame_id": {"type": "string", "description": "Name of the parent frame"},
+                    "child_frame_id": {"type": "string", "description": "Name of the child frame"},
+                    "translation": {
+                        "title": "foxglove.Vector3",
+                        "description": "Translation component of the transform",
+                        "type": "object",
+                        "properties": {k: {"type": "number", "description": f"{k} coordinate length"}
+                                       for k in "xyz"},
+                    },
+                    "rotation": {
+                        "title": "foxglove.Quaternion",
+                        "description": "Rotation component of the transform",
+                        "type": "object",
+                        "properties": {k: {"type": "number", "description": f"{k} value"}
+                                       for k in "xyzw"},
+                    },
+                },
+            },
+            "description": "Array of transforms",
+        }
+    },
+}
+
+EDGES = {
+    "title": "se3sync.Edges",
+    "description": "Per-edge state of the hybrid controller at a communication point",
+    "type": "object",
+    "properties": {
+        "timestamp": TIME,
+        "edges": {"type": "array", "items": {"type": "object", "properties": {
+            "edge": {"type": "integer", "description": "edge number k (from 1)"},
+            "positive": {"type": "integer"}, "negative": {"type": "integer"},
+            "theta": {"type": "number", "description": "θ_k after the jump stage (rad)"},
+            "mu_U": {"type": "number", "description": "μ_U(X̄_k, θ_k) before any jump"},
+            "rot_err": {"type": "number", "description": "‖I − R̄_k‖_F"},
+            "pos_err": {"type": "number", "description": "‖p̄_k‖ (m)"},
+            "U": {"type": "number", "description": "U(X̄_k, θ_k)"},
+            "mode": {"type": "string", "enum": ["flow", "jump"]},
+        }}},
+    },
+}
+
+AGENTS = {
+    "title": "se3sync.Agents",
+    "description": "Per-agent body velocity and applied wrench (body frame)",
+    "type": "object",
+    "properties": {
+        "timestamp": TIME,
+        "agents": {"type": "array", "items": {"type": "object", "properties": {
+            "agent": {"type": "integer"},
+            "omega": dict(VEC3, description="angular velocity ω_i (rad/s)"),
+            "v": dict(VEC3, description="linear velocity v_i (m/s)"),
+            "torque": dict(VEC3, description="τ_i (N m)"),
+            "force": dict(VEC3, description="f_i (N)"),
+        }}},
+    },
+}
+
+LYAPUNOV = {
+    "title": "se3sync.Lyapunov",
+    "type": "object",
+    "properties": {"timestamp": TIME,
+                   "V": {"type": "number", "description": "V̄ = k_X Σ U + Σ ξᵀ𝕀ξ"},
+                   "kX_U": {"type": "number", "description": "k_X Σ_k U(X̄_k, θ_k)"}},
+}
+
+JUMP = {
+    "title": "se3sync.Jump",
+    "type": "object",
+    "properties": {"timestamp": TIME, "t": {"type": "number"}, "edge": {"type": "integer"},
+                   "theta_before": {"type": "number"}, "theta_after": {"type": "number"},
+                   "mu": {"type": "number"}},
+}
+
+LINK_STATS = {"title": "se3sync.LinkStats", "type": "object",
+              "properties": {"timestamp": TIME}, "additionalProperties": True}
+
+SCHEMAS = {"/tf": FRAME_TRANSFORMS, "/edges": EDGES, "/agents": AGENTS, "/lyapunov": LYAPUNOV,
+           "/jumps": JUMP, "/link/stats": LINK_STATS}
+
+_dumps = json.dumps
+_FMT = float.__repr__
+
+
+def _r(x: float) -> str:
+    """A float as JSON (repr is shortest round-trip; non-finite values become null)."""
+    s = _FMT(x)
+    return s if s[-1].isdigit() else "null"
+
+
+class McapLogger:
+    """Streams a run to an MCAP file.
+
+    ``McapLogger(path, scenario, controller="hybrid", model_description=None,
+    chunk_size=256 KiB)``; call ``record(...)``, ``jump(...)``, ``link_stats(...)`` and finally
+    ``close()`` (also a context manager).
+    """
+
+    def __init__(self, path, scenario, controller: str = "hybrid", model_description=None,
+                 chunk_size: int = 256 * 1024, extra_metadata: dict | None = None):
+        from controller import __version__
+
+        self.path = str(path)
+        self._f = open(self.path, "wb")
+        try:
+            self._w = w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            w.start(profile="", library=f"se3sync {__version__}")
+            self._ch = {}
+            for topic in ("/tf", "/edges", "/agents", "/lyapunov", "/jumps"):
+                self._channel(topic)
+            meta = {
+                "scenario": scenario.text,
+                "scenario_name": scenario.name,
+                "scenario_path": str(scenario.path),
+                "overrides": json.dumps(list(scenario.overrides)),
+                "design": json.dumps(scenario.design.as_dict()),
+                "se3sync_version": __version__,
+                "time_base": "simulated",
+                "time_unit": "ns",
+                "controller": controller,
+                "step": repr(float(scenario.step)),
+                "log_rate": repr(float(scenario.log_rate)),
+                "n_agents": str(scenario.graph.n),
+                "edges": json.dumps([list(e) for e in scenario.graph.edge_list]),
+                "created_unix": repr(time.time()),
+            }
+            if extra_metadata:
+                meta.update({str(k): str(v) for k, v in extra_metadata.items()})
+            w.add_metadata("se3sync", meta)
+            if model_description:
+                data = model_description.encode() if isinstance(model_description, str) else bytes(model_description)
+                w.add_attachment(create_time=time.time_ns(), log_time=0,
+                                 name="modelDescription.xml", media_type="application/xml",
+                                 data=data)
+        except BaseException:
+            self._f.close()
+            raise
+        self._seq = 0
+        self._closed = False
+        n = scenario.graph.n
+        self._agent_names = [f"agent_{i + 1}" for i in range(n)]
+        self._tf_pre = [f'{{"timestamp":%s,"parent_frame_id":"world","child_frame_id":"agent_{i + 1}",'
+                        for i in range(n)]
+        self._edge_pre = [f'{{"edge":{k + 1},"positive":{a},"negative":{b},'
+                          for k, (a, b) in enumerate(scenario.graph.edge_list)]
+        self._add = w.add_message
+        self.counts = {}
+
+    def _channel(self, topic):
+        if topic not in self._ch:
+            sid = self._w.register_schema(name=SCHEMAS[topic]["title"], encoding="jsonschema",
+                                          data=json.dumps(SCHEMAS[topic]).encode())
+            self._ch[topic] = self._w.register_channel(topic=topic, message_encoding="json",
+                                                       schema_id=sid)
+        return self._ch[topic]
+
+    def _msg(self, topic, t_ns, payload: str):
+        self._seq += 1
+        self._add(self._ch[topic], t_ns, payload.encode(), t_ns, self._seq)
+        self.counts[topic] = self.counts.get(topic, 0) + 1
+
+    def record(self, t_ns: int, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U):
+        """One decimated record: /tf, /edges, /agents, /lyapunov at simulated time t_ns."""
+        ts = f'{{"sec":{t_ns // 1_000_000_000},"nsec":{t_ns % 1_000_000_000}}}'
+        Sl = S.tolist()
+        ql = quat.tolist()
+        ul = u.tolist()
+        r = _r
+        tf = ",".join(
+            pre % ts + f'"translation":{{"x":{r(s[0])},"y":{r(s[1])},"z":{r(s[2])}}},'
+            f'"rotation":{{"x":{r(q[0])},"y":{r(q[1])},"z":{r(q[2])},"w":{r(q[3])}}}}}'
+            for pre, s, q in zip(self._tf_pre, Sl, ql))
+        self._msg("/tf", t_ns, f'{{"transforms":[{tf}]}}')
+        th, mul, jl, rl, pl, Ul = theta.tolist(), mu.tolist(), jumped.tolist(), rot_err.tolist(), \
+            pos_err.tolist(), U.tolist()
+        ed = ",".join(
+            f'{pre}"theta":{r(a)},"mu_U":{r(b)},"rot_err":{r(c)},"pos_err":{r(d)},"U":{r(e)},'
+            f'"mode":"{"jump" if j else "flow"}"}}'
+            for pre, a, b, c, d, e, j in zip(self._edge_pre, th, mul, rl, pl, Ul, jl))
+        self._msg("/edges", t_ns, f'{{"timestamp":{ts},"edges":[{ed}]}}')
+        ag = ",".join(
+            f'{{"agent":{i + 1},"omega":[{r(s[12])},{r(s[13])},{r(s[14])}],'
+            f'"v":[{r(s[15])},{r(s[16])},{r(s[17])}],'
+            f'"torque":[{r(w[0])},{r(w[1])},{r(w[2])}],"force":[{r(w[3])},{r(w[4])},{r(w[5])}]}}'
+            for i, (s, w) in enumerate(zip(Sl, ul)))
+        self._msg("/agents", t_ns, f'{{"timestamp":{ts},"agents":[{ag}]}}')
+        self._msg("/lyapunov", t_ns, f'{{"timestamp":{ts},"V":{r(V)},"kX_U":{r(kX_U)}}}')
+
+    def jump(self, t_ns: int, t: float, edge: int, theta_before: float, theta_after: float, mu: float):
+        ts = {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
+        self._msg("/jumps", t_ns, _dumps({"timestamp": ts, "t": t, "edge": edge,
+                                          "theta_before": theta_before,
+                                          "theta_after": theta_after, "mu": mu}))
+
+    def link_stats(self, t_ns: int, stats: dict):
+        self._channel("/link/stats")
+        ts = {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
+        self._msg("/link/stats", t_ns, _dumps(dict(stats, timestamp=ts), default=float))
+
+    def close(self):
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._w.finish()
+        finally:
+            self._f.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_log(path) -> dict:
+    """Reads an se3sync MCAP back: {"metadata": {...}, "attachments": {name: bytes},
+    "messages": {topic: [(log_time_ns, decoded JSON), ...]}, "truncated": bool}.
+
+    One streaming pass (mcap's StreamReader), so a file without a summary section, or with a
+    torn tail (a killed run), yields every record before the tear. Raises Se3SyncError (one
+    line) when the file is unreadable or is not an se3sync log.
+    """
+    from controller.errors import Se3SyncError
+    from mcap.records import Attachment, Channel, Message, Metadata
+    from mcap.stream_reader import StreamReader
+
+    out = {"metadata": None, "attachments": {}, "messages": {}, "truncated": False}
+    channels = {}
+    n_records = 0
+    try:
+        f = open(path, "rb")
+    except FileNotFoundError:
+        raise Se3SyncError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise Se3SyncError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    with f:
+        try:
+            for rec in StreamReader(f, skip_magic=False).records:
+                n_records += 1
+                if isinstance(rec, Message):
+                    topic = channels.get(rec.channel_id)
+                    if topic is not None:
+                        out["messages"].setdefault(topic, []).append((rec.log_time, json.loads(rec.data)))
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec.topic
+                elif isinstance(rec, Metadata):
+                    if rec.name == "se3sync":
+                        out["metadata"] = dict(rec.metadata)
+                elif isinstance(rec, Attachment):
+                    out["attachments"][rec.name] = bytes(rec.data)
+        except Exception as exc:  # mcap raises assorted errors on garbage or torn input
+            if n_records == 0 or out["metadata"] is None:
+                raise Se3SyncError(f"{path}: not a readable MCAP file ({type(exc).__name__}: "
+                                   f"{' '.join(str(exc).split())[:160]})") from None
+            out["truncated"] = True
+    if out["metadata"] is None:
+        raise Se3SyncError(f"{path}: not an se3sync log (no 'se3sync' metadata record)")
+    return out

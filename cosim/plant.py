@@ -1,0 +1,173 @@
+"""Plants the master can drive: the protocol and the two FMU-backed implementations.
+
+A plant holds N rigid bodies. Per communication step the master calls, in this order,
+``read()`` (the state at t_n), ``apply(u)`` (held constant over the step: zero-order hold) and
+``advance(h)`` (t_n → t_n + h).
+"""
+from __future__ import annotations
+
+import zipfile
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+__all__ = ["Plant", "FmuPlant", "PerBodyFmuPlant", "make_plant"]
+
+
+@runtime_checkable
+class Plant(Protocol):
+    """n: number of bodies; read() -> S (N, 18) [p, R row-major, ξ] (may be a reused buffer);
+    apply(u (N, 6)): the wrench held over the next step; advance(h); close().
+
+    Optional: ``stats() -> dict`` (link statistics; logged on /link/stats at 1 Hz and put in
+    the summary under "link") and ``model_description() -> str | None`` (attached to the log).
+    """
+
+    n: int
+
+    def read(self) -> np.ndarray: ...
+
+    def apply(self, u: np.ndarray) -> None: ...
+
+    def advance(self, h: float) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def _md_text(path) -> str | None:
+    try:
+        with zipfile.ZipFile(path) as z:
+            return z.read("modelDescription.xml").decode("utf-8")
+    except (OSError, KeyError, zipfile.BadZipFile):
+        return None
+
+
+class FmuPlant:
+    """All N bodies in ONE instance of the plant FMU (a handful of FMI calls per step).
+
+    ``FmuPlant(masses (N,), inertias (N,3,3), S0 (N,18), gravity=(0,0,0), internal_step=1e-4,
+    fmu_path=None)``; ``FmuPlant.from_scenario(scenario)``.
+    """
+
+    def __init__(self, masses, inertias, S0, gravity=(0.0, 0.0, 0.0), internal_step=1e-4,
+                 fmu_path=None):
+        from plant_fmu.fast import FleetFMU
+
+        S0 = np.asarray(S0, float)
+        self.n = n = S0.shape[0]
+        self._fmu = fmu = FleetFMU(n, fmu_path=fmu_path, instance_name="plant")
+        try:
+            fmu.set_parameters(mass=np.asarray(masses, float), J=np.asarray(inertias, float),
+                               p0=S0[:, 0:3], R0=S0[:, 3:12].reshape(n, 3, 3), xi0=S0[:, 12:18],
+                               gravity=np.asarray(gravity, float), h_internal=float(internal_step))
+            fmu.initialize(0.0)
+        except BaseException:
+            fmu.close()
+            raise
+        self._k = 0
+        self.read = fmu.get_state
+        self.apply = fmu.set_input
+        self._do_step = fmu.do_step
+
+    @classmethod
+    def from_scenario(cls, scenario, fmu_path=None):
+        return cls(scenario.masses, scenario.inertias, scenario.S0, scenario.gravity,
+                   scenario.internal_step, fmu_path)
+
+    def advance(self, h: float) -> None:
+        k = self._k
+        self._do_step(k * h, h)
+        self._k = k + 1
+
+    def model_description(self) -> str | None:
+        return _md_text(self._fmu.fmu_path)
+
+    def close(self) -> None:
+        fmu = self._fmu
+        if fmu is not None:
+            self._fmu = None
+            try:
+                fmu.terminate()
+            except Exception:
+                pass
+            fmu.close()
+
+
+class PerBodyFmuPlant:
+    """N single-body instances of the plant FMU (FleetFMU(1) each): the composition any FMI
+    master would build. Gives the same trajectory as FmuPlant (the model steps bodies
+    independently)."""
+
+    def __init__(self, masses, inertias, S0, gravity=(0.0, 0.0, 0.0), internal_step=1e-4,
+                 fmu_path=None):
+        from plant_fmu.fast import FleetFMU
+
+        S0 = np.asarray(S0, float)
+        self.n = n = S0.shape[0]
+        masses = np.broadcast_to(np.asarray(masses, float), (n,))
+        inertias = np.broadcast_to(np.asarray(inertias, float), (n, 3, 3))
+        self._fmus = []
+        try:
+            for i in range(n):
+                f = FleetFMU(1, fmu_path=fmu_path, instance_name=f"body{i + 1}")
+                self._fmus.append(f)
+                f.set_parameters(mass=masses[i:i + 1], J=inertias[i:i + 1], p0=S0[i:i + 1, 0:3],
+                                 R0=S0[i:i + 1, 3:12].reshape(1, 3, 3), xi0=S0[i:i + 1, 12:18],
+                                 gravity=np.asarray(gravity, float), h_internal=float(internal_step))
+                f.initialize(0.0)
+        except BaseException:
+            self.close()
+            raise
+        self._S = np.zeros((n, 18))
+        self._rows = [self._S[i:i + 1] for i in range(n)]
+        self._u = np.zeros((n, 6))
+        self._urows = [self._u[i:i + 1] for i in range(n)]
+        self._get = [f.get_state for f in self._fmus]
+        self._set = [f.set_input for f in self._fmus]
+        self._step = [f.do_step for f in self._fmus]
+        self._k = 0
+
+    @classmethod
+    def from_scenario(cls, scenario, fmu_path=None):
+        return cls(scenario.masses, scenario.inertias, scenario.S0, scenario.gravity,
+                   scenario.internal_step, fmu_path)
+
+    def read(self) -> np.ndarray:
+        copyto = np.copyto
+        for row, get in zip(self._rows, self._get):
+            copyto(row, get())
+        return self._S
+
+    def apply(self, u) -> None:
+        np.copyto(self._u, u)
+        for row, s in zip(self._urows, self._set):
+            s(row)
+
+    def advance(self, h: float) -> None:
+        t = self._k * h
+        for s in self._step:
+            s(t, h)
+        self._k += 1
+
+    def model_description(self) -> str | None:
+        return _md_text(self._fmus[0].fmu_path) if self._fmus else None
+
+    def close(self) -> None:
+        fmus, self._fmus = self._fmus, []
+        for f in fmus:
+            try:
+                f.terminate()
+            except Exception:
+                pass
+            f.close()
+
+
+def make_plant(kind: str, scenario, fmu_path=None):
+    """"fleet" -> FmuPlant, "per-body" -> PerBodyFmuPlant."""
+    from controller.errors import Se3SyncError
+
+    if kind == "fleet":
+        return FmuPlant.from_scenario(scenario, fmu_path)
+    if kind == "per-body":
+        return PerBodyFmuPlant.from_scenario(scenario, fmu_path)
+    raise Se3SyncError(f"plant must be \"fleet\" or \"per-body\", got {kind!r}")

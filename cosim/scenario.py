@@ -1,0 +1,531 @@
+"""Scenario files (TOML): schema, validation and the objects the co-simulation needs.
+
+Every problem is reported as ONE line naming the file, the key path and the reason, e.g.
+``scenarios/x.toml: gains.k_X: must be > 0, got -1``. Validation happens completely before any
+output is written. See README.md ("Scenario format") for every key and its default.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from controller.errors import Se3SyncError
+
+try:  # Python 3.11+
+    import tomllib as _toml
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as _toml
+
+__all__ = ["ScenarioError", "Scenario", "load_scenario", "parse_scenario", "apply_overrides",
+           "parse_override", "SCHEMA", "DEFAULT_LOG_RATE", "MAX_DEFAULT_INTERNAL_STEP"]
+
+DEFAULT_LOG_RATE = 100.0
+# default internal step of the plant FMU: the communication step, but at most 1 ms
+MAX_DEFAULT_INTERNAL_STEP = 1e-3
+
+
+class ScenarioError(Se3SyncError):
+    """A scenario problem: ``ScenarioError(keypath, reason)``; the loader adds the file name.
+
+    ``str(err)`` is one line: ``FILE: KEYPATH: REASON`` (or ``KEYPATH: REASON`` without a file).
+    """
+
+    def __init__(self, keypath: str, reason: str, file: str | None = None):
+        self.keypath = "" if keypath is None else str(keypath)
+        self.reason = " ".join(str(reason).split())  # one line, always
+        self.file = None if file is None else str(file)
+        super().__init__(self._line())
+
+    def _line(self) -> str:
+        parts = [p for p in (self.file, self.keypath) if p]
+        return ": ".join(parts + [self.reason])
+
+    def __str__(self) -> str:
+        return self._line()
+
+    def with_file(self, file) -> "ScenarioError":
+        return ScenarioError(self.keypath, self.reason, str(file))
+
+
+# ----------------------------------------------------------------------------- schema
+# section -> allowed keys (None: free-form table validated elsewhere)
+SCHEMA: dict[str, Any] = {
+    "agents": {"count", "mass", "inertia"},
+    "graph": {"edges"},
+    "weighting": {"A", "b", "d"},
+    "synergy": {"Theta", "Theta_over_pi", "gamma", "delta", "u_c1", "alpha_signs"},
+    "gains": {"k_X", "k_xi", "k_e", "k_theta"},
+    "initial": {"generator", "axis", "eigenvector", "seed", "position_box", "velocity_ball",
+                "agent", "theta0"},
+    "simulation": {"duration", "step", "log_rate"},
+    "plant": {"gravity", "internal_step", "mode"},
+    "bridge": None,
+}
+AGENT_KEYS = {"axis_angle", "quaternion", "position", "velocity"}
+REQUIRED = ("agents", "graph", "weighting", "gains", "initial", "simulation")
+
+
+def _fmtv(v) -> str:
+    if isinstance(v, str):
+        return repr(v)
+    try:
+        return repr(v) if not isinstance(v, (list, tuple)) else str(list(v))
+    except Exception:  # pragma: no cover
+        return "?"
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _num(key, v, *, positive=False, nonneg=False, integer=False) -> float:
+    if integer:
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ScenarioError(key, f"must be an integer, got {_fmtv(v)}")
+    elif not _is_num(v):
+        raise ScenarioError(key, f"must be a number, got {_fmtv(v)}")
+    if not math.isfinite(v):
+        raise ScenarioError(key, f"must be finite, got {v}")
+    if positive and not v > 0:
+        raise ScenarioError(key, f"must be > 0, got {v}")
+    if nonneg and not v >= 0:
+        raise ScenarioError(key, f"must be >= 0, got {v}")
+    return v if integer else float(v)
+
+
+def _array(key, v, shape) -> np.ndarray:
+    """A nested list of numbers with exactly this shape."""
+    def shp(x):
+        if isinstance(x, list):
+            subs = [shp(e) for e in x]
+            if any(s != subs[0] for s in subs[1:]):
+                return None
+            if subs and subs[0] is None:
+                return None
+            return (len(x),) + (subs[0] if subs else ())
+        return ()
+
+    if not isinstance(v, list):
+        raise ScenarioError(key, f"must be an array of shape {_shape_txt(shape)}, got {_fmtv(v)}")
+    s = shp(v)
+    if s is None or s != tuple(shape):
+        got = "a ragged array" if s is None else f"shape {_shape_txt(s)}"
+        raise ScenarioError(key, f"must be an array of shape {_shape_txt(shape)}, got {got}")
+    flat = np.asarray(v, dtype=object).ravel() if shape else [v]
+    for x in flat:
+        if not _is_num(x):
+            raise ScenarioError(key, f"must hold numbers only, got {_fmtv(x)}")
+    a = np.asarray(v, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise ScenarioError(key, "must hold finite numbers only")
+    return a
+
+
+def _shape_txt(s) -> str:
+    return "×".join(str(x) for x in s) if s else "scalar"
+
+
+def _table(key, v) -> dict:
+    if not isinstance(v, dict):
+        raise ScenarioError(key, f"must be a table, got {_fmtv(v)}")
+    return v
+
+
+def _check_keys(prefix, table, allowed):
+    for k in table:
+        if k not in allowed:
+            raise ScenarioError(f"{prefix}.{k}" if prefix else k,
+                                f"unknown key (allowed: {', '.join(sorted(allowed))})")
+
+
+def _require(prefix, table, key):
+    if key not in table:
+        raise ScenarioError(f"{prefix}.{key}", "missing required key")
+    return table[key]
+
+
+# ----------------------------------------------------------------------------- overrides
+def parse_override(item: str):
+    """'key.path=value' -> (['key', 'path'], value). The value is a TOML value; a bare word
+    that is not valid TOML is taken as a string (``--set plant.mode=per-body``)."""
+    if "=" not in item:
+        raise ScenarioError(f"--set {item}", "expected key.path=value")
+    key, _, raw = item.partition("=")
+    key = key.strip()
+    parts = key.split(".")
+    if not key or any(not p.strip() for p in parts):
+        raise ScenarioError(f"--set {item}", "expected key.path=value")
+    raw = raw.strip()
+    try:
+        value = _toml.loads(f"v = {raw}")["v"]
+    except _toml.TOMLDecodeError:
+        if raw and all(c.isalnum() or c in "-_." for c in raw):
+            value = raw
+        else:
+            raise ScenarioError(key, f"--set value {raw!r} is not a TOML value") from None
+    return [p.strip() for p in parts], value
+
+
+def apply_overrides(data: dict, overrides) -> dict:
+    """Applies --set overrides to the parsed TOML (a deep copy); unknown keys are refused."""
+    data = copy.deepcopy(data)
+    for item in overrides or ():
+        parts, value = parse_override(item)
+        path = ".".join(parts)
+        sec = parts[0]
+        if sec not in SCHEMA:
+            raise ScenarioError(path, f"unknown key (from --set {item})")
+        allowed = SCHEMA[sec]
+        if allowed is not None:
+            if len(parts) != 2 or parts[1] not in allowed or parts[1] == "agent":
+                raise ScenarioError(path, f"unknown key (from --set {item})")
+        node = data
+        for p in parts[:-1]:
+            nxt = node.setdefault(p, {})
+            if not isinstance(nxt, dict):
+                raise ScenarioError(path, f"cannot set inside a non-table (from --set {item})")
+            node = nxt
+        node[parts[-1]] = value
+    return data
+
+
+# ----------------------------------------------------------------------------- result
+@dataclass
+class Scenario:
+    """A validated scenario and everything derived from it."""
+
+    name: str
+    path: str
+    text: str
+    values: dict
+    graph: Any
+    weighting: Any
+    design: Any
+    gains: Any
+    masses: np.ndarray           # (N,)
+    inertias: np.ndarray         # (N, 3, 3)
+    S0: np.ndarray               # (N, 18) [p, R row-major, xi]
+    theta0: np.ndarray           # (M,)
+    duration: float
+    step: float
+    log_rate: float
+    gravity: np.ndarray          # (3,)
+    internal_step: float
+    plant_mode: str              # "fleet" | "per-body"
+    bridge: Any = None
+    overrides: tuple = field(default=())
+
+    @property
+    def n_agents(self) -> int:
+        return self.graph.n
+
+    @property
+    def inertia6(self) -> np.ndarray:
+        """(N, 6, 6) blkdiag(J_i, m_i I) -- the 𝕀 of V̄."""
+        N = self.graph.n
+        out = np.zeros((N, 6, 6))
+        out[:, :3, :3] = self.inertias
+        out[:, 3:, 3:] = self.masses[:, None, None] * np.eye(3)
+        return out
+
+    def n_steps(self, duration: float | None = None, step: float | None = None) -> int:
+        d = self.duration if duration is None else float(duration)
+        h = self.step if step is None else float(step)
+        return max(0, int(math.ceil(d / h - 1e-9)))
+
+
+# ----------------------------------------------------------------------------- loading
+def load_scenario(path, overrides=(), *, duration=None, step=None) -> Scenario:
+    """Reads, overrides (--set), validates and designs. Raises ScenarioError (one line)."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ScenarioError(None, "no such file", str(path)) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(None, f"cannot read: {getattr(exc, 'strerror', None) or exc}",
+                            str(path)) from None
+    return parse_scenario(text, name=p.stem, path=str(path), overrides=overrides,
+                          duration=duration, step=step)
+
+
+def parse_scenario(text: str, name: str = "scenario", path: str = "<string>", overrides=(),
+                   *, duration=None, step=None) -> Scenario:
+    try:
+        data = _toml.loads(text)
+    except _toml.TOMLDecodeError as exc:
+        raise ScenarioError(None, f"invalid TOML: {exc}", path) from None
+    try:
+        data = apply_overrides(data, overrides)
+        if duration is not None:
+            data.setdefault("simulation", {})["duration"] = duration
+        if step is not None:
+            data.setdefault("simulation", {})["step"] = step
+        return _validate(data, text, name, path, tuple(overrides or ()))
+    except ScenarioError as exc:
+        raise exc.with_file(path) from None
+
+
+def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> Scenario:
+    from controller import Gains, Graph, WeightingMatrix, design_synergy
+    from controller.errors import DesignError, GraphError, WeightingError
+
+    _check_keys("", data, SCHEMA)
+    for sec in REQUIRED:
+        if sec not in data:
+            raise ScenarioError(sec, "missing required table")
+    for sec, allowed in SCHEMA.items():
+        if sec in data:
+            _table(sec, data[sec])
+            if allowed is not None:
+                _check_keys(sec, data[sec], allowed)
+
+    # [agents]
+    ag = data["agents"]
+    N = _num("agents.count", _require("agents", ag, "count"), integer=True)
+    if N < 1:
+        raise ScenarioError("agents.count", f"must be >= 1, got {N}")
+    mass = _require("agents", ag, "mass")
+    if isinstance(mass, list):
+        masses = _array("agents.mass", mass, (N,))
+    else:
+        masses = np.full(N, _num("agents.mass", mass))
+    for i, m in enumerate(masses):
+        if not m > 0:
+            raise ScenarioError("agents.mass", f"must be > 0, got {m:g} (agent {i + 1})")
+    inert = _require("agents", ag, "inertia")
+    if isinstance(inert, list) and len(inert) == 3 and all(_is_num(x) for x in inert):
+        inertias = np.tile(np.diag(_array("agents.inertia", inert, (3,))), (N, 1, 1))
+    elif isinstance(inert, list) and len(inert) == 3 and all(
+            isinstance(r, list) and len(r) == 3 and all(_is_num(x) for x in r) for r in inert):
+        inertias = np.tile(_array("agents.inertia", inert, (3, 3)), (N, 1, 1))
+    elif isinstance(inert, list) and len(inert) == N and all(isinstance(r, list) for r in inert):
+        inertias = _array("agents.inertia", inert, (N, 3, 3))
+    else:
+        raise ScenarioError("agents.inertia",
+                            f"must be a 3-vector (diagonal), a 3×3 matrix or a list of {N} 3×3 "
+                            f"matrices, got {_fmtv(inert)}")
+    for i, J in enumerate(inertias):
+        if np.abs(J - J.T).max() > 1e-12 * max(1.0, np.abs(J).max()):
+            raise ScenarioError("agents.inertia", f"must be symmetric (agent {i + 1})")
+        if np.linalg.eigvalsh(J)[0] <= 0:
+            raise ScenarioError("agents.inertia", f"must be positive definite (agent {i + 1}), "
+                                f"eigenvalues {np.round(np.linalg.eigvalsh(J), 6).tolist()}")
+
+    # [graph]
+    gr = data["graph"]
+    edges = _require("graph", gr, "edges")
+    if not isinstance(edges, list):
+        raise ScenarioError("graph.edges", f"must be an array of [positive, negative] pairs, got {_fmtv(edges)}")
+    for k, e in enumerate(edges, start=1):
+        if not (isinstance(e, list) and len(e) == 2 and all(isinstance(x, int) and not isinstance(x, bool) for x in e)):
+            raise ScenarioError("graph.edges", f"edge {k} must be a pair of agent numbers [i, j], got {_fmtv(e)}")
+    try:
+        graph = Graph(N, [tuple(e) for e in edges])
+    except GraphError as exc:
+        raise ScenarioError("graph.edges", str(exc).removeprefix("graph: ")) from None
+
+    # [weighting]
+    wt = data["weighting"]
+    A = _array("weighting.A", _require("weighting", wt, "A"), (3, 3))
+    b = _array("weighting.b", _require("weighting", wt, "b"), (3,))
+    d = _num("weighting.d", _require("weighting", wt, "d"))
+    try:
+        weighting = WeightingMatrix.from_blocks(A, b, d)
+    except WeightingError as exc:
+        raise ScenarioError("weighting", str(exc)) from None
+
+    # [synergy]
+    sy = data.get("synergy", {})
+    if "Theta" in sy and "Theta_over_pi" in sy:
+        raise ScenarioError("synergy.Theta_over_pi", "give synergy.Theta or synergy.Theta_over_pi, not both")
+    Theta = None
+    theta_key = "synergy.Theta"
+    for key, scale in (("Theta", 1.0), ("Theta_over_pi", math.pi)):
+        if key in sy:
+            theta_key = f"synergy.{key}"
+            v = sy[key]
+            if _is_num(v):
+                v = [v]
+            if not isinstance(v, list) or not v:
+                raise ScenarioError(theta_key, f"must be a non-empty array of angles, got {_fmtv(v)}")
+            Theta = _array(theta_key, v, (len(v),)) * scale
+    gamma = _num("synergy.gamma", sy["gamma"]) if "gamma" in sy else None
+    delta = _num("synergy.delta", sy["delta"]) if "delta" in sy else None
+    u_c1 = _array("synergy.u_c1", sy["u_c1"], (3,)) if "u_c1" in sy else None
+    signs = (1, 1, 1)
+    if "alpha_signs" in sy:
+        s = _array("synergy.alpha_signs", sy["alpha_signs"], (3,))
+        if not np.all(np.abs(s) == 1):
+            raise ScenarioError("synergy.alpha_signs", f"must be three values of 1 or -1, got {s.tolist()}")
+        signs = tuple(int(x) for x in s)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            design = design_synergy(weighting, Theta=Theta, gamma=gamma, delta=delta, u_c1=u_c1,
+                                    alpha_signs=signs)
+    except DesignError as exc:
+        msg = str(exc)
+        key = "synergy"
+        for prefix, k in (("gamma", "synergy.gamma"), ("delta", "synergy.delta"),
+                          ("Theta", theta_key), ("u_c1", "synergy.u_c1"),
+                          ("alpha_signs", "synergy.alpha_signs"), ("the exact gap", theta_key),
+                          ("Δ*_W", "synergy.u_c1" if u_c1 is not None else "weighting")):
+            if msg.startswith(prefix):
+                key = k
+                break
+        raise ScenarioError(key, msg) from None
+
+    # [gains]
+    gn = data["gains"]
+    vals = {}
+    for k in ("k_X", "k_xi", "k_e"):
+        vals[k] = _num(f"gains.{k}", _require("gains", gn, k), positive=True)
+    vals["k_theta"] = _num("gains.k_theta", gn.get("k_theta", 1.0), positive=True)
+    try:
+        gains = Gains(**vals)
+    except Se3SyncError as exc:  # pragma: no cover - checked above already
+        raise ScenarioError("gains", str(exc)) from None
+
+    # [simulation]
+    sim = data["simulation"]
+    duration = _num("simulation.duration", _require("simulation", sim, "duration"), positive=True)
+    step = _num("simulation.step", _require("simulation", sim, "step"), positive=True)
+    if step > duration:
+        raise ScenarioError("simulation.step", f"must be <= simulation.duration = {duration:g}, got {step:g}")
+    log_rate = _num("simulation.log_rate", sim.get("log_rate", DEFAULT_LOG_RATE), positive=True)
+
+    # [plant]
+    pl = data.get("plant", {})
+    gravity = _array("plant.gravity", pl.get("gravity", [0.0, 0.0, 0.0]), (3,))
+    internal = min(step, MAX_DEFAULT_INTERNAL_STEP)
+    if "internal_step" in pl:
+        internal = _num("plant.internal_step", pl["internal_step"], positive=True)
+    mode = pl.get("mode", "fleet")
+    if mode not in ("fleet", "per-body"):
+        raise ScenarioError("plant.mode", f"must be \"fleet\" or \"per-body\", got {_fmtv(mode)}")
+
+    # [initial]
+    S0, theta0 = _initial(data["initial"], N, graph, weighting)
+
+    # [bridge]
+    bridge = data.get("bridge")
+    if bridge is not None:
+        try:
+            from bridge.config import parse_bridge  # noqa: F401
+        except ImportError:
+            parse_bridge = None
+        if parse_bridge is not None:
+            try:
+                bridge = parse_bridge(bridge, N)
+            except ScenarioError as exc:
+                kp = exc.keypath or "bridge"
+                if not kp.startswith("bridge"):
+                    kp = f"bridge.{kp}"
+                raise ScenarioError(kp, exc.reason) from None
+
+    return Scenario(name=name, path=path, text=text, values=data, graph=graph,
+                    weighting=weighting, design=design, gains=gains, masses=masses,
+                    inertias=inertias, S0=S0, theta0=theta0, duration=duration, step=step,
+                    log_rate=log_rate, gravity=gravity, internal_step=internal,
+                    plant_mode=mode, bridge=bridge, overrides=overrides)
+
+
+def _initial(ini: dict, N: int, graph, weighting):
+    from controller import se3
+
+    S0 = np.zeros((N, 18))
+    gen = ini.get("generator")
+    M = graph.M
+    if "theta0" in ini:
+        v = ini["theta0"]
+        if _is_num(v):
+            v = [v] * M
+        theta0 = _array("initial.theta0", v, (M,))
+    else:
+        theta0 = np.zeros(M)
+    used = {"generator", "theta0"}
+
+    def only(keys, what):
+        for k in ini:
+            if k not in used | set(keys):
+                raise ScenarioError(f"initial.{k}", f"not used with {what}")
+
+    if gen is None:
+        if "agent" not in ini:
+            raise ScenarioError("initial.generator",
+                                "missing: give generator = \"paper\" or \"random\", or [[initial.agent]] tables")
+        only({"agent"}, "explicit [[initial.agent]] tables")
+        agents = ini["agent"]
+        if not isinstance(agents, list) or not all(isinstance(a, dict) for a in agents):
+            raise ScenarioError("initial.agent", "must be an array of tables ([[initial.agent]])")
+        if len(agents) != N:
+            raise ScenarioError("initial.agent", f"must have one table per agent ({N}), got {len(agents)}")
+        for i, a in enumerate(agents):
+            kp = f"initial.agent[{i + 1}]"
+            _check_keys(kp, a, AGENT_KEYS)
+            if "axis_angle" in a and "quaternion" in a:
+                raise ScenarioError(f"{kp}.quaternion", "give axis_angle or quaternion, not both")
+            R = np.eye(3)
+            if "axis_angle" in a:
+                aa = _array(f"{kp}.axis_angle", a["axis_angle"], (4,))
+                ax = aa[:3]
+                if np.linalg.norm(ax) == 0:
+                    raise ScenarioError(f"{kp}.axis_angle", "axis must be non-zero")
+                R = se3.R_a(aa[3], ax / np.linalg.norm(ax))
+            elif "quaternion" in a:
+                q = _array(f"{kp}.quaternion", a["quaternion"], (4,))
+                if np.linalg.norm(q) == 0:
+                    raise ScenarioError(f"{kp}.quaternion", "must be non-zero")
+                R = se3.quat_to_rot(q)
+            p = _array(f"{kp}.position", a.get("position", [0.0, 0.0, 0.0]), (3,))
+            xi = _array(f"{kp}.velocity", a.get("velocity", [0.0] * 6), (6,))
+            S0[i, 0:3] = p
+            S0[i, 3:12] = R.ravel()
+            S0[i, 12:18] = xi
+        return S0, theta0
+    if gen == "paper":
+        only({"axis", "eigenvector"}, "generator = \"paper\"")
+        if ("axis" in ini) == ("eigenvector" in ini):
+            raise ScenarioError("initial.axis", "generator = \"paper\" needs exactly one of axis or eigenvector")
+        if "axis" in ini:
+            v = _array("initial.axis", ini["axis"], (3,))
+            if np.linalg.norm(v) == 0:
+                raise ScenarioError("initial.axis", "must be non-zero")
+            v = v / np.linalg.norm(v)
+        else:
+            e = _num("initial.eigenvector", ini["eigenvector"], integer=True)
+            if e not in (1, 2, 3):
+                raise ScenarioError("initial.eigenvector", f"must be 1, 2 or 3, got {e}")
+            v = weighting.eig()[1][:, e - 1]
+        c = weighting.b / weighting.d
+        for i in range(N):
+            ang = -math.pi / 2 if (i + 1) % 2 == 1 else math.pi / 2
+            R = se3.R_a(ang, v)
+            S0[i, 0:3] = c - R @ c
+            S0[i, 3:12] = R.ravel()
+        return S0, theta0
+    if gen == "random":
+        only({"seed", "position_box", "velocity_ball"}, "generator = \"random\"")
+        seed = _num("initial.seed", ini.get("seed", 0), integer=True)
+        if seed < 0:
+            raise ScenarioError("initial.seed", f"must be >= 0, got {seed}")
+        box = _num("initial.position_box", ini.get("position_box", 1.0), nonneg=True)
+        ball = _num("initial.velocity_ball", ini.get("velocity_ball", 0.0), nonneg=True)
+        rng = np.random.default_rng(seed)
+        R = se3.random_rotation(rng, N)
+        p = rng.uniform(-box, box, size=(N, 3))
+        dirs = rng.standard_normal((N, 6))
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        rad = ball * rng.uniform(0, 1, size=(N, 1)) ** (1 / 6)
+        S0[:, 0:3] = p
+        S0[:, 3:12] = R.reshape(N, 9)
+        S0[:, 12:18] = dirs * rad
+        return S0, theta0
+    raise ScenarioError("initial.generator", f"must be \"paper\" or \"random\", got {_fmtv(gen)}")
