@@ -76,7 +76,9 @@ class HybridController:
 
     State: θ (M,). `step_state(S, h)` is the fast path (S as the plant FMU returns it);
     `step(X, xi, h)` accepts poses (N, 4, 4). Both return (u, events), u (N, 6) being a buffer
-    that the next call overwrites.
+    that the next call overwrites. After a step, per edge: `theta` (after the flow), `mu`
+    (μ_U at the communication point, before any jump), `jumped`, `theta_prev` (θ on entry)
+    and `theta_jump` (θ after the jump stage, before the flow).
     """
 
     hybrid = True
@@ -123,10 +125,20 @@ class HybridController:
     def step(self, X, xi, h: float):
         return self.step_state(pack_state(X, xi), h)
 
-    def U_edges(self, S) -> np.ndarray:
+    def U_edges(self, S, theta=None) -> np.ndarray:
+        """U(X̄_k, θ_k) for every edge (θ defaults to the current state)."""
         out = np.empty(self.graph.M)
-        K.network_U(np.asarray(S, float), self.theta, self.edges, self.P, out)
+        th = self.theta if theta is None else np.asarray(theta, float)
+        K.network_U(np.asarray(S, float), th, self.edges, self.P, out)
         return out
+
+    def V_bar(self, S, inertia, theta=None) -> float:
+        """V̄ = k_X Σ_k U(X̄_k, θ_k) + Σ_i ξ_iᵀ 𝕀_i ξ_i (`V_def`); inertia (N, 6, 6) or (6, 6)."""
+        S = np.asarray(S, float)
+        xi = S[:, K.S_XI:K.S_XI + 6]
+        I = np.broadcast_to(np.asarray(inertia, float), (self.graph.n, 6, 6))
+        return float(self.gains.k_X * self.U_edges(S, theta).sum()
+                     + np.einsum("ni,nij,nj->", xi, I, xi))
 
 
 class GradientController(HybridController):
@@ -136,20 +148,19 @@ class GradientController(HybridController):
 
     def __init__(self, graph: Graph, weighting: WeightingMatrix, gains: Gains,
                  design: SynergyDesign | None = None, theta0=None):
+        if theta0 is not None and np.any(np.asarray(theta0, float) != 0):
+            raise Se3SyncError("the gradient baseline has θ ≡ 0: theta0 must be zero or omitted")
         super().__init__(graph, weighting, None, gains)
 
 
 def V_bar(graph: Graph, weighting: WeightingMatrix, design: SynergyDesign | None, gains: Gains,
           S, theta, inertia) -> float:
-    """V̄ = k_X Σ_k U(X̄_k, θ_k) + Σ_i ξ_iᵀ 𝕀_i ξ_i (`V_def`); inertia (N, 6, 6) or (6, 6)."""
-    P = _params(weighting, design, gains)
-    S = np.asarray(S, float)
-    out = np.empty(graph.M)
-    K.network_U(S, np.asarray(theta, float) if design is not None else np.zeros(graph.M),
-                graph.edges, P, out)
-    xi = S[:, K.S_XI:K.S_XI + 6]
-    I = np.broadcast_to(np.asarray(inertia, float), (graph.n, 6, 6))
-    return float(gains.k_X * out.sum() + np.einsum("ni,nij,nj->", xi, I, xi))
+    """V̄ = k_X Σ_k U(X̄_k, θ_k) + Σ_i ξ_iᵀ 𝕀_i ξ_i (`V_def`); inertia (N, 6, 6) or (6, 6).
+
+    For repeated evaluation use `HybridController.V_bar`, which reuses its parameters."""
+    ctl = (HybridController(graph, weighting, design, gains) if design is not None
+           else GradientController(graph, weighting, gains))
+    return ctl.V_bar(S, inertia, None if design is None else theta)
 
 
 def jump_bound(V0: float, k_X: float, delta: float) -> int:

@@ -279,6 +279,20 @@ def test_Vbar_drops_by_kX_delta_at_every_jump():
     assert seen > 20
 
 
+def test_controller_V_bar_method_matches_function_and_baseline_refuses_theta0():
+    g, wm, des, gains = paper_setup()
+    X, xi = random_state(6, 1.0)
+    S = C.pack_state(X, xi)
+    th = rng.uniform(-1, 1, 5)
+    ctl = C.HybridController(g, wm, des, gains, theta0=th)
+    I = inertia()
+    ref = gains.k_X * potential.U(wm, des, g.relative_poses(X), th).sum() + np.einsum("ni,ij,nj->", xi, I, xi)
+    assert ctl.V_bar(S, I) == pytest.approx(ref, rel=1e-13)
+    assert C.V_bar(g, wm, des, gains, S, th, I) == pytest.approx(ref, rel=1e-13)
+    with pytest.raises(C.Se3SyncError, match="theta0 must be zero"):
+        C.GradientController(g, wm, gains, theta0=th)
+
+
 def test_jump_bound():
     g, wm, des, gains = paper_setup()
     X = initial_poses(v_printed, se3)
