@@ -10,6 +10,7 @@ import sys
 _COMMAND_MODULES = (
     "cosim.commands",
     "plant_fmu.cli",
+    "bridge.cli",
 )
 
 

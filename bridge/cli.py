@@ -1,0 +1,184 @@
+"""Sub-commands `vehicle` (the loopback test vehicle) and `connect` (hardware in the loop)."""
+from __future__ import annotations
+
+import sys
+
+__all__ = ["register", "EXIT_NOT_CONNECTED", "EXIT_LINK"]
+
+EXIT_NOT_CONNECTED = 3
+EXIT_LINK = 4
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "vehicle", help="run loopback test vehicles (plant FMUs speaking MAVLink 2 over UDP)",
+        description="Serve N simulated multirotors over MAVLink 2/UDP: vehicle i (system id i) sends to "
+                    "HOST:BASE_PORT+i-1 (PX4 SITL convention). Streams HEARTBEAT, ODOMETRY, "
+                    "ATTITUDE_QUATERNION and LOCAL_POSITION_NED; takes SET_ACTUATOR_CONTROL_TARGET or "
+                    "COMMAND_LONG DO_SET_ACTUATOR; fails safe (zero wrench) when commands time out. "
+                    "Ctrl-C or SIGTERM stops it.")
+    p.add_argument("--count", type=int, default=1, metavar="N", help="number of vehicles (default 1; "
+                   "with --scenario: the scenario's agent count)")
+    p.add_argument("--scenario", metavar="FILE", help="take masses, inertias, initial poses, gravity, "
+                   "mapping and control step from this scenario")
+    p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="override a scenario value (with --scenario); repeatable")
+    p.add_argument("--lockstep", action="store_true",
+                   help="advance one control period per received command instead of the wall clock")
+    p.add_argument("--key", metavar="FILE", help="MAVLink 2 signing key file (32 raw bytes or 64 hex chars)")
+    p.add_argument("--allow-unsigned-heartbeat", action="store_true",
+                   help="with --key: accept unsigned HEARTBEATs")
+    p.add_argument("--rate", type=float, default=250.0, metavar="HZ",
+                   help="physics tick and ODOMETRY rate in real time (default 250)")
+    p.add_argument("--aux-rate", type=float, default=10.0, metavar="HZ",
+                   help="ATTITUDE_QUATERNION and LOCAL_POSITION_NED rate (default 10; 0 = off)")
+    p.add_argument("--step", type=float, metavar="S",
+                   help="control period (lockstep step, command timeout base); default: the scenario's "
+                        "step, else 1/rate")
+    p.add_argument("--command-timeout", type=float, metavar="S",
+                   help="fail safe when no command for this long (default 2 control periods)")
+    p.add_argument("--base-port", type=int, default=None,
+                   help="first UDP port (default: the scenario's bridge.base_port, else 14540)")
+    p.add_argument("--host", default=None, help="the bridge's address (default: the scenario's "
+                   "bridge.host, else 127.0.0.1)")
+    p.add_argument("--endpoint", action="append", metavar="ENDPOINT",
+                   help="vehicle-side endpoint per vehicle (udpout:HOST:PORT or udpin:HOST:PORT); "
+                        "repeat once per vehicle; overrides --base-port")
+    p.add_argument("--shared-port", action="store_true",
+                   help="all vehicles send to BASE_PORT (the bridge routes by system id)")
+    p.add_argument("--first-system-id", type=int, default=1, help="system id of vehicle 1 (default 1)")
+    p.add_argument("--gravity", metavar="GX,GY,GZ", help="gravity in NED without --scenario (e.g. 0,0,9.81)")
+    p.add_argument("--require-arm", action="store_true", help="ignore commands until armed")
+    p.add_argument("--tlog", metavar="FILE", help="write all traffic to this tlog")
+    p.add_argument("--stats", metavar="FILE", help="write the traffic counters (JSON) here on exit")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time")
+    p.set_defaults(func=_cmd_vehicle)
+
+    p = sub.add_parser(
+        "connect", help="run the controller against MAVLink vehicles (hardware in the loop)",
+        description="Run a scenario's controller against vehicles over MAVLink 2 at the control rate "
+                    "(simulation.step), paced by the wall clock (or --lockstep), through the same "
+                    "master as `run`: same MCAP log and summary, plus link statistics. Endpoints come "
+                    "from --vehicle or the scenario's [bridge] table. Exit codes: 0 ok, 2 bad input, "
+                    f"{EXIT_NOT_CONNECTED} a vehicle never connected, {EXIT_LINK} a lockstep link failed, "
+                    "130 interrupted.")
+    p.add_argument("scenario", help="scenario TOML file")
+    p.add_argument("--vehicle", action="append", metavar="ENDPOINT",
+                   help="the bridge-side endpoint of vehicle i (udpin:HOST:PORT | udpout:HOST:PORT), "
+                        "once per vehicle in order")
+    p.add_argument("--log", metavar="OUT.mcap", help="write an MCAP log here")
+    p.add_argument("--summary", metavar="OUT.json", help="write the run summary JSON here")
+    p.add_argument("--duration", type=float, metavar="S", help="duration in s (overrides simulation.duration)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="override a scenario value (e.g. --set bridge.base_port=15000); repeatable")
+    p.add_argument("--lockstep", action="store_true", help="lockstep with the vehicles (deterministic)")
+    p.add_argument("--key", metavar="FILE", help="MAVLink 2 signing key file (32 raw bytes or 64 hex chars)")
+    p.add_argument("--connect-timeout", type=float, metavar="S", help="give up if a vehicle has not "
+                   "connected after S seconds (default: bridge.connect_timeout, 10)")
+    p.add_argument("--tlog", metavar="FILE", help="write all traffic to this tlog (mavlogdump.py reads it)")
+    p.add_argument("--force", action="store_true", help="run even if the sampled loop is unstable at this step")
+    p.set_defaults(func=_cmd_connect)
+
+
+def _cmd_vehicle(args) -> int:
+    from .vehicle import run_vehicle_cli
+
+    return run_vehicle_cli(args)
+
+
+def _cmd_connect(args) -> int:
+    from controller.errors import Se3SyncError
+    from cosim.scenario import ScenarioError, load_scenario
+
+    from .config import default_config
+    from .plant import ConnectError, LinkError, MavlinkPlant
+
+    sc = load_scenario(args.scenario, args.set, duration=args.duration)
+    cfg = sc.bridge or default_config(sc.n_agents)
+    if args.vehicle:
+        cfg = cfg.with_endpoints(args.vehicle)
+    if not args.force:
+        from cosim.stability import analyse
+
+        st = analyse(sc, hybrid=True, bisect=False)
+        if not st["stable"]:
+            raise ScenarioError("simulation.step", f"h = {sc.step:g} s makes the sampled loop unstable "
+                                f"(spectral radius {st['spectral_radius']:.6f} >= 1); use --force to run anyway",
+                                sc.path)
+    warm_up(sc)  # compile the controller and metrics now, not while the vehicles wait for commands
+    plant = MavlinkPlant(sc, cfg, lockstep=True if args.lockstep else None, key=args.key, tlog=args.tlog,
+                         connect_timeout=args.connect_timeout)
+    try:
+        try:
+            plant.connect()
+        except ConnectError as exc:
+            print(f"se3sync connect: error: {exc}", file=sys.stderr)
+            return EXIT_NOT_CONNECTED
+        try:
+            summary = run_hil(sc, plant, log_path=args.log, summary_path=args.summary,
+                              progress=sys.stderr.isatty())
+        except LinkError as exc:
+            print(f"se3sync connect: error: {exc}", file=sys.stderr)
+            return EXIT_LINK
+    finally:
+        plant.close()
+    f = summary.get("final") or {}
+    ln = summary.get("link", {})
+    print(f"{sc.name}: {summary['steps']} steps over MAVLink ({'lockstep' if plant.lockstep else 'real time'}) "
+          f"in {summary['wall_time_s']:.3g} s; {summary['n_jumps']} jumps; final rot_err "
+          f"{f.get('rot_err', float('nan')):.3g}, pos_err {f.get('pos_err', float('nan')):.3g}; "
+          f"sent {ln.get('sent')}, received {ln.get('received')}, dropped {ln.get('dropped')}, "
+          f"rejected {ln.get('rejected')}, latency p50/p99 {_ms(ln.get('latency_ms_p50'))}/"
+          f"{_ms(ln.get('latency_ms_p99'))} ms, link losses {ln.get('link_losses')}", file=sys.stderr)
+    if summary.get("interrupted"):
+        return 130
+    del Se3SyncError
+    return 0
+
+
+def _ms(x):
+    return "n/a" if x is None else f"{x:.3g}"
+
+
+def warm_up(scenario) -> None:
+    """Two co-simulation steps of the scenario (JIT compilation of the controller and metrics),
+    so that the first control steps over the links are on time."""
+    from cosim.master import Master
+    from cosim.plant import FmuPlant
+
+    p = FmuPlant.from_scenario(scenario)
+    try:
+        Master(scenario, p, "hybrid").run(2)
+    finally:
+        p.close()
+
+
+def run_hil(scenario, plant, *, log_path=None, summary_path=None, progress=False,
+            controller="hybrid") -> dict:
+    """cosim's Master over a connected MavlinkPlant; the MCAP log says the time base is the wall
+    clock (t = n·h, paced) or lockstep."""
+    from cosim.api import write_json_atomic
+    from cosim.master import Master, make_controller
+    from cosim.mcaplog import McapLogger
+
+    ctrl = make_controller(controller, scenario) if isinstance(controller, str) else controller
+    logger = None
+    try:
+        if log_path is not None:
+            tb = "simulated (lockstep)" if plant.lockstep else "wall (paced: t = n·h from the start of the run)"
+            logger = McapLogger(log_path, scenario, controller=controller if isinstance(controller, str) else "hybrid",
+                                extra_metadata={"plant": "mavlink", "time_base": tb,
+                                                "endpoints": ",".join(v.sock.endpoint for v in plant.vehicles)})
+        master = Master(scenario, plant, ctrl, logger)
+        summary = master.run(scenario.n_steps(), progress=progress)
+    finally:
+        if logger is not None:
+            logger.close()
+    summary["plant"] = "mavlink"
+    summary["lockstep"] = bool(plant.lockstep)
+    if log_path is not None:
+        summary["log"] = str(log_path)
+        summary["log_messages"] = dict(logger.counts)
+    if summary_path is not None:
+        write_json_atomic(summary_path, summary)
+    return summary

@@ -1,0 +1,257 @@
+"""MAVLink 2 links over non-blocking UDP sockets, with signing, counters and a tlog.
+
+We do not use pymavlink's ``mavutil`` connection objects: one ``udpin`` mavfile sends every
+message to every peer that ever talked to it, it writes no tlog for UDP, and its parser keeps state
+across datagrams. Instead each link is a plain non-blocking socket, every datagram is framed on
+its own (UDP carries whole packets), and each peer gets its own
+``pymavlink.dialects.v20.common.MAVLink`` object for encoding and decoding. Signing uses
+pymavlink's ``setup_signing`` (called on a tiny holder of the MAVLink object) and pymavlink's own
+signature/timestamp check in ``MAVLink.decode``; in front of it we verify the HMAC ourselves so
+that (a) a bad signature can be told from a replay in the counters and (b) a forged packet never
+reaches pymavlink's ``check_signature``, which records the stream timestamp *before* it compares
+the signature (a forged packet with a huge timestamp would otherwise lock the stream out).
+
+Network input is untrusted: a datagram that cannot be framed or decoded is counted once as
+``malformed`` and dropped; nothing here raises on input.
+"""
+from __future__ import annotations
+
+import errno
+import hashlib
+import os
+import socket
+import struct
+import time
+from collections import defaultdict
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
+
+MAGIC_V2 = 0xFD
+MAGIC_V1 = 0xFE
+HEADER_LEN = 10
+SIG_LEN = 13
+IFLAG_SIGNED = 0x01
+MSG_HEARTBEAT = 0
+
+REJECT_REASONS = ("unsigned", "bad_signature", "replay", "wrong_system", "not_for_us",
+                  "unknown_message", "stale", "out_of_order", "nan", "non_unit_quaternion",
+                  "bad_frame", "bad_command")
+
+
+class Counters:
+    """Traffic counters of one side of a set of links (JSON-friendly via `as_dict`)."""
+
+    def __init__(self):
+        self.sent = 0                # packets sent
+        self.send_errors = 0         # sendto failed (no route, buffer full)
+        self.received = 0            # packets accepted (framed, signed if required, decoded)
+        self.datagrams = 0           # datagrams read from the sockets
+        self.malformed = 0           # datagrams dropped: bad magic, MAVLink 1, truncated, bad CRC, ...
+        self.dropped = 0             # packets lost on the way (gaps in the senders' sequence numbers)
+        self.rejected = defaultdict(int)   # packets refused, by reason
+
+    def reject(self, reason: str) -> None:
+        self.rejected[reason] += 1
+
+    def as_dict(self) -> dict:
+        return {"sent": self.sent, "send_errors": self.send_errors, "received": self.received,
+                "datagrams": self.datagrams, "malformed": self.malformed, "dropped": self.dropped,
+                "rejected": int(sum(self.rejected.values())),
+                "rejected_by_reason": {k: int(v) for k, v in sorted(self.rejected.items())}}
+
+
+class TLog:
+    """A telemetry log readable by mavlogdump.py: per packet, an 8-byte big-endian timestamp in
+    microseconds since the epoch, then the raw packet (both directions, one file)."""
+
+    def __init__(self, path):
+        self.path = str(path)
+        self.f = open(self.path, "ab", buffering=1 << 16)
+        self._pack = struct.Struct(">Q").pack
+
+    def write(self, pkt: bytes, t: float | None = None) -> None:
+        if self.f is None:
+            return
+        us = int((time.time() if t is None else t) * 1e6)
+        self.f.write(self._pack(us) + bytes(pkt))
+
+    def close(self) -> None:
+        if self.f is not None:
+            self.f.close()
+            self.f = None
+
+
+class _Holder:  # what mavutil.mavfile.setup_signing needs: an object with .mav
+    def __init__(self, mav):
+        self.mav = mav
+
+
+def split_datagram(data: bytes):
+    """Frames a datagram into MAVLink 2 packets. Returns (packets, error) where error is None or
+    a short reason; on error the packets framed before the bad bytes are still returned."""
+    out = []
+    i, n = 0, len(data)
+    if n == 0:
+        return out, "empty"
+    while i < n:
+        b = data[i]
+        if b != MAGIC_V2:
+            return out, "mavlink1" if b == MAGIC_V1 else "bad_magic"
+        if n - i < HEADER_LEN + 2:
+            return out, "truncated"
+        plen = data[i + 1]
+        flags = data[i + 2]
+        if flags & ~IFLAG_SIGNED:
+            return out, "bad_incompat_flags"
+        total = HEADER_LEN + plen + 2 + (SIG_LEN if flags & IFLAG_SIGNED else 0)
+        if n - i < total:
+            return out, "truncated"
+        out.append(data[i:i + total])
+        i += total
+    return out, None
+
+
+def packet_ids(pkt: bytes):
+    """(seq, sysid, compid, msgid, signed) of a framed packet."""
+    return pkt[4], pkt[5], pkt[6], pkt[7] | (pkt[8] << 8) | (pkt[9] << 16), bool(pkt[2] & IFLAG_SIGNED)
+
+
+class Peer:
+    """Encoding and decoding for one remote system: a pymavlink MAVLink object, signing, sequence
+    tracking, the shared counters and tlog."""
+
+    def __init__(self, src_system: int, src_component: int, counters: Counters, key: bytes | None = None,
+                 allow_unsigned_heartbeat: bool = False, link_id: int = 0, tlog: TLog | None = None):
+        self.mav = mavlink2.MAVLink(None, srcSystem=src_system, srcComponent=src_component)
+        self.mav.robust_parsing = True
+        self.counters = counters
+        self.tlog = tlog
+        self.key = key
+        self.allow_unsigned_heartbeat = allow_unsigned_heartbeat
+        self._last_seq: dict = {}
+        if key is not None:
+            allow = (lambda mav, msgid: msgid == MSG_HEARTBEAT) if allow_unsigned_heartbeat else None
+            mavutil.mavfile.setup_signing(_Holder(self.mav), key, sign_outgoing=True,
+                                          allow_unsigned_callback=allow, link_id=link_id)
+        self.rx_errors: dict = defaultdict(int)
+
+    # ------------------------------------------------------------------ out
+    def pack(self, msg) -> bytes:
+        """Encodes (and signs) a message object made by ``self.mav.<name>_encode(...)``."""
+        buf = msg.pack(self.mav)
+        self.mav.seq = (self.mav.seq + 1) & 0xFF
+        if self.tlog is not None:
+            self.tlog.write(buf)
+        return buf
+
+    # ------------------------------------------------------------------ in
+    def accept(self, pkt: bytes):
+        """A framed packet -> message, or None (counted: rejected by reason, or malformed)."""
+        c = self.counters
+        seq, sysid, compid, msgid, signed = packet_ids(pkt)
+        if self.key is not None:
+            if not signed:
+                if not (self.allow_unsigned_heartbeat and msgid == MSG_HEARTBEAT):
+                    c.reject("unsigned")
+                    return None
+            else:
+                h = hashlib.sha256(self.key)
+                h.update(pkt[:-6])
+                if h.digest()[:6] != pkt[-6:]:
+                    c.reject("bad_signature")
+                    return None
+        try:
+            m = self.mav.decode(bytearray(pkt))
+        except mavlink2.MAVError as exc:
+            if "signature" in str(exc.message):
+                c.reject("replay")
+            else:
+                c.malformed += 1
+                self.rx_errors["decode"] += 1
+            return None
+        except Exception:  # noqa: BLE001 - untrusted input must never crash us
+            c.malformed += 1
+            self.rx_errors["decode"] += 1
+            return None
+        if isinstance(m, mavlink2.MAVLink_unknown):
+            c.reject("unknown_message")
+            return None
+        key = (sysid, compid)
+        last = self._last_seq.get(key)
+        if last is not None:
+            gap = (seq - last - 1) & 0xFF
+            if gap < 128:  # larger "gaps" are duplicates/reordering, not losses
+                c.dropped += gap
+        self._last_seq[key] = seq
+        c.received += 1
+        if self.tlog is not None:
+            self.tlog.write(pkt)
+        return m
+
+
+def parse_endpoint(ep: str):
+    """'udpin:HOST:PORT' | 'udpout:HOST:PORT' | 'udp:HOST:PORT' (= udpin) -> (mode, (host, port))."""
+    mode, host, port = ep.split(":")
+    if mode == "udp":
+        mode = "udpin"
+    return mode, (host, int(port))
+
+
+class UdpSocket:
+    """A non-blocking UDP socket. ``udpin``: bound to HOST:PORT, replies go to whoever talked last
+    (or to an address the caller gives); ``udpout``: sends to HOST:PORT from an ephemeral port."""
+
+    def __init__(self, endpoint: str, rcvbuf: int = 1 << 20):
+        self.endpoint = endpoint
+        self.mode, addr = parse_endpoint(endpoint)
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, rcvbuf)
+        except OSError:
+            pass
+        if self.mode == "udpin":
+            s.bind(addr)  # no SO_REUSEADDR: a port already in use is an error, not a silent split
+            self.remote = None
+        else:
+            s.bind((addr[0] if addr[0] in ("127.0.0.1", "localhost") else "0.0.0.0", 0))
+            self.remote = addr
+        s.setblocking(False)
+        self.sock = s
+        self.local = s.getsockname()
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def send(self, data: bytes, addr=None) -> bool:
+        addr = addr or self.remote
+        if addr is None:
+            return False
+        try:
+            self.sock.sendto(data, addr)
+            return True
+        except OSError:
+            return False
+
+    def recv_all(self, limit: int = 4096):
+        """Every datagram waiting now: [(data, addr)]."""
+        out = []
+        recv = self.sock.recvfrom
+        for _ in range(limit):
+            try:
+                out.append(recv(65535))
+            except BlockingIOError:
+                break
+            except OSError as exc:  # ICMP port unreachable surfaces as ECONNREFUSED on Linux
+                if exc.errno in (errno.ECONNREFUSED, errno.EAGAIN):
+                    continue
+                break
+        return out
+
+    def close(self) -> None:
+        try:
+            self.sock.close()
+        except OSError:
+            pass

@@ -1,0 +1,406 @@
+"""`MavlinkPlant`: the cosim Plant protocol over MAVLink links to N vehicles.
+
+read() -> the latest valid state of every vehicle (scenario frames); apply(u) -> actuator
+commands sent at once; advance(h) -> real time: wait (servicing the links) until the wall-clock
+deadline t0 + (n+1)·h; lockstep: wait until every vehicle has answered with its state at
+t = (n+1)·h, re-sending the command to any that has not within ``lockstep_resend``.
+"""
+from __future__ import annotations
+
+import select
+import sys
+import time
+
+import numpy as np
+
+from controller.errors import Se3SyncError
+
+from .config import default_config, read_key_file
+from .link import Counters, Peer, TLog, UdpSocket, mavlink2, split_datagram
+from .state import StateTracker
+from .transport import WIRE, Transport, wire_to_state
+
+M = mavlink2
+ID_HEARTBEAT = M.MAVLINK_MSG_ID_HEARTBEAT
+ID_ODOMETRY = M.MAVLINK_MSG_ID_ODOMETRY
+ID_ATTQ = M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
+ID_LPOS = M.MAVLINK_MSG_ID_LOCAL_POSITION_NED
+ID_ACK = M.MAVLINK_MSG_ID_COMMAND_ACK
+ID_STATUSTEXT = M.MAVLINK_MSG_ID_STATUSTEXT
+HIST_BIN = 1e-5        # latency histograms: 10 µs bins up to 0.2 s (the last bin is "more")
+HIST_N = 20_001
+
+
+def _hist_add(hist, seconds: float) -> None:
+    i = int(seconds / HIST_BIN)
+    hist[i if 0 <= i < HIST_N else HIST_N - 1] += 1
+
+
+def _hist_pct(hist, q: float):
+    """The q-quantile (0..1) of a histogram, in milliseconds (bin centre), or None if empty."""
+    total = int(hist.sum())
+    if total == 0:
+        return None
+    i = int(np.searchsorted(np.cumsum(hist), q * total, side="left"))
+    return (min(i, HIST_N - 1) + 0.5) * HIST_BIN * 1e3
+
+
+class ConnectError(Se3SyncError):
+    """A vehicle never connected (or never sent a state) within the connect timeout."""
+
+
+class LinkError(Se3SyncError):
+    """Lockstep: a vehicle stopped answering."""
+
+
+class _Vehicle:
+    __slots__ = ("i", "sysid", "sock", "peer", "tracker", "addr", "hb", "connected", "lost",
+                 "t_cmd", "last_buf", "t_sent", "acks", "statustexts", "losses", "recoveries",
+                 "failsafe_reports")
+
+    def __init__(self, i, sysid, sock, peer, tracker):
+        self.i, self.sysid, self.sock, self.peer, self.tracker = i, sysid, sock, peer, tracker
+        self.addr = sock.remote
+        self.hb = None
+        self.connected = False
+        self.lost = False
+        self.t_cmd = None       # send time of the latest command awaiting a state (latency)
+        self.last_buf = None
+        self.t_sent = 0.0
+        self.acks = 0
+        self.statustexts = []
+        self.losses = 0
+        self.recoveries = 0
+        self.failsafe_reports = 0
+
+
+class MavlinkPlant:
+    """``MavlinkPlant(scenario, config=None, *, lockstep=None, key=None, tlog=None,
+    connect_timeout=None, on_event=None)`` then ``connect()``; the cosim Plant protocol after.
+
+    config: a BridgeConfig (default: the scenario's [bridge] table, else the defaults);
+    lockstep/key/tlog/connect_timeout override it; key: bytes or a key file path;
+    on_event(str): link events (default: printed to stderr).
+    """
+
+    def __init__(self, scenario, config=None, *, lockstep=None, key=None, tlog=None,
+                 connect_timeout=None, on_event=None):
+        cfg = config if config is not None else (scenario.bridge or default_config(scenario.n_agents))
+        self.cfg = cfg
+        self.n = n = scenario.n_agents
+        if len(cfg.vehicles) != n:
+            raise Se3SyncError(f"bridge: {len(cfg.vehicles)} vehicles configured for {n} agents")
+        self.h = float(scenario.step)
+        self.h_us = int(round(self.h * 1e6))
+        self.lockstep = cfg.lockstep if lockstep is None else bool(lockstep)
+        if self.lockstep and abs(self.h_us - self.h * 1e6) > 1e-6:
+            raise Se3SyncError(f"lockstep needs a step that is a whole number of microseconds, got {self.h}")
+        self.connect_timeout = cfg.connect_timeout if connect_timeout is None else float(connect_timeout)
+        if key is None and cfg.key_file:
+            key = cfg.key_file
+        if isinstance(key, (str,)) or hasattr(key, "__fspath__"):
+            key = read_key_file(key)
+        self.key = key
+        tl = tlog if tlog is not None else cfg.tlog
+        self.tlog = TLog(tl) if tl else None
+        self.on_event = on_event or (lambda s: print(f"se3sync connect: {s}", file=sys.stderr, flush=True))
+        self.counters = Counters()
+        self.transport = Transport(cfg.mappings, cfg.world_frame, scenario.masses, scenario.gravity,
+                                   cfg.gravity_compensation)
+        self.world = cfg.world_frame
+        self.wire = np.zeros((n, WIRE))
+        self.wire[:, 3] = 1.0
+        self._S = None
+        self._controls = np.zeros((n, 6))
+        self.k = 0
+        self.t0 = None
+        self.lat_hist = np.zeros(HIST_N, dtype=np.int64)   # command sent -> next state received
+        self.age_hist = np.zeros(HIST_N, dtype=np.int64)   # age of the oldest state used at a step
+        self.events: list = []
+        self.late_steps = 0          # real time: steps whose deadline had already passed
+        self.lockstep_resends = 0
+        self._closed = False
+        self.socks: list[UdpSocket] = []
+        self.vehicles: list[_Vehicle] = []
+        self._route: dict = {}       # fd -> {sysid: _Vehicle}
+        self._sock_by_fd: dict = {}
+        try:
+            by_ep: dict = {}
+            for i, vs in enumerate(cfg.vehicles):
+                sock = by_ep.get(vs.endpoint)
+                if sock is None:
+                    sock = by_ep[vs.endpoint] = UdpSocket(vs.endpoint)
+                    self.socks.append(sock)
+                    self._sock_by_fd[sock.fileno()] = sock
+                    self._route[sock.fileno()] = {}
+                peer = Peer(cfg.source_system, cfg.source_component, self.counters, key=self.key,
+                            allow_unsigned_heartbeat=cfg.allow_unsigned_heartbeat, link_id=i & 0xFF,
+                            tlog=self.tlog)
+                tr = StateTracker(self.counters, cfg.stale_after, check_stale=not self.lockstep,
+                                  fallback=not self.lockstep)
+                v = _Vehicle(i, vs.system_id, sock, peer, tr)
+                self.vehicles.append(v)
+                self._route[sock.fileno()][vs.system_id] = v
+        except OSError as exc:
+            self.close()
+            raise Se3SyncError(f"bridge: cannot open {vs.endpoint}: {exc.strerror or exc}") from None
+        self._fds = [s.fileno() for s in self.socks]
+        self._next_hb = 0.0
+
+    # ------------------------------------------------------------------ events
+    def _event(self, text: str) -> None:
+        self.events.append({"wall": time.time(), "step": self.k, "text": text})
+        if len(self.events) > 1000:
+            del self.events[:500]
+        self.on_event(text)
+
+    # ------------------------------------------------------------------ I/O
+    def _send(self, v: _Vehicle, msg) -> bytes | None:
+        buf = v.peer.pack(msg)
+        if v.sock.send(buf, v.addr):
+            self.counters.sent += 1
+            return buf
+        self.counters.send_errors += 1
+        return None
+
+    def _send_raw(self, v: _Vehicle, buf: bytes) -> None:
+        if v.sock.send(buf, v.addr):
+            self.counters.sent += 1
+        else:
+            self.counters.send_errors += 1
+
+    def _heartbeats(self, now: float) -> None:
+        if now < self._next_hb:
+            return
+        self._next_hb = now + self.cfg.heartbeat_period
+        for v in self.vehicles:
+            if v.addr is not None:
+                self._send(v, v.peer.mav.heartbeat_encode(M.MAV_TYPE_ONBOARD_CONTROLLER,
+                                                          M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE))
+
+    def _receive(self, fd: int, now: float) -> None:
+        sock = self._sock_by_fd[fd]
+        route = self._route[fd]
+        c = self.counters
+        for data, addr in sock.recv_all():
+            c.datagrams += 1
+            try:
+                pkts, err = split_datagram(data)
+                if err is not None:
+                    c.malformed += 1
+                    continue
+                m0 = c.malformed
+                for pkt in pkts:
+                    v = route.get(pkt[5])
+                    if v is None:
+                        c.reject("wrong_system")
+                        continue
+                    m = v.peer.accept(pkt)
+                    if m is None:
+                        continue
+                    if sock.mode == "udpin":
+                        v.addr = addr
+                    self._dispatch(v, m, now)
+                if c.malformed > m0 + 1:
+                    c.malformed = m0 + 1  # one bad datagram counts once
+            except Exception:  # noqa: BLE001 - untrusted input never crashes the bridge
+                c.malformed += 1
+
+    def _dispatch(self, v: _Vehicle, m, now: float) -> None:
+        mid = m.get_msgId()
+        tr = v.tracker
+        ok = False
+        if mid == ID_ODOMETRY:
+            ok = tr.on_odometry(m, now)
+        elif mid == ID_HEARTBEAT:
+            v.hb = now
+            if not v.connected:
+                v.connected = True
+        elif mid == ID_ATTQ:
+            ok = tr.on_attitude_quaternion(m, now)
+        elif mid == ID_LPOS:
+            ok = tr.on_local_position_ned(m, now)
+        elif mid == ID_ACK:
+            v.acks += 1
+        elif mid == ID_STATUSTEXT:
+            txt = m.text if isinstance(m.text, str) else bytes(m.text).decode("utf-8", "replace")
+            v.statustexts.append(txt)
+            if len(v.statustexts) > 50:
+                del v.statustexts[:25]
+            if "failsafe" in txt:
+                v.failsafe_reports += 1
+            if self.t0 is not None:
+                self._event(f"vehicle {v.i + 1} (system {v.sysid}): {txt}")
+        if ok:
+            self.wire[v.i] = tr.wire
+            if v.t_cmd is not None:
+                _hist_add(self.lat_hist, now - v.t_cmd)
+                v.t_cmd = None
+            if v.lost:
+                v.lost = False
+                v.recoveries += 1
+                self._event(f"vehicle {v.i + 1} (system {v.sysid}): link recovered")
+
+    def poll(self, timeout: float) -> None:
+        """Services the links for at most ``timeout`` seconds (returns after the first batch)."""
+        r, _, _ = select.select(self._fds, [], [], max(0.0, timeout))
+        now = time.monotonic()
+        for fd in r:
+            self._receive(fd, now)
+
+    # ------------------------------------------------------------------ connection
+    def connect(self) -> "MavlinkPlant":
+        """Waits for a HEARTBEAT and a first valid state from every vehicle (lockstep: the state
+        at t = 0). Raises ConnectError naming the vehicles that did not connect."""
+        t_end = time.monotonic() + self.connect_timeout
+        armed_sent = 0.0
+        while True:
+            now = time.monotonic()
+            self._heartbeats(now)
+            ready = [v.connected and v.tracker.have and (not self.lockstep or v.tracker.time_usec == 0)
+                     for v in self.vehicles]
+            if all(ready):
+                break
+            if now >= t_end:
+                missing = [v for v, r in zip(self.vehicles, ready) if not r]
+                what = ", ".join(f"{v.i + 1} (system {v.sysid}, {v.sock.endpoint}"
+                                 f"{'' if v.connected else ', no heartbeat'}"
+                                 f"{'' if v.tracker.have else ', no state'})" for v in missing[:4])
+                more = f" and {len(missing) - 4} more" if len(missing) > 4 else ""
+                raise ConnectError(f"vehicle(s) {what}{more} did not connect within {self.connect_timeout:g} s")
+            if self.cfg.arm and now - armed_sent > 0.5:
+                armed_sent = now
+                for v in self.vehicles:
+                    if v.addr is not None and v.acks == 0:
+                        self._send(v, v.peer.mav.command_long_encode(
+                            v.sysid, 1, M.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+            self.poll(0.01)
+        if self.cfg.odometry_rate > 0:
+            for v in self.vehicles:
+                self._send(v, v.peer.mav.command_long_encode(
+                    v.sysid, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, ID_ODOMETRY,
+                    1e6 / self.cfg.odometry_rate, 0, 0, 0, 0, 0))
+        self._S = wire_to_state(self.wire, self.world)
+        self.t0 = time.monotonic()
+        for v in self.vehicles:
+            v.hb = self.t0
+        self._event(f"{self.n} vehicle(s) connected ({'lockstep' if self.lockstep else 'real time'}, "
+                    f"h = {self.h:g} s)")
+        return self
+
+    # ------------------------------------------------------------------ Plant protocol
+    def read(self) -> np.ndarray:
+        if self._S is None:
+            self._S = wire_to_state(self.wire, self.world)
+        return self._S
+
+    def apply(self, u) -> None:
+        S = self.read()
+        c = self.transport.controls(u, S)
+        self._controls[:] = c
+        now = time.monotonic()
+        if self.k == 0 and not self.lockstep:
+            self.t0 = now  # pacing starts with the first command (not at connect)
+        oldest = min((v.tracker.t_arrival or now) for v in self.vehicles)
+        _hist_add(self.age_hist, now - oldest)
+        t_us = self.k * self.h_us if self.lockstep else int(time.time() * 1e6)
+        cfg = self.cfg
+        for v in self.vehicles:
+            if v.addr is None:
+                continue
+            ci = c[v.i]
+            if cfg.output == "actuator_control_target":
+                msg = v.peer.mav.set_actuator_control_target_encode(
+                    t_us, cfg.group_mlx, v.sysid, 1, [ci[0], ci[1], ci[2], ci[3], ci[4], ci[5], 0.0, 0.0])
+            else:
+                msg = v.peer.mav.command_long_encode(
+                    v.sysid, 1, M.MAV_CMD_DO_SET_ACTUATOR, self.k & 0xFF if self.lockstep else 0,
+                    ci[0], ci[1], ci[2], ci[3], ci[4], ci[5], float(cfg.actuator_index_offset))
+            self._send(v, msg)
+            v.last_buf = msg
+            v.t_sent = now
+            if v.t_cmd is None:
+                v.t_cmd = now
+
+    def advance(self, h: float) -> None:
+        if self.t0 is None:
+            raise Se3SyncError("MavlinkPlant: call connect() first")
+        if self.lockstep:
+            self._advance_lockstep()
+        else:
+            self._advance_realtime()
+        self.k += 1
+        self._S = None
+
+    def _advance_realtime(self) -> None:
+        deadline = self.t0 + (self.k + 1) * self.h
+        now = time.monotonic()
+        if now > deadline:
+            self.late_steps += 1
+        while True:
+            self.poll(deadline - now)
+            now = time.monotonic()
+            if now >= deadline:
+                break
+        self._heartbeats(now)
+        self._check_links(now)
+
+    def _check_links(self, now: float) -> None:
+        cfg = self.cfg
+        for v in self.vehicles:
+            ta = v.tracker.t_arrival
+            silent = ta is None or now - ta > cfg.link_timeout
+            hb_lost = v.hb is not None and now - v.hb > cfg.heartbeat_timeout
+            if (silent or hb_lost) and not v.lost:
+                v.lost = True
+                v.losses += 1
+                why = "no state" if silent else "no heartbeat"
+                self._event(f"vehicle {v.i + 1} (system {v.sysid}): link lost ({why} for "
+                            f"{(now - (ta if silent and ta else v.hb)):.3g} s)")
+
+    def _advance_lockstep(self) -> None:
+        target = (self.k + 1) * self.h_us
+        t_start = time.monotonic()
+        while True:
+            waiting = [v for v in self.vehicles if v.tracker.time_usec is None or v.tracker.time_usec < target]
+            if not waiting:
+                return
+            now = time.monotonic()
+            if now - t_start > self.cfg.lockstep_timeout:
+                raise LinkError(f"lockstep: vehicle(s) {', '.join(str(v.i + 1) for v in waiting[:6])} did not "
+                                f"answer step {self.k} within {self.cfg.lockstep_timeout:g} s")
+            for v in waiting:
+                if now - v.t_sent > self.cfg.lockstep_resend and v.last_buf is not None:
+                    self._send(v, v.last_buf)  # re-packed: a new sequence number and signature
+                    v.t_sent = now
+                    self.lockstep_resends += 1
+            self._heartbeats(now)
+            self.poll(0.005)
+
+    # ------------------------------------------------------------------ stats
+    def stats(self) -> dict:
+        d = self.counters.as_dict()
+        d["latency_ms_p50"] = _hist_pct(self.lat_hist, 0.50)
+        d["latency_ms_p99"] = _hist_pct(self.lat_hist, 0.99)
+        d["latency_samples"] = int(self.lat_hist.sum())
+        d["state_age_ms_p50"] = _hist_pct(self.age_hist, 0.50)
+        d["state_age_ms_p99"] = _hist_pct(self.age_hist, 0.99)
+        d["saturations"] = int(self.transport.mapping.saturations)
+        d["nan_commands"] = int(self.transport.nan_commands)
+        d["late_steps"] = int(self.late_steps)
+        d["lockstep_resends"] = int(self.lockstep_resends)
+        d["link_losses"] = int(sum(v.losses for v in self.vehicles))
+        d["link_recoveries"] = int(sum(v.recoveries for v in self.vehicles))
+        d["links_down"] = [v.i + 1 for v in self.vehicles if v.lost]
+        d["duplicates"] = int(sum(v.tracker.duplicates for v in self.vehicles))
+        d["vehicle_failsafes"] = int(sum(v.failsafe_reports for v in self.vehicles))
+        return d
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for s in self.socks:
+            s.close()
+        if self.tlog is not None:
+            self.tlog.close()

@@ -1,0 +1,158 @@
+"""Vehicle state in: ODOMETRY (primary) or ATTITUDE_QUATERNION + LOCAL_POSITION_NED (fallback),
+validated and kept as "wire" rows (see `bridge.transport`), in NED/FRD.
+
+A message is rejected and counted when it is
+* ``nan``: any field not finite;
+* ``non_unit_quaternion``: | ‖q‖ − 1 | > 1e-3 (MAVLink carries float32, so ~1e-7 is normal);
+* ``out_of_order``: its time_usec is not newer than the last accepted one (an exact repeat is
+  counted as ``duplicate`` instead; a jump back of more than 10 s is a vehicle reboot and accepted);
+* ``stale``: it arrived more than ``stale_after`` seconds later than the best-case delay seen on
+  this link (the vehicle's clock and ours differ by an unknown offset, estimated as the minimum of
+  arrival − time_usec); not checked in lockstep, where time_usec is simulated time;
+* ``bad_frame``: an ODOMETRY frame_id/child_frame_id we do not handle.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .link import mavlink2
+from .transport import WIRE
+
+FRAME_LOCAL_NED = mavlink2.MAV_FRAME_LOCAL_NED
+FRAME_LOCAL_FRD = mavlink2.MAV_FRAME_LOCAL_FRD
+FRAME_BODY_FRD = mavlink2.MAV_FRAME_BODY_FRD
+FRAME_BODY_NED = getattr(mavlink2, "MAV_FRAME_BODY_NED", 8)
+QUAT_TOL = 1e-3
+REBOOT_JUMP_US = 10_000_000
+
+ID_ODOMETRY = mavlink2.MAVLINK_MSG_ID_ODOMETRY
+ID_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
+ID_LOCAL_POSITION_NED = mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED
+
+
+def _rot_T_apply(q, v):
+    """Rᵀ v for the unit quaternion q (w, x, y, z), fixed operation order."""
+    w, x, y, z = q
+    s = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w * s, x * s, y * s, z * s
+    R = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
+         (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
+         (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
+    return [R[0][i] * v[0] + R[1][i] * v[1] + R[2][i] * v[2] for i in range(3)]
+
+
+class StateTracker:
+    """The latest valid state of one vehicle."""
+
+    def __init__(self, counters, stale_after: float = 0.1, check_stale: bool = True,
+                 fallback: bool = True):
+        self.c = counters
+        self.fallback = fallback      # use ATTITUDE_QUATERNION + LOCAL_POSITION_NED if no ODOMETRY
+        self.stale_after = float(stale_after)
+        self.check_stale = check_stale
+        self.wire = np.zeros(WIRE)
+        self.have = False
+        self.time_usec = None         # vehicle time of the latest accepted state
+        self.t_arrival = None         # our wall time (time.monotonic()) of the latest accepted state
+        self.n_states = 0
+        self.n_odometry = 0
+        self.offset = None            # min(arrival − vehicle time), µs
+        self.source = None            # "odometry" | "fallback"
+        self._att = None              # (time_boot_ms, q(4), rates(3))
+        self._pos = None              # (time_boot_ms, p(3), v_ned(3))
+        self.duplicates = 0
+        self.reboots = 0
+
+    def reset_clock(self):
+        self.time_usec = None
+        self.offset = None
+
+    def _time_ok(self, t_us: int, t_wall: float) -> bool:
+        if self.time_usec is not None:
+            if t_us == self.time_usec:
+                self.duplicates += 1
+                return False
+            if t_us < self.time_usec:
+                if self.time_usec - t_us > REBOOT_JUMP_US:
+                    self.reboots += 1
+                    self.offset = None
+                else:
+                    self.c.reject("out_of_order")
+                    return False
+        if self.check_stale:
+            d = t_wall * 1e6 - t_us
+            if self.offset is None or d < self.offset:
+                self.offset = d
+            elif d - self.offset > self.stale_after * 1e6:
+                self.c.reject("stale")
+                return False
+        return True
+
+    def _accept(self, vals, t_us, t_wall, source) -> bool:
+        if not all(math.isfinite(v) for v in vals):
+            self.c.reject("nan")
+            return False
+        q = vals[3:7]
+        if abs(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]) - 1.0) > QUAT_TOL:
+            self.c.reject("non_unit_quaternion")
+            return False
+        if not self._time_ok(t_us, t_wall):
+            return False
+        self.wire[:] = vals
+        self.time_usec = t_us
+        self.t_arrival = t_wall
+        self.have = True
+        self.n_states += 1
+        self.source = source
+        return True
+
+    def on_odometry(self, m, t_wall: float) -> bool:
+        vals = [m.x, m.y, m.z, *m.q, m.rollspeed, m.pitchspeed, m.yawspeed, m.vx, m.vy, m.vz]
+        if m.frame_id not in (FRAME_LOCAL_NED, FRAME_LOCAL_FRD) or \
+                m.child_frame_id not in (FRAME_BODY_FRD, FRAME_LOCAL_NED, FRAME_BODY_NED):
+            self.c.reject("bad_frame")
+            return False
+        if m.child_frame_id != FRAME_BODY_FRD:
+            # velocity given in the world (NED) frame: rotate into the body frame
+            if not all(math.isfinite(v) for v in vals):
+                self.c.reject("nan")
+                return False
+            q = vals[3:7]
+            n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
+            if n2 > 0:
+                vals[10:13] = _rot_T_apply(q, vals[10:13])
+        ok = self._accept(vals, int(m.time_usec), t_wall, "odometry")
+        if ok and not self.n_odometry:
+            self.time_usec = int(m.time_usec)
+        self.n_odometry += ok
+        return ok
+
+    def on_attitude_quaternion(self, m, t_wall: float) -> bool:
+        if not self.fallback or self.n_odometry:
+            return False  # the vehicle sends ODOMETRY: the fallback is not used (other time base)
+        self._att = (m.time_boot_ms, [m.q1, m.q2, m.q3, m.q4], [m.rollspeed, m.pitchspeed, m.yawspeed])
+        return self._combine(t_wall)
+
+    def on_local_position_ned(self, m, t_wall: float) -> bool:
+        if not self.fallback or self.n_odometry:
+            return False  # the vehicle sends ODOMETRY: the fallback is not used (other time base)
+        self._pos = (m.time_boot_ms, [m.x, m.y, m.z], [m.vx, m.vy, m.vz])
+        return self._combine(t_wall)
+
+    def _combine(self, t_wall: float) -> bool:
+        if self._att is None or self._pos is None:
+            return False
+        ta, q, w = self._att
+        tp, p, v = self._pos
+        t_ms = max(ta, tp)
+        if abs(ta - tp) > self.stale_after * 1000:
+            return False  # wait for a matching pair
+        vals = [*p, *q, *w, *v]
+        if not all(math.isfinite(x) for x in vals):
+            self.c.reject("nan")
+            return False
+        vals[10:13] = _rot_T_apply(q, v) if (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]) > 0 else v
+        self._att = self._pos = None
+        return self._accept(vals, int(t_ms) * 1000, t_wall, "fallback")

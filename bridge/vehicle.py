@@ -1,0 +1,498 @@
+"""The loopback test vehicle: N simulated multirotors speaking MAVLink 2 over UDP.
+
+Each vehicle is a single-body plant FMU (``FleetFMU(1)``) in NED/FRD. It inverts the configured
+mapping (controls -> wrench), streams HEARTBEAT, ODOMETRY (default 250 Hz), ATTITUDE_QUATERNION
+and LOCAL_POSITION_NED, answers SET_MESSAGE_INTERVAL, REQUEST_MESSAGE and
+COMPONENT_ARM_DISARM with COMMAND_ACK, and fails safe (zero wrench; under gravity the hover
+wrench −m Rᵀ g) when commands time out, saying so in a STATUSTEXT and a counter.
+
+Real time: the wall clock advances the physics in ticks of 1/rate. ``lockstep``: a vehicle
+advances exactly one control period per command whose time stamp (time_usec of
+SET_ACTUATOR_CONTROL_TARGET; ``confirmation`` mod 256 for COMMAND_LONG) is its current step, and
+answers with ODOMETRY at once; a repeated command re-sends the last ODOMETRY (so a bridge can
+retry over a lossy link).
+"""
+from __future__ import annotations
+
+import json
+import math
+import select
+import signal
+import sys
+import threading
+import time
+
+import numpy as np
+
+from .link import Counters, Peer, TLog, UdpSocket, mavlink2
+from .mapping import FleetMapping, MappingSpec
+from .transport import state_to_wire
+
+M = mavlink2
+ID_HEARTBEAT = M.MAVLINK_MSG_ID_HEARTBEAT
+ID_ODOMETRY = M.MAVLINK_MSG_ID_ODOMETRY
+ID_ATTQ = M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
+ID_LPOS = M.MAVLINK_MSG_ID_LOCAL_POSITION_NED
+STREAMABLE = (ID_HEARTBEAT, ID_ODOMETRY, ID_ATTQ, ID_LPOS)
+NAN21 = [float("nan")] + [0.0] * 20
+
+
+class SimVehicle:
+    """One vehicle: FMU, socket, MAVLink peer, command state."""
+
+    def __init__(self, server, index: int, system_id: int, endpoint: str, mapping_spec: MappingSpec,
+                 mass: float, J, S0_ned, g_ned, h_internal: float):
+        from plant_fmu.fast import FleetFMU
+
+        self.server = server
+        self.index = index
+        self.sysid = system_id
+        self.sock = UdpSocket(endpoint)
+        self.peer = Peer(system_id, 1, server.counters, key=server.key,
+                         allow_unsigned_heartbeat=server.allow_unsigned_heartbeat,
+                         link_id=index & 0xFF, tlog=server.tlog)
+        self.mapping = FleetMapping([mapping_spec])
+        self.mass = float(mass)
+        self.g = np.asarray(g_ned, float)
+        self.fmu = FleetFMU(1, instance_name=f"vehicle{system_id}")
+        S0 = np.asarray(S0_ned, float).reshape(1, 18)
+        self.fmu.set_parameters(mass=[mass], J=np.asarray(J, float).reshape(1, 3, 3), p0=S0[:, 0:3],
+                                R0=S0[:, 3:12].reshape(1, 3, 3), xi0=S0[:, 12:18], gravity=self.g,
+                                h_internal=h_internal)
+        self.fmu.initialize(0.0)
+        self.k = 0
+        self.controls = np.zeros(6)
+        self.wrench = np.zeros(6)
+        self.last_cmd = None            # monotonic time of the latest accepted command
+        self.last_cmd_us = None         # its time_usec (real time: older commands are dropped)
+        self.failsafe = True            # no commands yet
+        self.failsafe_count = 0
+        self.commands = 0
+        self.armed = not server.require_arm
+        self.gcs_addr = None
+        self.gcs_seen = None
+        self.last_odom = None
+        now = time.monotonic()
+        self.interval = {ID_HEARTBEAT: 1.0, ID_ODOMETRY: server.odom_period,
+                         ID_ATTQ: server.aux_period, ID_LPOS: server.aux_period}
+        self.due = {k: now for k in self.interval}
+        self.wire = np.zeros(13)
+        self.S = np.zeros(18)
+        self._refresh()
+
+    # ------------------------------------------------------------------ state
+    def _refresh(self):
+        S = self.fmu.get_state()
+        q = self.fmu.get_quat()
+        self.S[:] = S[0]
+        self.wire[:] = state_to_wire(S, q)[0]
+
+    def hover_wrench(self) -> np.ndarray:
+        w = np.zeros(6)
+        if self.g.any():
+            R = self.S[3:12]
+            for i in range(3):
+                w[3 + i] = -self.mass * (R[i] * self.g[0] + R[3 + i] * self.g[1] + R[6 + i] * self.g[2])
+        return w
+
+    def step(self, h: float) -> None:
+        w = self.hover_wrench() if (self.failsafe or not self.armed) else self.wrench
+        self.fmu.set_input(w.reshape(1, 6))
+        self.fmu.do_step(self.k * h, h)
+        self.k += 1
+        self._refresh()
+
+    # ------------------------------------------------------------------ out
+    def send(self, msg) -> None:
+        if self.gcs_addr is None and self.sock.remote is None:
+            return  # udpin and nobody has talked to us yet
+        try:
+            buf = self.peer.pack(msg)
+        except Exception:  # noqa: BLE001 (e.g. a diverged state does not fit a float32)
+            self.server.encode_errors += 1
+            return
+        if self.sock.send(buf, self.gcs_addr):
+            self.server.counters.sent += 1
+        else:
+            self.server.counters.send_errors += 1
+
+    def time_usec(self) -> int:
+        if self.server.lockstep:
+            return self.k * self.server.h_us
+        return int(time.time() * 1e6)
+
+    def send_odometry(self):
+        x = self.wire
+        mav = self.peer.mav
+        m = mav.odometry_encode(self.time_usec(), M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_BODY_FRD,
+                                x[0], x[1], x[2], [x[3], x[4], x[5], x[6]], x[10], x[11], x[12],
+                                x[7], x[8], x[9], NAN21, NAN21, 0, M.MAV_ESTIMATOR_TYPE_NAIVE, 100)
+        self.send(m)
+
+    def send_message(self, msgid: int) -> bool:
+        mav = self.peer.mav
+        x = self.wire
+        tb = int((time.monotonic() - self.server.t_boot) * 1000) & 0xFFFFFFFF
+        if msgid == ID_ODOMETRY:
+            self.send_odometry()
+        elif msgid == ID_HEARTBEAT:
+            mode = M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (M.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+            self.send(mav.heartbeat_encode(M.MAV_TYPE_HEXAROTOR, M.MAV_AUTOPILOT_GENERIC, mode, 0,
+                                           M.MAV_STATE_ACTIVE if self.armed else M.MAV_STATE_STANDBY))
+        elif msgid == ID_ATTQ:
+            self.send(mav.attitude_quaternion_encode(tb, x[3], x[4], x[5], x[6], x[7], x[8], x[9]))
+        elif msgid == ID_LPOS:
+            # LOCAL_POSITION_NED carries the velocity in NED: v_ned = R v_frd
+            R = self.S[3:12]
+            v = x[10:13]
+            vn = [R[3 * i] * v[0] + R[3 * i + 1] * v[1] + R[3 * i + 2] * v[2] for i in range(3)]
+            self.send(mav.local_position_ned_encode(tb, x[0], x[1], x[2], vn[0], vn[1], vn[2]))
+        else:
+            return False
+        return True
+
+    def statustext(self, severity: int, text: str) -> None:
+        self.send(self.peer.mav.statustext_encode(severity, text.encode()[:50]))
+
+    def ack(self, command: int, result: int, m) -> None:
+        self.send(self.peer.mav.command_ack_encode(command, result, 0, 0, m.get_srcSystem(),
+                                                   m.get_srcComponent()))
+
+    def emit_due(self, now: float) -> None:
+        for msgid, period in self.interval.items():
+            if period is None or period <= 0:
+                continue
+            if now >= self.due[msgid]:
+                self.send_message(msgid)
+                nd = self.due[msgid] + period
+                self.due[msgid] = nd if nd > now - period else now + period
+
+    # ------------------------------------------------------------------ in
+    def set_controls(self, c, now: float) -> bool:
+        c = np.asarray(c, float)
+        if not np.all(np.isfinite(c)) or np.any(np.abs(c) > 1.0):
+            self.server.counters.reject("bad_command")
+            return False
+        self.controls[:] = c
+        self.wrench[:] = self.mapping.decode(c.reshape(1, 6))[0]
+        self.commands += 1
+        self.last_cmd = now
+        if self.failsafe and self.server.started_commands.get(self.sysid):
+            self.statustext(M.MAV_SEVERITY_NOTICE, "commands resumed")
+        self.server.started_commands[self.sysid] = True
+        self.failsafe = False
+        return True
+
+    def lockstep_command(self, stamp_ok: bool, stamp_prev: bool, c, now: float) -> None:
+        if stamp_ok:
+            if self.set_controls(c, now):
+                self.step(self.server.h)
+                self.send_odometry()
+                self.last_odom = now
+        elif stamp_prev:
+            self.server.repeats += 1
+            self.send_odometry()
+        else:
+            self.server.counters.reject("bad_command")
+
+    def handle(self, m, addr, now: float) -> None:
+        srv = self.server
+        mid = m.get_msgId()
+        if self.sock.mode == "udpin":
+            self.gcs_addr = addr  # udpin: answer whoever talked to us last
+        if mid == ID_HEARTBEAT:
+            self.gcs_seen = now
+            return
+        if mid == M.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET:
+            if m.target_system not in (0, self.sysid):
+                srv.counters.reject("not_for_us")
+                return
+            if m.group_mlx != srv.group_mlx:
+                srv.counters.reject("bad_command")
+                return
+            c = m.controls[:6]
+            if srv.lockstep:
+                k_us = self.k * srv.h_us
+                self.lockstep_command(m.time_usec == k_us, m.time_usec < k_us, c, now)
+            elif self.last_cmd_us is not None and m.time_usec <= self.last_cmd_us \
+                    and self.last_cmd_us - m.time_usec < 10_000_000:
+                srv.counters.reject("out_of_order")   # overtaken by a newer command (jitter)
+            else:
+                if self.set_controls(c, now):
+                    self.last_cmd_us = m.time_usec
+            return
+        if mid == M.MAVLINK_MSG_ID_COMMAND_LONG:
+            if m.target_system not in (0, self.sysid):
+                srv.counters.reject("not_for_us")
+                return
+            self.command_long(m, now)
+            return
+        if mid == M.MAVLINK_MSG_ID_COMMAND_INT:
+            self.ack(m.command, M.MAV_RESULT_UNSUPPORTED, m)
+
+    def command_long(self, m, now: float) -> None:
+        srv = self.server
+        cmd = m.command
+        if cmd == M.MAV_CMD_DO_SET_ACTUATOR:
+            if int(m.param7) != srv.actuator_index_offset:
+                srv.counters.reject("bad_command")
+                return
+            p = [m.param1, m.param2, m.param3, m.param4, m.param5, m.param6]
+            c = [self.controls[i] if math.isnan(v) else v for i, v in enumerate(p)]  # NaN: no change
+            if srv.lockstep:
+                k8 = self.k & 0xFF
+                self.lockstep_command(m.confirmation == k8, m.confirmation == ((self.k - 1) & 0xFF), c, now)
+            else:
+                self.set_controls(c, now)
+            return
+        if cmd == M.MAV_CMD_COMPONENT_ARM_DISARM:
+            if m.param1 in (0.0, 1.0):
+                self.armed = m.param1 == 1.0
+                self.ack(cmd, M.MAV_RESULT_ACCEPTED, m)
+            else:
+                self.ack(cmd, M.MAV_RESULT_DENIED, m)
+            return
+        if cmd == M.MAV_CMD_SET_MESSAGE_INTERVAL:
+            mid, us = int(m.param1), m.param2
+            if mid not in STREAMABLE or not math.isfinite(us):
+                self.ack(cmd, M.MAV_RESULT_UNSUPPORTED if mid not in STREAMABLE else M.MAV_RESULT_DENIED, m)
+                return
+            if us < 0:
+                self.interval[mid] = None
+            elif us == 0:
+                self.interval[mid] = srv.default_interval(mid)
+            else:
+                self.interval[mid] = us * 1e-6
+                self.due[mid] = now
+            self.ack(cmd, M.MAV_RESULT_ACCEPTED, m)
+            return
+        if cmd == M.MAV_CMD_REQUEST_MESSAGE:
+            mid = int(m.param1) if math.isfinite(m.param1) else -1
+            ok = mid in STREAMABLE
+            self.ack(cmd, M.MAV_RESULT_ACCEPTED if ok else M.MAV_RESULT_UNSUPPORTED, m)
+            if ok:
+                self.send_message(mid)
+            return
+        self.ack(cmd, M.MAV_RESULT_UNSUPPORTED, m)
+
+    def check_timeout(self, now: float) -> None:
+        if self.failsafe or self.last_cmd is None:
+            return
+        if now - self.last_cmd > self.server.command_timeout:
+            self.failsafe = True
+            self.failsafe_count += 1
+            self.server.failsafe_delays.append(now - self.last_cmd)
+            self.statustext(M.MAV_SEVERITY_WARNING, "failsafe: commands timed out, zero wrench")
+
+    def close(self):
+        self.sock.close()
+        self.fmu.close()
+
+
+class VehicleServer:
+    """Serves vehicles with system ids ``first_system_id .. first_system_id + count - 1``."""
+
+    def __init__(self, count: int = 1, *, base_port: int | None = None, host: str | None = None,
+                 endpoints=None, shared_port: bool = False, lockstep: bool = False, key: bytes | None = None,
+                 scenario=None, rate: float = 250.0, aux_rate: float = 10.0, step: float | None = None,
+                 command_timeout: float | None = None, first_system_id: int = 1, tlog=None,
+                 allow_unsigned_heartbeat: bool = False, require_arm: bool = False,
+                 gravity_ned=(0.0, 0.0, 0.0), quiet: bool = True):
+        cfg = None
+        if scenario is not None:
+            from .config import default_config
+
+            cfg = scenario.bridge or default_config(scenario.n_agents)
+            count = scenario.n_agents
+        base_port = base_port if base_port is not None else (cfg.base_port if cfg else 14540)
+        host = host if host is not None else (cfg.host if cfg else "127.0.0.1")
+        self.count = int(count)
+        self.lockstep = bool(lockstep)
+        self.key = key
+        self.allow_unsigned_heartbeat = allow_unsigned_heartbeat or bool(cfg and cfg.allow_unsigned_heartbeat)
+        self.require_arm = require_arm
+        self.rate = float(rate)
+        self.odom_period = 1.0 / self.rate
+        self.aux_period = 1.0 / aux_rate if aux_rate and aux_rate > 0 else None
+        self.h = float(step if step is not None else (scenario.step if scenario is not None else 1.0 / self.rate))
+        self.h_us = int(round(self.h * 1e6))
+        self.command_timeout = float(command_timeout) if command_timeout is not None else 2.0 * self.h
+        self.group_mlx = cfg.group_mlx if cfg else 0
+        self.actuator_index_offset = cfg.actuator_index_offset if cfg else 0
+        self.counters = Counters()
+        self.tlog = TLog(tlog) if tlog else None
+        self.encode_errors = 0
+        self.repeats = 0
+        self.failsafe_delays: list = []   # command timeout detected: seconds since the last command
+        self.started_commands: dict = {}
+        self.quiet = quiet
+        self.t_boot = time.monotonic()
+        self._stop = threading.Event()
+        self.ready = threading.Event()
+        self.vehicles: list[SimVehicle] = []
+
+        if scenario is not None:
+            from .transport import vehicle_setup
+
+            masses, Js, S0, g = vehicle_setup(scenario, cfg.world_frame)
+            specs = cfg.mappings
+            sids = [v.system_id for v in cfg.vehicles]
+            h_int = scenario.internal_step
+        else:
+            masses = np.ones(self.count)
+            Js = np.tile(np.diag([0.01, 0.01, 0.02]), (self.count, 1, 1))
+            S0 = np.zeros((self.count, 18))
+            S0[:, 0] = np.arange(self.count, dtype=float)
+            S0[:, 3:12] = np.eye(3).ravel()
+            g = np.asarray(gravity_ned, float)
+            specs = [MappingSpec()] * self.count
+            sids = list(range(first_system_id, first_system_id + self.count))
+            h_int = min(self.h, 1e-3)
+        try:
+            for i in range(self.count):
+                if endpoints:
+                    ep = endpoints[i]
+                elif shared_port or (cfg is not None and cfg.routing == "shared"):
+                    ep = f"udpout:{host}:{base_port}"
+                else:
+                    ep = f"udpout:{host}:{base_port + sids[i] - 1}"
+                self.vehicles.append(SimVehicle(self, i, sids[i], ep, specs[i], masses[i], Js[i], S0[i], g, h_int))
+        except Exception:
+            self.close()
+            raise
+        self._by_fd = {v.sock.fileno(): v for v in self.vehicles}
+
+    def default_interval(self, mid):
+        return {ID_HEARTBEAT: 1.0, ID_ODOMETRY: self.odom_period, ID_ATTQ: self.aux_period,
+                ID_LPOS: self.aux_period}[mid]
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    @property
+    def failsafe_count(self) -> int:
+        return sum(v.failsafe_count for v in self.vehicles)
+
+    def stats(self) -> dict:
+        d = self.counters.as_dict()
+        d.update(failsafe=self.failsafe_count, failsafe_active=[v.failsafe for v in self.vehicles],
+                 commands=sum(v.commands for v in self.vehicles), steps=[v.k for v in self.vehicles],
+                 repeats=self.repeats, encode_errors=self.encode_errors,
+                 failsafe_delay_max=max(self.failsafe_delays) if self.failsafe_delays else None,
+                 failsafe_delays=[round(x, 6) for x in self.failsafe_delays[:200]],
+                 command_timeout=self.command_timeout, control_period=self.h)
+        return d
+
+    def _receive(self, v: SimVehicle, now: float) -> None:
+        from .link import split_datagram
+
+        c = self.counters
+        for data, addr in v.sock.recv_all():
+            c.datagrams += 1
+            try:
+                pkts, err = split_datagram(data)
+                if err is not None:
+                    c.malformed += 1
+                    continue
+                m0 = c.malformed  # a datagram that does not frame is dropped whole
+                for pkt in pkts:
+                    m = v.peer.accept(pkt)
+                    if m is not None:
+                        v.handle(m, addr, now)
+                if c.malformed > m0 + 1:
+                    c.malformed = m0 + 1  # one bad datagram counts once
+            except Exception:  # noqa: BLE001 - untrusted input never crashes the vehicle
+                c.malformed += 1
+
+    def run(self, duration: float | None = None) -> dict:
+        """Serves until stop(), SIGTERM/SIGINT (main thread) or ``duration`` seconds."""
+        in_main = threading.current_thread() is threading.main_thread()
+        old = None
+        if in_main:
+            old = signal.signal(signal.SIGTERM, lambda *a: self._stop.set())
+        t0 = time.monotonic()
+        end = None if duration is None else t0 + duration
+        tick = self.odom_period
+        next_tick = t0
+        fds = [v.sock.fileno() for v in self.vehicles]
+        self.ready.set()
+        try:
+            while not self._stop.is_set():
+                now = time.monotonic()
+                if end is not None and now >= end:
+                    break
+                timeout = max(0.0, min(next_tick - now, 0.05))
+                r, _, _ = select.select(fds, [], [], timeout)
+                now = time.monotonic()
+                for fd in r:
+                    self._receive(self._by_fd[fd], now)
+                if now < next_tick:
+                    continue
+                if not self.lockstep:
+                    for v in self.vehicles:
+                        v.check_timeout(now)
+                        v.step(tick)
+                else:
+                    for v in self.vehicles:  # idle: repeat the current state now and then
+                        if v.last_odom is None or now - v.last_odom > 0.2:
+                            v.send_odometry()
+                            v.last_odom = now
+                for v in self.vehicles:
+                    if self.lockstep:
+                        for mid in (ID_HEARTBEAT, ID_ATTQ, ID_LPOS):
+                            p = v.interval[mid]
+                            if p and now >= v.due[mid]:
+                                v.send_message(mid)
+                                v.due[mid] = max(v.due[mid] + p, now)
+                    else:
+                        v.emit_due(now)
+                next_tick += tick
+                if now - next_tick > 10 * tick:  # fell far behind (suspended?): resynchronise
+                    next_tick = now + tick
+        except KeyboardInterrupt:
+            pass
+        finally:
+            if in_main and old is not None:
+                signal.signal(signal.SIGTERM, old)
+        return self.stats()
+
+    def close(self) -> None:
+        for v in self.vehicles:
+            try:
+                v.close()
+            except Exception:  # noqa: BLE001
+                pass
+        if self.tlog is not None:
+            self.tlog.close()
+
+
+def run_vehicle_cli(args) -> int:
+    """Handler of ``se3sync vehicle``."""
+    from .config import read_key_file
+
+    scenario = None
+    if args.scenario:
+        from cosim.scenario import load_scenario
+
+        scenario = load_scenario(args.scenario, args.set or [])
+    key = read_key_file(args.key) if args.key else None
+    g = [float(x) for x in args.gravity.split(",")] if args.gravity else (0.0, 0.0, 0.0)
+    srv = VehicleServer(args.count, base_port=args.base_port, host=args.host, endpoints=args.endpoint or None,
+                        shared_port=args.shared_port, lockstep=args.lockstep, key=key, scenario=scenario,
+                        rate=args.rate, aux_rate=args.aux_rate, step=args.step,
+                        command_timeout=args.command_timeout, first_system_id=args.first_system_id,
+                        tlog=args.tlog, allow_unsigned_heartbeat=args.allow_unsigned_heartbeat,
+                        require_arm=args.require_arm, gravity_ned=g)
+    eps = ", ".join(v.sock.endpoint for v in srv.vehicles[:3]) + (" ..." if srv.count > 3 else "")
+    print(f"se3sync vehicle: {srv.count} vehicle(s) ({'lockstep' if srv.lockstep else f'real time, {srv.rate:g} Hz'}) "
+          f"-> {eps}", file=sys.stderr, flush=True)
+    try:
+        st = srv.run(args.duration)
+    finally:
+        srv.close()
+    if args.stats:
+        with open(args.stats, "w") as f:
+            json.dump(st, f, indent=1)
+    print(f"se3sync vehicle: stopped; sent {st['sent']}, received {st['received']}, malformed {st['malformed']}, "
+          f"rejected {st['rejected']}, failsafe {st['failsafe']}", file=sys.stderr, flush=True)
+    return 0
