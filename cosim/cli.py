@@ -11,6 +11,7 @@ _COMMAND_MODULES = (
     "cosim.commands",
     "plant_fmu.cli",
     "bridge.cli",
+    "cosim.sweep",
 )
 
 

@@ -1,0 +1,163 @@
+"""The sweep's sample generator and its per-sample loop (in-process, no Dask)."""
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from controller import GradientController, se3
+from cosim import sweep_worker as sw
+
+ROOT = Path(__file__).resolve().parents[1]
+SMALL = ROOT / "scenarios" / "sweep_small.toml"
+
+
+@pytest.fixture(scope="module")
+def spec():
+    return sw.SweepSpec(SMALL.read_text(), "sweep_small", str(SMALL), (), seed=11, n_random=4)
+
+
+@pytest.fixture(scope="module")
+def sc(spec):
+    return sw.load_spec_scenario(spec)
+
+
+def _X(S):
+    N = S.shape[0]
+    X = np.tile(np.eye(4), (N, 1, 1))
+    X[:, :3, :3] = S[:, 3:12].reshape(N, 3, 3)
+    X[:, :3, 3] = S[:, 0:3]
+    return X
+
+
+def _rel(sc, S):
+    X = _X(S)
+    return np.stack([se3.inverse(X[j]) @ X[i] for i, j in sc.graph.edges])
+
+
+def test_sample_order_and_kinds(sc):
+    M = sc.graph.M
+    assert sw.n_adversarial(sc) == 3 * M + 3 == 12
+    kinds = [sw.describe_sample(sc, i) for i in range(14)]
+    assert kinds[:9] == [("adversarial-edge", k, e) for k in (1, 2, 3) for e in (1, 2, 3)]
+    assert kinds[9:12] == [("adversarial-all", 0, e) for e in (1, 2, 3)]
+    assert kinds[12:] == [("random", 0, 0)] * 2
+
+
+def test_random_samples_seeded_per_index(spec, sc):
+    N = sc.graph.n
+    a = sw.initial_state(sc, spec, 20)
+    # the documented derivation: SeedSequence(seed, spawn_key=(index,))
+    rng = np.random.default_rng(np.random.SeedSequence(11, spawn_key=(20,)))
+    R = se3.random_rotation(rng, N)
+    assert np.array_equal(a[:, 3:12], R.reshape(N, 9))
+    # independent of what was generated before, different across indices and seeds
+    sw.initial_state(sc, spec, 13)
+    assert np.array_equal(sw.initial_state(sc, spec, 20), a)
+    assert not np.allclose(sw.initial_state(sc, spec, 21), a)
+    other = dataclasses.replace(spec, seed=12)
+    assert not np.allclose(sw.initial_state(sc, other, 20), a)
+    # rotations, box, ball
+    Rs = a[:, 3:12].reshape(N, 3, 3)
+    assert np.allclose(np.einsum("nji,njk->nik", Rs, Rs), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(Rs), 1.0)
+    many = np.stack([sw.initial_state(sc, spec, i) for i in range(12, 212)])
+    assert np.abs(many[:, :, 0:3]).max() <= spec.position_box
+    assert np.abs(many[:, :, 0:3]).max() > 0.9 * spec.position_box
+    sp = np.linalg.norm(many[:, :, 12:18], axis=-1)
+    assert sp.max() <= spec.velocity_ball + 1e-12 and sp.max() > 0.8 * spec.velocity_ball
+    # Haar: E[R] = 0 (a biased generator, e.g. Euler angles uniform, fails this)
+    meanR = many[:, :, 3:12].reshape(-1, 9).mean(axis=0)
+    assert np.abs(meanR).max() < 0.1
+
+
+def test_adversarial_samples_sit_on_critical_points(spec, sc):
+    lam, V = sc.weighting.eig()
+    W = sc.weighting.W
+    b, d = sc.weighting.b, sc.weighting.d
+    grad = GradientController(sc.graph, sc.weighting, sc.gains)
+    for i in range(sw.n_adversarial(sc)):
+        kind, edge, e = sw.describe_sample(sc, i)
+        v = V[:, e - 1]
+        assert np.allclose(W @ v, lam[e - 1] * v)
+        Rc = se3.R_a(math.pi, v)
+        S0 = sw.initial_state(sc, spec, i)
+        assert np.abs(S0[:, 12:18]).max() == 0.0
+        rel = _rel(sc, S0)
+        for k in range(sc.graph.M):
+            on = kind == "adversarial-all" or k + 1 == edge
+            Rt, pt = (Rc, (np.eye(3) - Rc) @ b / d) if on else (np.eye(3), np.zeros(3))
+            assert np.allclose(rel[k, :3, :3], Rt, atol=1e-12), (i, k)
+            assert np.allclose(rel[k, :3, 3], pt, atol=1e-12), (i, k)
+        # a critical point of the potential: the gradient-only wrench vanishes
+        u, ev = grad.step_state(np.ascontiguousarray(S0), sc.step)
+        assert np.abs(u).max() < 1e-9 and ev == ()
+
+
+def test_adversarial_gradient_stuck_hybrid_converges(spec, sc):
+    for i in (0, 5, 7, 9, 11):  # edges 1..3, every eigenvector, and all edges at once
+        g = sw.run_sample(spec, i, "gradient")
+        h = sw.run_sample(spec, i, "hybrid")
+        assert g["status"] == h["status"] == "ok", (g["error"], h["error"])
+        assert g["u0_max"] < 1e-9 and g["n_jumps"] == 0
+        assert not g["converged"] and math.isnan(g["t_converge"])
+        assert g["rot_err"] == pytest.approx(2 * math.sqrt(2), rel=1e-9)  # never moved
+        assert h["converged"] and h["rot_err"] < spec.rot_tol and h["pos_err"] < spec.pos_tol
+        assert h["n_jumps"] >= 1 and h["t_last_jump"] >= 0 and h["u0_max"] > 1.0
+        assert h["n_jumps"] <= h["jump_bound"]
+        assert h["rot_err0"] == pytest.approx(2 * math.sqrt(2), rel=1e-9)
+
+
+def test_loop_matches_the_cosim_master(spec, sc):
+    """Same step semantics as cosim.master.Master (and the reused, reset FMU gives the same
+    trajectory as a fresh instance)."""
+    from cosim.master import Master
+    from cosim.plant import FmuPlant
+
+    sw.run_sample(spec, 3, "hybrid")  # leaves a used FMU in the per-process cache
+    for i, ctrl in ((13, "hybrid"), (2, "hybrid"), (14, "gradient")):
+        row = sw.run_sample(spec, i, ctrl)
+        sci = dataclasses.replace(sc, S0=sw.initial_state(sc, spec, i), theta0=np.zeros(sc.graph.M))
+        plant = FmuPlant.from_scenario(sci)
+        try:
+            summ = Master(sci, plant, ctrl).run(sci.n_steps())
+        finally:
+            plant.close()
+        f = summ["final"]
+        assert row["steps"] == summ["steps"] and row["sim_time"] == summ["sim_time_s"]
+        assert row["rot_err"] == f["rot_err"] and row["pos_err"] == f["pos_err"]
+        assert row["xi_max"] == f["xi_max"]
+        assert row["n_jumps"] == summ["n_jumps"] and row["jump_bound"] == summ["jump_bound"]
+        assert row["V0"] == pytest.approx(summ["V0"], rel=1e-12)
+        if ctrl == "hybrid":
+            assert row["theta_max"] == max(abs(x) for x in f["theta"])
+        # t_converge: the master's 1-s samples agree (below tolerance after, above before)
+        if row["converged"]:
+            tc = row["t_converge"]
+            for s in summ["samples"]:
+                below = s["rot_err"] < spec.rot_tol and s["pos_err"] < spec.pos_tol
+                if s["t"] >= tc - 1e-9:
+                    assert below, (i, s["t"], tc)
+            before = [s for s in summ["samples"] if s["t"] <= tc - spec.sample_dt - 1e-9]
+            if before and tc > 0:
+                # the 0.1-s sample just before t_converge is above tolerance
+                assert any(not (s["rot_err"] < spec.rot_tol and s["pos_err"] < spec.pos_tol)
+                           for s in before)
+
+
+def test_failures_are_rows_not_exceptions(spec):
+    bad = sw.with_faults(dataclasses.replace(spec, timeout=0.3),
+                         [(12, "hybrid", "raise"), (13, "*", "hang")])
+    r = sw.run_sample(bad, 12, "hybrid")
+    assert r["status"] == "error" and "injected fault" in r["error"] and not r["converged"]
+    assert r["kind"] == "random" and r["sample"] == 12
+    t = sw.run_sample(bad, 13, "gradient")
+    assert t["status"] == "timeout" and "timeout" in t["error"] and not t["converged"]
+    assert 0 < t["sim_time"] < 20 and 0.3 <= t["wall_time"] < 3
+    ok = sw.run_sample(bad, 12, "gradient")
+    assert ok["status"] == "ok" and ok["converged"]
+    e = sw.run_sample(spec, 0, "nonsense")
+    assert e["status"] == "error" and "controller" in e["error"]
