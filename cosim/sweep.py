@@ -481,24 +481,41 @@ def _run_dask(spec, todo, take, error_row, sc, stats, *, client, scheduler, work
             f = client.submit(run_chunk, spec, c, pure=False)
             pending[f.key] = c
             futs.append(f)
+        # Samples of a failed chunk are rerun one at a time ("isolation"): with a single
+        # isolation task in flight, a sample whose own task dies is the one that kills its
+        # worker, not a bystander queued behind it on the same worker.
+        iso = []
+        iso_key = None
         ac = as_completed(futs)
+
+        def next_isolation():
+            nonlocal iso_key
+            if iso_key is None and iso:
+                t = iso.pop(0)
+                g = client.submit(run_chunk, spec, [t], pure=False)
+                pending[g.key] = [t]
+                iso_key = g.key
+                ac.add(g)
+
         for f in ac:
             c = pending.pop(f.key)
+            if f.key == iso_key:
+                iso_key = None
             try:
                 rows = f.result()
             except Exception as exc:  # a worker died (KilledWorker) or the task broke
-                # Isolate: rerun a failed chunk's samples one per task, and a failed single
-                # sample once more (it may have been a bystander queued on a dying worker).
-                if len(c) > 1 or attempts.get(c[0], 0) < SINGLE_RETRIES:
-                    for t in c:
-                        if len(c) == 1:
-                            attempts[t] = attempts.get(t, 0) + 1
-                        g = client.submit(run_chunk, spec, [t], pure=False)
-                        pending[g.key] = [t]
-                        ac.add(g)
+                if len(c) > 1:
+                    iso.extend(c)
+                    next_isolation()
+                    continue
+                if attempts.get(c[0], 0) < SINGLE_RETRIES:
+                    attempts[c[0]] = attempts.get(c[0], 0) + 1
+                    iso.append(c[0])
+                    next_isolation()
                     continue
                 msg = f"{type(exc).__name__}: {exc}"
                 rows = [error_row(spec, sc, t[0], t[1], "error", msg) for t in c]
+            next_isolation()
             if take(rows):
                 for g in list(ac.futures):
                     g.cancel()
