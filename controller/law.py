@@ -15,7 +15,6 @@ from typing import NamedTuple
 import numpy as np
 
 from . import _kernels as K
-from . import se3
 from .design import SynergyDesign, WeightingMatrix
 from .errors import Se3SyncError
 from .graph import Graph

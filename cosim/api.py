@@ -4,9 +4,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import tempfile
-from pathlib import Path
+
+from ._files import atomic_path
 
 __all__ = ["run_scenario", "with_timing", "write_json_atomic"]
 
@@ -34,29 +33,11 @@ def with_timing(scenario, duration=None, step=None):
     return dataclasses.replace(scenario, **changes)
 
 
-def _umask_mode() -> int:
-    old = os.umask(0o022)
-    os.umask(old)
-    return 0o666 & ~old
-
-
 def write_json_atomic(path, obj) -> None:
     """Writes JSON to a temporary file in the same directory, then renames it into place."""
-    path = Path(path)
-    d = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=d)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(obj, f, indent=1, allow_nan=True)
-            f.write("\n")
-        os.chmod(tmp, _umask_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
+        json.dump(obj, f, indent=1, allow_nan=True)
+        f.write("\n")
 
 
 def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,

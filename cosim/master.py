@@ -8,7 +8,6 @@ inner loop has no logging test at all; jump events are handled the step they hap
 """
 from __future__ import annotations
 
-import math
 import signal
 import threading
 import time

@@ -1,11 +1,11 @@
 """`se3sync plot`: the panels of the paper's Fig. 2 from an se3sync MCAP log."""
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from ._files import atomic_path
 
 __all__ = ["load_series", "plot_log"]
 
@@ -75,21 +75,9 @@ def plot_log(path, out, *, dpi: int = 110) -> Path:
     fig.tight_layout()
     out = Path(out)
     fmt = out.suffix.lstrip(".").lower() or "png"
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".part",
-                               dir=out.parent if str(out.parent) else ".")
     try:
-        with os.fdopen(fd, "wb") as f:
+        with atomic_path(out) as tmp, open(tmp, "wb") as f:
             fig.savefig(f, format=fmt, dpi=dpi)
-        from .api import _umask_mode
-
-        os.chmod(tmp, _umask_mode())
-        os.replace(tmp, out)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
     finally:
         plt.close(fig)
     return out

@@ -29,6 +29,8 @@ from pathlib import Path
 
 from controller.errors import Se3SyncError
 
+from ._files import atomic_path
+
 __all__ = ["register", "SweepError", "run_sweep", "read_results", "write_results", "make_spec"]
 
 CONTROLLERS = ("hybrid", "gradient")
@@ -237,8 +239,6 @@ def _meta_path(path: Path) -> Path:
 def write_results(path, rows, meta: dict) -> None:
     """Writes every row (sorted by sample, controller) atomically: a temporary file in the same
     directory, then os.replace."""
-    import tempfile
-
     import pyarrow as pa
 
     from .sweep_worker import COLUMNS
@@ -249,15 +249,11 @@ def write_results(path, rows, meta: dict) -> None:
     schema = _schema(meta)
     table = pa.Table.from_pydict({c: [r[c] for r in rows] for c in COLUMNS}, schema=schema)
     csv = path.suffix.lower() == ".csv"
-    d = path.parent if str(path.parent) else Path(".")
     if csv:
         from .api import write_json_atomic
 
         write_json_atomic(_meta_path(path), meta)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=d)
-    os.close(fd)
-    try:
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a results file is for sharing
+    with atomic_path(path) as tmp:
         if csv:
             import pyarrow.csv as pacsv
 
@@ -266,19 +262,6 @@ def write_results(path, rows, meta: dict) -> None:
             import pyarrow.parquet as pq
 
             pq.write_table(table, tmp, compression="zstd")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
-def _umask() -> int:
-    m = os.umask(0)
-    os.umask(m)
-    return m
 
 
 def read_results(path, spec=None, option="--out"):

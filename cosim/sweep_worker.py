@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import time
 from dataclasses import dataclass, field
 
@@ -289,7 +288,6 @@ def _fault(spec, index, controller):
 
 def _run(spec: SweepSpec, sc, index: int, controller: str, t_wall: float) -> dict:
     from controller import GradientController, HybridController, V_bar, jump_bound
-    from controller import _kernels as K
 
     from ._metrics import metrics
 
