@@ -101,6 +101,15 @@ class HybridController:
         self.theta_prev = np.zeros(M)
         self.theta_jump = np.zeros(M)
 
+    def write_wrench_into(self, buf):
+        """Compute future wrenches straight into buf (N, 6), e.g. a plant's input buffer,
+        so that applying them costs no copy."""
+        if not (isinstance(buf, np.ndarray) and buf.shape == (self.graph.n, 6)
+                and buf.dtype == np.float64 and buf.flags.c_contiguous and buf.flags.writeable):
+            raise Se3SyncError(f"wrench buffer must be a writable C-contiguous float64 array of "
+                               f"shape ({self.graph.n}, 6)")
+        self.u = buf
+
     def reset(self, theta0=None):
         M = self.graph.M
         if theta0 is None or not self.hybrid:

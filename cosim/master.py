@@ -49,6 +49,9 @@ class Master:
         else:
             self.controller_kind = "hybrid" if getattr(controller, "hybrid", True) else "gradient"
         self.controller = controller
+        buf = getattr(plant, "input_buffer", None)
+        if buf is not None and hasattr(controller, "write_wrench_into"):
+            controller.write_wrench_into(buf)
         self.logger = logger
         self.h = float(sc.step)
         N, M = sc.graph.n, sc.graph.M

@@ -68,6 +68,9 @@ class FmuPlant:
         self.read = fmu.get_state
         self.apply = fmu.set_input
         self._do_step = fmu.do_step
+        # The controller may compute its wrench straight into this buffer (Master does):
+        # apply() then sends it without a copy.
+        self.input_buffer = fmu.u
 
     @classmethod
     def from_scenario(cls, scenario, fmu_path=None):

@@ -301,3 +301,18 @@ def test_jump_bound():
     assert n == int(np.ceil(V0 / (gains.k_X * des.delta)))
     assert (n - 1) * gains.k_X * des.delta < V0 <= n * gains.k_X * des.delta
     assert n >= 5  # the five jumps at t = 0 fit in it
+
+
+def test_wrench_written_into_a_given_buffer():
+    g, wm, des, gains = paper_setup()
+    X, xi = random_state(6, 1.0)
+    ref, _ = C.HybridController(g, wm, des, gains).step(X, xi, 1e-4)
+    ref = ref.copy()
+    ctl = C.HybridController(g, wm, des, gains)
+    buf = np.full((6, 6), np.nan)
+    ctl.write_wrench_into(buf)
+    u, _ = ctl.step(X, xi, 1e-4)
+    assert u is buf and np.array_equal(buf, ref)
+    for bad in (np.zeros((6, 5)), np.zeros((6, 6), dtype=np.float32), np.zeros((6, 12))[:, ::2]):
+        with pytest.raises(C.Se3SyncError, match="wrench buffer"):
+            ctl.write_wrench_into(bad)
