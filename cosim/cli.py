@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # Modules that add sub-commands. Each exposes register(subparsers) and keeps its heavy
@@ -37,12 +38,18 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         rc = args.func(args)
+        sys.stdout.flush()  # a closed pipe surfaces here, inside the handlers below
     except Se3SyncError as exc:
         print(f"se3sync {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"se3sync {args.command}: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # The reader of our output went away (`se3sync check --json | head`): not our error.
+        # Point stdout at /dev/null so the interpreter's final flush does not raise again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     return int(rc or 0)
 
 

@@ -208,3 +208,16 @@ def test_help_lists_the_commands(capsys):
     out = capsys.readouterr().out
     for c in ("run", "check", "plot"):
         assert c in out
+
+
+def test_closed_pipe_is_not_a_traceback():
+    """`se3sync check --json | head -c 10`: the reader is gone before we write; no traceback."""
+    import subprocess
+    import sys
+
+    p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "check", str(PAPER), "--json"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    p.stdout.close()  # nobody will read what it prints
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 141, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err and "Exception ignored" not in err
