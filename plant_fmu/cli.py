@@ -12,17 +12,20 @@ def _cmd_build(args: argparse.Namespace) -> int:
     n = args.bodies
     if not 1 <= n <= layout.MAX_BODIES:
         raise Se3SyncError(f"--bodies must be in 1..{layout.MAX_BODIES}, got {n}")
-    out = build.build_fmu(n, args.output)
-    print(f"wrote {out} ({n} bod{'y' if n == 1 else 'ies'}, FMI 2.0 Co-Simulation, "
-          f"modelIdentifier {build.MODEL_IDENTIFIER}, GUID {build.guid(n)})")
+    v = args.fmi
+    out = build.build_fmu(n, args.output, fmi_version=v)
+    token = "GUID" if v == 2 else "instantiationToken"
+    print(f"wrote {out} ({n} bod{'y' if n == 1 else 'ies'}, FMI {v}.0 Co-Simulation, "
+          f"modelIdentifier {build.MODEL_IDENTIFIER}, {token} {build.guid(n, v)})")
     return 0
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "fmu",
-        help="build the plant FMU (rigid bodies on SE(3), FMI 2.0 Co-Simulation)",
-        description="The plant: N rigid bodies on SE(3) as an FMI 2.0 Co-Simulation FMU compiled from C.",
+        help="build the plant FMU (rigid bodies on SE(3), FMI 2.0 or 3.0 Co-Simulation)",
+        description="The plant: N rigid bodies on SE(3) as an FMI 2.0 (default) or FMI 3.0 Co-Simulation FMU "
+        "compiled from C.",
     )
     sub = p.add_subparsers(dest="fmu_command", required=True, metavar="ACTION")
     b = sub.add_parser(
@@ -35,4 +38,8 @@ def register(subparsers) -> None:
     b.add_argument("--bodies", "-n", type=int, required=True, metavar="N",
                    help="number of rigid bodies in the FMU (1..100000)")
     b.add_argument("--output", "-o", required=True, metavar="FILE.fmu", help="path of the .fmu file to write")
+    b.add_argument("--fmi", type=int, choices=(2, 3), default=2, metavar="{2,3}",
+                   help="FMI version of the FMU: 2 (FMI 2.0 Co-Simulation, default) or 3 (FMI 3.0 "
+                   "Co-Simulation; same model, variables and value references, plus the independent "
+                   "variable time at value reference 0)")
     b.set_defaults(func=_cmd_build)
