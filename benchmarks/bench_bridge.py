@@ -17,11 +17,12 @@ import argparse
 import json
 import os
 import resource
-import socket
 import subprocess
 import sys
 import tempfile
 import time
+
+from bridge.link import free_base_port
 from pathlib import Path
 
 os.environ.setdefault("MAVLINK20", "1")
@@ -57,27 +58,6 @@ log_rate = 10.0
 base_port = {port}
 max_wrench = [50.0, 50.0, 50.0, 20.0, 20.0, 20.0]
 """
-
-
-def free_base_port(n):
-    import random
-
-    rng = random.Random()
-    for _ in range(500):
-        p = rng.randrange(20000, 60000 - n)
-        socks = []
-        try:
-            for i in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", p + i))
-            return p
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no free ports")
 
 
 def proc_cpu(pid) -> float:

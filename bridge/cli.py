@@ -155,30 +155,14 @@ def warm_up(scenario) -> None:
 
 def run_hil(scenario, plant, *, log_path=None, summary_path=None, progress=False,
             controller="hybrid") -> dict:
-    """cosim's Master over a connected MavlinkPlant; the MCAP log says the time base is the wall
+    """cosim's run over a connected MavlinkPlant; the MCAP log says the time base is the wall
     clock (t = n·h, paced) or lockstep."""
-    from cosim.api import write_json_atomic
-    from cosim.master import Master, make_controller
-    from cosim.mcaplog import McapLogger
+    from cosim.api import run_scenario
 
-    ctrl = make_controller(controller, scenario) if isinstance(controller, str) else controller
-    logger = None
-    try:
-        if log_path is not None:
-            tb = "simulated (lockstep)" if plant.lockstep else "wall (paced: t = n·h from the start of the run)"
-            logger = McapLogger(log_path, scenario, controller=controller if isinstance(controller, str) else "hybrid",
-                                extra_metadata={"plant": "mavlink", "time_base": tb,
-                                                "endpoints": ",".join(v.sock.endpoint for v in plant.vehicles)})
-        master = Master(scenario, plant, ctrl, logger)
-        summary = master.run(scenario.n_steps(), progress=progress)
-    finally:
-        if logger is not None:
-            logger.close()
-    summary["plant"] = "mavlink"
-    summary["lockstep"] = bool(plant.lockstep)
-    if log_path is not None:
-        summary["log"] = str(log_path)
-        summary["log_messages"] = dict(logger.counts)
-    if summary_path is not None:
-        write_json_atomic(summary_path, summary)
-    return summary
+    tb = "simulated (lockstep)" if plant.lockstep else "wall (paced: t = n·h from the start of the run)"
+    return run_scenario(
+        scenario, plant=plant, controller=controller, log_path=log_path,
+        summary_path=summary_path, progress=progress,
+        log_metadata={"plant": "mavlink", "time_base": tb,
+                      "endpoints": ",".join(v.sock.endpoint for v in plant.vehicles)},
+        summary_extra={"plant": "mavlink", "lockstep": bool(plant.lockstep)})

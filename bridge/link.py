@@ -19,6 +19,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import random
 import socket
 import struct
 import time
@@ -255,3 +256,23 @@ class UdpSocket:
             self.sock.close()
         except OSError:
             pass
+
+
+def free_base_port(n: int, lo: int = 20000, hi: int = 60000) -> int:
+    """A base port p with p .. p+n-1 all free for UDP on 127.0.0.1 right now."""
+    rng = random.Random(os.getpid() ^ time.monotonic_ns())
+    for _ in range(200):
+        p = rng.randrange(lo, hi - n)
+        socks = []
+        try:
+            for i in range(n):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(s)
+                s.bind(("127.0.0.1", p + i))
+            return p
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise RuntimeError("no free port range")

@@ -42,12 +42,13 @@ def write_json_atomic(path, obj) -> None:
 
 def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                  summary_path=None, duration=None, step=None, progress=False,
-                 fmu_path=None) -> dict:
+                 fmu_path=None, log_metadata=None, summary_extra=None) -> dict:
     """Runs a scenario (a Scenario or a path to a TOML file) and returns the summary dict.
 
     plant: "fleet" | "per-body" | a Plant instance (closed by the caller);
     controller: "hybrid" | "gradient" | a controller instance. log_path: MCAP written
-    (streamed) there; summary_path: summary JSON written atomically. On Ctrl-C the run stops
+    (streamed) there; summary_path: summary JSON written atomically. log_metadata adds to (or
+    overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C the run stops
     cleanly, the log is finished and the summary has "interrupted": true.
     """
     from .master import Master, make_controller
@@ -70,7 +71,7 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
             md = getattr(p, "model_description", None)
             logger = McapLogger(log_path, scenario, controller=ctrl_kind,
                                 model_description=md() if md is not None else None,
-                                extra_metadata={"plant": plant_kind})
+                                extra_metadata={"plant": plant_kind, **(log_metadata or {})})
         master = Master(scenario, p, ctrl, logger)
         master.controller_kind = ctrl_kind
         summary = master.run(scenario.n_steps(), progress=progress)
@@ -82,6 +83,7 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
             if own_plant:
                 p.close()
     summary["plant"] = plant_kind
+    summary.update(summary_extra or {})
     if log_path is not None:
         summary["log"] = str(log_path)
         summary["log_messages"] = dict(logger.counts)

@@ -17,27 +17,9 @@ from pathlib import Path
 os.environ.setdefault("MAVLINK20", "1")
 
 ROOT = Path(__file__).resolve().parents[1]
+from bridge.link import free_base_port  # noqa: E402,F401  (re-exported for the tests)
+
 HIL = str(ROOT / "scenarios" / "hil_6uav.toml")
-
-
-def free_base_port(n: int, lo: int = 20000, hi: int = 60000) -> int:
-    """A base port p with p .. p+n-1 all free for UDP on 127.0.0.1 right now."""
-    rng = random.Random(os.getpid() ^ time.monotonic_ns())
-    for _ in range(200):
-        p = rng.randrange(lo, hi - n)
-        socks = []
-        try:
-            for i in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", p + i))
-            return p
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no free port range")
 
 
 def load(overrides=(), path=HIL, **kw):
