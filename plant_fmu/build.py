@@ -35,6 +35,9 @@ C_SOURCES = ("model.c", "fmi2.c")
 C_HEADERS = ("model.h", "fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
 C_SOURCES_FMI3 = ("model.c", "fmi3.c")
 C_HEADERS_FMI3 = ("model.h", "fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h")
+# the version-independent part of both FMI layers: #included by fmi2.c and fmi3.c (so it is
+# compiled as part of them and <SourceFiles> stays model.c + fmiN.c), shipped in sources/
+C_COMMON = ("fmu_common.h", "fmu_common.c")
 FMI_VERSIONS = (2, 3)
 VR_TIME = 0  # FMI 3.0 only: the independent variable
 CFLAGS = ("-O2", "-fPIC", "-shared", "-ffp-contract=off")
@@ -86,7 +89,7 @@ def check_fmi_version(fmi_version) -> int:
 
 
 def _sources(fmi_version: int) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    return (C_SOURCES, C_HEADERS) if fmi_version == 2 else (C_SOURCES_FMI3, C_HEADERS_FMI3)
+    return (C_SOURCES, C_HEADERS + C_COMMON) if fmi_version == 2 else (C_SOURCES_FMI3, C_HEADERS_FMI3 + C_COMMON)
 
 
 def platform_tuple() -> str:
@@ -128,7 +131,7 @@ def _shared_library_suffix() -> str:
 def source_hash() -> str:
     """sha256 over the C sources/headers and the Python files that generate the FMU."""
     h = hashlib.sha256()
-    names = dict.fromkeys(C_SOURCES + C_HEADERS + C_SOURCES_FMI3 + C_HEADERS_FMI3 + ("config.h",))
+    names = dict.fromkeys(C_SOURCES + C_HEADERS + C_SOURCES_FMI3 + C_HEADERS_FMI3 + C_COMMON + ("config.h",))
     files = [C_DIR / f for f in names]
     files += [Path(__file__).resolve(), Path(layout.__file__).resolve()]
     for f in files:
