@@ -16,6 +16,11 @@ _COMMAND_MODULES = (
 )
 
 
+# Optional dependencies and the extra that installs them.
+_EXTRAS = {"pymavlink": "mavlink", "fastcrc": "mavlink", "dask": "sweep", "distributed": "sweep",
+           "pyarrow": "sweep"}
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="se3sync",
@@ -45,6 +50,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"se3sync {args.command}: interrupted", file=sys.stderr)
         return 130
+    except ModuleNotFoundError as exc:
+        extra = _EXTRAS.get((exc.name or "").split(".")[0])
+        if extra is None:
+            raise
+        print(f"se3sync {args.command}: error: needs the '{extra}' extra "
+              f"(pip install 'se3sync[{extra}]'): {exc}", file=sys.stderr)
+        return 2
     except BrokenPipeError:
         # The reader of our output went away (`se3sync check --json | head`): not our error.
         # Point stdout at /dev/null so the interpreter's final flush does not raise again.

@@ -221,3 +221,16 @@ def test_closed_pipe_is_not_a_traceback():
     err = p.stderr.read().decode()
     assert p.wait(timeout=120) == 141, err
     assert "Traceback" not in err and "BrokenPipeError" not in err and "Exception ignored" not in err
+
+
+def test_missing_optional_dependency_is_one_line():
+    """Without the 'mavlink' extra, `se3sync vehicle` names the extra instead of a traceback."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['pymavlink'] = None; from cosim.cli import main; "
+            "sys.exit(main(['vehicle', '--count', '1']))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "needs the 'mavlink' extra" in lines[0], r.stderr
