@@ -192,6 +192,27 @@ class Peer:
         return m
 
 
+def receive_datagrams(sock, counters, on_packet) -> None:
+    """Read every pending datagram on sock, split it into MAVLink 2 frames and hand each frame
+    to on_packet(pkt, addr). Network input is untrusted: a datagram that does not frame, or
+    whose frames break their handler, is counted once as malformed and dropped, never raised."""
+    c = counters
+    for data, addr in sock.recv_all():
+        c.datagrams += 1
+        try:
+            pkts, err = split_datagram(data)
+            if err is not None:
+                c.malformed += 1
+                continue
+            m0 = c.malformed
+            for pkt in pkts:
+                on_packet(pkt, addr)
+            if c.malformed > m0 + 1:
+                c.malformed = m0 + 1  # one bad datagram counts once
+        except Exception:  # noqa: BLE001 - untrusted input never crashes us
+            c.malformed += 1
+
+
 def parse_endpoint(ep: str):
     """'udpin:HOST:PORT' | 'udpout:HOST:PORT' | 'udp:HOST:PORT' (= udpin) -> (mode, (host, port))."""
     mode, host, port = ep.split(":")

@@ -16,7 +16,7 @@ import numpy as np
 from controller.errors import Se3SyncError
 
 from .config import default_config, read_key_file
-from .link import Counters, Peer, TLog, UdpSocket, mavlink2, split_datagram
+from .link import Counters, Peer, TLog, UdpSocket, mavlink2, receive_datagrams
 from .state import StateTracker
 from .transport import WIRE, Transport, wire_to_state
 
@@ -182,29 +182,20 @@ class MavlinkPlant:
         sock = self._sock_by_fd[fd]
         route = self._route[fd]
         c = self.counters
-        for data, addr in sock.recv_all():
-            c.datagrams += 1
-            try:
-                pkts, err = split_datagram(data)
-                if err is not None:
-                    c.malformed += 1
-                    continue
-                m0 = c.malformed
-                for pkt in pkts:
-                    v = route.get(pkt[5])
-                    if v is None:
-                        c.reject("wrong_system")
-                        continue
-                    m = v.peer.accept(pkt)
-                    if m is None:
-                        continue
-                    if sock.mode == "udpin":
-                        v.addr = addr
-                    self._dispatch(v, m, now)
-                if c.malformed > m0 + 1:
-                    c.malformed = m0 + 1  # one bad datagram counts once
-            except Exception:  # noqa: BLE001 - untrusted input never crashes the bridge
-                c.malformed += 1
+
+        def on_packet(pkt, addr):
+            v = route.get(pkt[5])
+            if v is None:
+                c.reject("wrong_system")
+                return
+            m = v.peer.accept(pkt)
+            if m is None:
+                return
+            if sock.mode == "udpin":
+                v.addr = addr
+            self._dispatch(v, m, now)
+
+        receive_datagrams(sock, c, on_packet)
 
     def _dispatch(self, v: _Vehicle, m, now: float) -> None:
         mid = m.get_msgId()

@@ -384,25 +384,14 @@ class VehicleServer:
         return d
 
     def _receive(self, v: SimVehicle, now: float) -> None:
-        from .link import split_datagram
+        from .link import receive_datagrams
 
-        c = self.counters
-        for data, addr in v.sock.recv_all():
-            c.datagrams += 1
-            try:
-                pkts, err = split_datagram(data)
-                if err is not None:
-                    c.malformed += 1
-                    continue
-                m0 = c.malformed  # a datagram that does not frame is dropped whole
-                for pkt in pkts:
-                    m = v.peer.accept(pkt)
-                    if m is not None:
-                        v.handle(m, addr, now)
-                if c.malformed > m0 + 1:
-                    c.malformed = m0 + 1  # one bad datagram counts once
-            except Exception:  # noqa: BLE001 - untrusted input never crashes the vehicle
-                c.malformed += 1
+        def on_packet(pkt, addr):
+            m = v.peer.accept(pkt)
+            if m is not None:
+                v.handle(m, addr, now)
+
+        receive_datagrams(v.sock, self.counters, on_packet)
 
     def run(self, duration: float | None = None) -> dict:
         """Serves until stop(), SIGTERM/SIGINT (main thread) or ``duration`` seconds."""
