@@ -38,6 +38,8 @@ class Master:
     HybridController/GradientController (or "hybrid"/"gradient"), logger an McapLogger or
     None. ``run(n_steps, progress=False) -> dict`` (the summary, without file names)."""
 
+    use_compiled = True  # False forces the Python reference loop (tests compare the two)
+
     def __init__(self, scenario, plant, controller, logger=None):
         from controller import V_bar, jump_bound
 
@@ -159,8 +161,20 @@ class Master:
         broken = False
         n = 0
         t0 = time.perf_counter()
+        fleet = None
+        if self.use_compiled:
+            from .fastloop import compiled_fleet
+
+            fleet = compiled_fleet(plant, ctrl)
         try:
-            while n < n_steps:
+            if fleet is not None:
+                # the plant and controller support the compiled loop (cosim/fastloop.py): the
+                # same steps, ticks and events, blocks of steps without returning to Python
+                from .fastloop import run_compiled
+
+                n, interrupted = run_compiled(self, fleet, n_steps, bar, spl, dec)
+            # else: the reference loop in Python
+            while fleet is None and n < n_steps:
                 # tick step: a full step with the slow-path work
                 S = read()
                 u, ev = step(S, h)

@@ -1,0 +1,376 @@
+"""The compiled block loop of the master: plant FMU + network controller without Python per step.
+
+Between two returns to Python (at most a block of steps), one numba function runs, per step n,
+exactly what the reference loop in `master.py` does through Python:
+
+    fmi2GetReal(S) ; network_step(S, θ, ...) → u ; fmi2SetReal(u) ; fmi2DoStep(n·h, h)
+
+calling the FMU's C functions through the raw addresses that fmpy loaded (the FMU stays a real
+FMU) and the controller kernel directly. What the reference loop does at its ticks is gathered
+into preallocated arrays instead: the raw rows and metrics of every log record, every jump with
+its exact step, the state of a 1 s summary sample. Python then encodes those outside the loop,
+on a writer thread, while the next block runs with the GIL released.
+
+The addresses are arguments, never globals, so `cache=True` machine code holds no
+process-specific pointer.
+"""
+from __future__ import annotations
+
+import queue
+import signal
+import threading
+import time
+
+import numpy as np
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
+
+from controller import _kernels as K
+
+from ._metrics import metrics
+
+__all__ = ["compiled_fleet", "run_compiled"]
+
+# which FMI call failed (returned by the block as out[O_CALL])
+CALL_GET, CALL_SET, CALL_STEP = 0, 1, 2
+CALL_NAMES = ("fmi2GetReal", "fmi2SetReal", "fmi2DoStep")
+# slots of the block's int64 result vector
+O_N, O_REC, O_JMP, O_STATUS, O_CALL, O_SAMPLED = range(6)
+FMI2_ERROR = 3
+TARGET_BLOCK_S = 0.1  # a block is cut shorter when MAX_BLOCK steps would take longer (Ctrl-C)
+
+
+@intrinsic
+def _fmi2_xreal(typingctx, fn, comp, vr, nvr, val):
+    """fmi2Status f(fmi2Component, const fmi2ValueReference[], size_t, fmi2Real[]) at address
+    fn: fmi2SetReal and fmi2GetReal share this signature."""
+    sig = types.int32(fn, comp, vr, nvr, val)
+
+    def codegen(context, builder, signature, args):
+        f, c, r, n, v = args
+        i8p = ir.IntType(8).as_pointer()
+        i64 = ir.IntType(64)
+        fnty = ir.FunctionType(ir.IntType(32), [i8p, i8p, i64, i8p])
+        fp = builder.inttoptr(f, fnty.as_pointer())
+        return builder.call(fp, [builder.inttoptr(c, i8p), builder.inttoptr(r, i8p),
+                                 builder.zext(n, i64) if n.type.width < 64 else n,
+                                 builder.inttoptr(v, i8p)])
+
+    return sig, codegen
+
+
+@intrinsic
+def _fmi2_do_step(typingctx, fn, comp, t, h):
+    """fmi2DoStep(c, t, h, noSetFMUStatePriorToCurrentPoint = fmi2True) at address fn."""
+    sig = types.int32(fn, comp, t, h)
+
+    def codegen(context, builder, signature, args):
+        f, c, tt, hh = args
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fnty = ir.FunctionType(i32, [i8p, ir.DoubleType(), ir.DoubleType(), i32])
+        fp = builder.inttoptr(f, fnty.as_pointer())
+        return builder.call(fp, [builder.inttoptr(c, i8p), tt, hh, ir.Constant(i32, 1)])
+
+    return sig, codegen
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu, jumped,
+              theta_prev, theta_jump, n0, n1, dec, spl, Pm, masses, J, rot, pos, U, quat,
+              rec_step, rec_S, rec_u, rec_theta, rec_mu, rec_jumped, rec_rot, rec_pos, rec_U,
+              rec_quat, rec_V, jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu,
+              smp_S, smp_theta, out):
+    """Steps n0 … n1−1 (stopping early before a step whose jumps might not fit the buffers).
+
+    fn = (fmi2GetReal, fmi2SetReal, fmi2DoStep) addresses, comp the fmi2Component. A step n
+    with dec > 0 and n % dec == 0 stores a log record; n0 % spl == 0 stores the summary sample
+    (a block never crosses a sample tick). out receives the steps done, records, jumps, the
+    first FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
+    """
+    M = edges.shape[0]
+    n_st = S.size
+    n_in = u.size
+    p_S = S.ctypes.data
+    p_u = u.ctypes.data
+    p_vs = vr_state.ctypes.data
+    p_vi = vr_input.ctypes.data
+    kX = Pm[K.P_KX]
+    nrec = 0
+    njmp = 0
+    out[O_STATUS] = 0
+    out[O_SAMPLED] = 0
+    n = n0
+    while n < n1:
+        if njmp + M > jmp_step.shape[0]:
+            break  # the jump buffers might overflow: hand them to Python first
+        st = _fmi2_xreal(fn[0], comp, p_vs, n_st, p_S)
+        if st >= FMI2_ERROR:
+            out[O_STATUS] = st
+            out[O_CALL] = CALL_GET
+            break
+        nj = K.network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev,
+                            theta_jump)
+        if nj > 0:
+            for k in range(M):
+                if jumped[k]:
+                    jmp_step[njmp] = n
+                    jmp_edge[njmp] = k + 1
+                    jmp_before[njmp] = theta_prev[k]
+                    jmp_after[njmp] = theta_jump[k]
+                    jmp_mu[njmp] = mu[k]
+                    njmp += 1
+        if n == n0 and n % spl == 0:
+            smp_S[:, :] = S
+            smp_theta[:] = theta_jump
+            out[O_SAMPLED] = 1
+        if dec > 0 and n % dec == 0:
+            K.network_U(S, theta_jump, edges, Pm, U)
+            V, ximax = metrics(S, edges, U, kX, masses, J, rot, pos, quat)
+            rec_step[nrec] = n
+            rec_S[nrec] = S
+            rec_u[nrec] = u
+            rec_theta[nrec] = theta_jump
+            rec_mu[nrec] = mu
+            rec_jumped[nrec] = jumped
+            rec_rot[nrec] = rot
+            rec_pos[nrec] = pos
+            rec_U[nrec] = U
+            rec_quat[nrec] = quat
+            rec_V[nrec] = V
+            nrec += 1
+        st = _fmi2_xreal(fn[1], comp, p_vi, n_in, p_u)
+        if st >= FMI2_ERROR:
+            out[O_STATUS] = st
+            out[O_CALL] = CALL_SET
+            n += 1  # the step's controller work and events are done (as in the Python loop)
+            out[O_N] = n
+            out[O_REC] = nrec
+            out[O_JMP] = njmp
+            return
+        st = _fmi2_do_step(fn[2], comp, n * h, h)
+        n += 1
+        if st >= FMI2_ERROR:
+            out[O_STATUS] = st
+            out[O_CALL] = CALL_STEP
+            break
+    out[O_N] = n
+    out[O_REC] = nrec
+    out[O_JMP] = njmp
+
+
+def compiled_fleet(plant, controller):
+    """The FleetFMU under ``plant`` when the pair can run the compiled loop, else None:
+    a `cosim.plant.FmuPlant` (one FMI 2.0 instance for all bodies) and the network
+    `HybridController`/`GradientController` stepping through `network_step`."""
+    from controller import HybridController
+    from plant_fmu.fast import FleetFMU
+
+    from .plant import FmuPlant
+
+    if type(plant) is not FmuPlant or not isinstance(controller, HybridController):
+        return None
+    if type(controller).step_state is not HybridController.step_state:
+        return None  # a subclass with its own step: only the Python loop knows it
+    fmu = getattr(plant, "_fmu", None)
+    if not isinstance(fmu, FleetFMU) or fmu._closed:
+        return None
+    u = controller.u
+    if not (u.flags.c_contiguous and u.dtype == np.float64 and u.shape == (fmu.n, 6)):
+        return None
+    return fmu
+
+
+class _Writer:
+    """Encodes the blocks' log items on a thread, in order (the logger is used by it alone)."""
+
+    def __init__(self, logger):
+        self.logger = logger
+        self.q = queue.Queue(maxsize=64)
+        self.error = None
+        self.t = threading.Thread(target=self._loop, name="se3sync-log", daemon=True)
+        self.t.start()
+
+    def _loop(self):
+        while True:
+            item = self.q.get()
+            if item is None:
+                return
+            if self.error is not None:
+                continue
+            try:
+                item()
+            except BaseException as exc:  # surfaced by the master at the next block
+                self.error = exc
+
+    def put(self, fn):
+        if self.error is not None:
+            raise self.error
+        self.q.put(fn)
+
+    def close(self):
+        self.q.put(None)
+        self.t.join()
+        if self.error is not None:
+            raise self.error
+
+
+def run_compiled(master, fmu, n_steps, bar, spl, dec):
+    """The compiled counterpart of the loop in `Master.run`; returns (n, interrupted).
+
+    Same per-step semantics, ticks and events as the reference loop: jumps are recorded with
+    their exact step, log records at n % dec == 0, summary samples at n % spl == 0; Ctrl-C
+    (master._stop) is checked between blocks of at most MAX_BLOCK steps.
+    """
+    from .master import MAX_BLOCK
+
+    sc, ctrl, plant = master.scenario, master.controller, master.plant
+    h = master.h
+    N, M = master.N, master.M
+    hybrid = master.controller_kind == "hybrid"
+    logger = master.logger
+    logging = logger is not None
+    fn = _addresses(fmu)
+    comp = int(fmu._c.value)
+    S = fmu._state
+    u = ctrl.u
+    edges = ctrl.edges
+    P = ctrl.P
+    Pm = master._P
+    theta = ctrl.theta
+    rot, pos, U, quat = master._rot, master._pos, master._U, master._quat
+    jcap = max(64, 4 * M)
+    smp_S = np.zeros((N, 18))
+    smp_theta = np.zeros(M)
+    out = np.zeros(6, dtype=np.int64)
+    writer = _Writer(logger) if logging else None
+    block = MAX_BLOCK
+    n = 0
+    interrupted = False
+    pending = None
+    restore = _quiet_signals(master)
+    try:
+        while n < n_steps:
+            nxt = min(n_steps, n + block, (n // spl + 1) * spl)
+            cap = (nxt - n - 1) // dec + 1 if logging else 0
+            rec = _RecordBuffers(cap, N, M)
+            jb = (np.empty(jcap, np.int64), np.empty(jcap, np.int64), np.empty(jcap),
+                  np.empty(jcap), np.empty(jcap))
+            t0 = time.perf_counter()
+            run_block(fn, comp, fmu._vr_state, fmu._vr_input, S, u, theta, edges, P, h, hybrid,
+                      ctrl.mu, ctrl.jumped, ctrl.theta_prev, ctrl.theta_jump, n, nxt, dec, spl,
+                      Pm, master._masses, master._J, rot, pos, U, quat, *rec.arrays(), *jb,
+                      smp_S, smp_theta, out)
+            dt = time.perf_counter() - t0
+            n0, n = n, int(out[O_N])
+            plant._k = n
+            fmu.time = n * h
+            if u is not fmu._u:
+                fmu._u[...] = u
+            if n > n0 and dt > TARGET_BLOCK_S * 1.5:
+                block = max(1, int((n - n0) * TARGET_BLOCK_S / dt))
+            elif block < MAX_BLOCK and dt < TARGET_BLOCK_S / 2:
+                block = min(MAX_BLOCK, 2 * block)
+            _hand_over(master, writer, rec, int(out[O_REC]), jb, int(out[O_JMP]), h, hybrid,
+                       smp_S if out[O_SAMPLED] else None, smp_theta, n0)
+            if out[O_STATUS]:
+                pending = (CALL_NAMES[int(out[O_CALL])], int(out[O_STATUS]))
+                break
+            if bar is not None:
+                bar.update(n - bar.n)
+            if master._stop:
+                interrupted = True
+                break
+            if writer is not None and writer.error is not None:
+                raise writer.error
+    finally:
+        for sig, old in restore:
+            signal.signal(sig, old)
+        if writer is not None:
+            writer.close()
+    if pending is not None:
+        fmu._fail(*pending)
+    return n, interrupted
+
+
+def _quiet_signals(master):
+    """While blocks run, Ctrl-C and SIGTERM only set master._stop (never raise): Python runs
+    a handler between blocks only, and a KeyboardInterrupt there would lose the step count.
+    Blocks are short (MAX_BLOCK steps, ≤ ~TARGET_BLOCK_S), so the stop comes within one."""
+    restore = []
+    if threading.current_thread() is not threading.main_thread():
+        return restore
+
+    def stop(signum, frame):
+        master._stop = True
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            restore.append((sig, signal.signal(sig, stop)))
+        except (ValueError, OSError):  # pragma: no cover
+            pass
+    return restore
+
+
+def _addresses(fmu):
+    import ctypes
+
+    dll = fmu._slave.dll
+    return np.array([ctypes.cast(getattr(dll, name), ctypes.c_void_p).value
+                     for name in CALL_NAMES], dtype=np.int64)
+
+
+class _RecordBuffers:
+    def __init__(self, cap, N, M):
+        self.step = np.empty(cap, np.int64)
+        self.S = np.empty((cap, N, 18))
+        self.u = np.empty((cap, N, 6))
+        self.theta = np.empty((cap, M))
+        self.mu = np.empty((cap, M))
+        self.jumped = np.empty((cap, M), np.bool_)
+        self.rot = np.empty((cap, M))
+        self.pos = np.empty((cap, M))
+        self.U = np.empty((cap, M))
+        self.quat = np.empty((cap, N, 4))
+        self.V = np.empty(cap)
+
+    def arrays(self):
+        return (self.step, self.S, self.u, self.theta, self.mu, self.jumped, self.rot, self.pos,
+                self.U, self.quat, self.V)
+
+
+def _hand_over(master, writer, rec, nrec, jb, njmp, h, hybrid, smp_S, smp_theta, n0):
+    """The block's events, in step order: the summary sample (main thread, it fills
+    master.samples), jumps (master.jumps now, the log on the writer) and log records."""
+    if smp_S is not None:
+        master._sample(n0 * h, smp_S, smp_theta)
+    jstep, jedge, jbefore, jafter, jmu = (a[:njmp].tolist() for a in jb)
+    for s, e, b, a, m in zip(jstep, jedge, jbefore, jafter, jmu):
+        master.jumps.append({"t": s * h, "edge": e, "theta_before": b, "theta_after": a,
+                             "mu": m})
+    if writer is None or (njmp == 0 and nrec == 0):
+        return
+    kX = float(master._P[K.P_KX])
+    zeros_M, false_M = master._zeros_M, master._false_M
+
+    def write():
+        lg = writer.logger
+        rec_fast = getattr(lg, "record_fast", lg.record)
+        steps = rec.step[:nrec].tolist()
+        i = 0
+        for r, s in enumerate(steps):
+            while i < njmp and jstep[i] <= s:  # a step's jumps come before its record
+                t = jstep[i] * h
+                lg.jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
+                i += 1
+            rec_fast(round(s * h * 1e9), rec.S[r], rec.u[r],
+                     rec.theta[r] if hybrid else zeros_M, rec.mu[r] if hybrid else zeros_M,
+                     rec.jumped[r] if hybrid else false_M, rec.rot[r], rec.pos[r], rec.U[r],
+                     rec.quat[r], float(rec.V[r]), float(kX * rec.U[r].sum()))
+        while i < njmp:
+            t = jstep[i] * h
+            lg.jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
+            i += 1
+
+    writer.put(write)
