@@ -38,6 +38,7 @@ CALL_NAMES = ("fmi2GetReal", "fmi2SetReal", "fmi2DoStep")
 # slots of the block's int64 result vector
 O_N, O_REC, O_JMP, O_STATUS, O_CALL, O_SAMPLED = range(6)
 FMI2_ERROR = 3
+JUMP_CAPACITY = 4096  # jumps a block can hold (at least M: one step's worth)
 TARGET_BLOCK_S = 0.1  # a block is cut shorter when MAX_BLOCK steps would take longer (Ctrl-C)
 
 
@@ -86,8 +87,9 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
 
     fn = (fmi2GetReal, fmi2SetReal, fmi2DoStep) addresses, comp the fmi2Component. A step n
     with dec > 0 and n % dec == 0 stores a log record; n0 % spl == 0 stores the summary sample
-    (a block never crosses a sample tick). out receives the steps done, records, jumps, the
-    first FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
+    (a block never crosses a sample tick). out receives the steps done (completed doSteps),
+    records, jumps (those of a failing step included, as the Python loop has them), the first
+    FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
     """
     M = edges.shape[0]
     n_st = S.size
@@ -144,17 +146,13 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
             out[O_CALL] = CALL_SET
-            n += 1  # the step's controller work and events are done (as in the Python loop)
-            out[O_N] = n
-            out[O_REC] = nrec
-            out[O_JMP] = njmp
-            return
+            break
         st = _fmi2_do_step(fn[2], comp, n * h, h)
-        n += 1
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
             out[O_CALL] = CALL_STEP
             break
+        n += 1
     out[O_N] = n
     out[O_REC] = nrec
     out[O_JMP] = njmp
@@ -240,7 +238,7 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
     Pm = master._P
     theta = ctrl.theta
     rot, pos, U, quat = master._rot, master._pos, master._U, master._quat
-    jcap = max(64, 4 * M)
+    jcap = max(M, JUMP_CAPACITY)
     smp_S = np.zeros((N, 18))
     smp_theta = np.zeros(M)
     out = np.zeros(6, dtype=np.int64)

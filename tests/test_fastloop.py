@@ -1,0 +1,233 @@
+"""The compiled block loop (cosim/fastloop.py) against the Python reference loop of Master.run:
+the same summaries, the same log messages byte for byte, the same failures and stops."""
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cosim import fastloop
+from cosim.api import with_timing
+from cosim.master import Master
+from cosim.mcaplog import McapLogger, read_log
+from cosim.plant import FmuPlant, PerBodyFmuPlant
+from cosim.scenario import load_scenario, parse_scenario
+from plant_fmu.fast import FMUError
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "scenarios" / "paper_6uav.toml"
+TIMING = ("wall_time_s", "realtime_factor", "us_per_step")
+
+
+def random_tree_scenario(n, seed):
+    """The paper's weighting, design and gains on a random tree of n agents, random poses."""
+    rng = np.random.default_rng(seed)
+    edges = []
+    for i in range(1, n):
+        e = [int(rng.integers(0, i)) + 1, i + 1]
+        edges.append(e if rng.random() < 0.5 else e[::-1])
+    text = PAPER.read_text()
+    text = text.replace("count = 6 ", f"count = {n} ")
+    head, rest = text.split("edges = [[1, 2], [2, 3], [3, 4], [2, 5], [5, 6]]")
+    text = head + f"edges = {edges}" + rest
+    head, rest = text.split('generator = "paper"\naxis = [0.2686, 0.8549, 0.4438]')
+    text = head + f'generator = "random"\nseed = {seed}\nposition_box = 1.0' + rest
+    return parse_scenario(text, name=f"tree{n}")
+
+
+def messages(path):
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        return [(c.topic, m.log_time, m.sequence, bytes(m.data))
+                for _, c, m in make_reader(f).iter_messages()]
+
+
+def run_both(sc, tmp_path, controller="hybrid", log=True, steps=None):
+    """(summary, final state, log messages) of the reference loop, then of the compiled one."""
+    out = []
+    for compiled in (False, True):
+        plant = FmuPlant.from_scenario(sc)
+        path = tmp_path / f"{'c' if compiled else 'py'}.mcap"
+        logger = McapLogger(path, sc, controller=controller) if log else None
+        try:
+            m = Master(sc, plant, controller, logger)
+            m.use_compiled = compiled
+            assert (fastloop.compiled_fleet(plant, m.controller) is not None)
+            s = m.run(sc.n_steps() if steps is None else steps)
+            S = plant.read().copy()
+        finally:
+            if logger is not None:
+                logger.close()
+            plant.close()
+        out.append((s, S, messages(path) if log else None))
+    return out
+
+
+def assert_same(ref, fast):
+    (s0, S0, m0), (s1, S1, m1) = ref, fast
+    assert np.array_equal(S0, S1)  # bit for bit
+    for k in s0:
+        if k not in TIMING:
+            assert s0[k] == s1[k], k
+    assert set(s0) == set(s1)
+    assert m0 == m1
+
+
+def test_paper_first_2s_bit_identical(tmp_path):
+    sc = load_scenario(PAPER, ["simulation.duration=2"])
+    ref, fast = run_both(sc, tmp_path)
+    assert_same(ref, fast)
+    s = ref[0]
+    assert s["n_jumps"] > 0 and len(s["samples"]) == 3
+    # jumps in the middle of a block: steps that are neither log nor sample ticks
+    dec = round(1 / (sc.log_rate * sc.step))
+    mid = [j for j in s["jumps"] if round(j["t"] / sc.step) % dec != 0]
+    assert mid, "the paper run should jump between log ticks"
+    topics = [m[0] for m in ref[2]]
+    assert topics.count("/jumps") == s["n_jumps"]
+    assert topics.count("/tf") == sc.n_steps() // dec
+
+
+def test_random_tree_50_bit_identical(tmp_path):
+    sc = with_timing(random_tree_scenario(50, 3), duration=0.3)
+    ref, fast = run_both(sc, tmp_path)
+    assert_same(ref, fast)
+    assert ref[0]["steps"] == sc.n_steps()
+
+
+def test_gradient_controller_bit_identical(tmp_path):
+    sc = load_scenario(PAPER, ["simulation.duration=0.3"])
+    ref, fast = run_both(sc, tmp_path, controller="gradient")
+    assert_same(ref, fast)
+
+
+def test_jump_buffers_full_end_the_block_early(tmp_path, monkeypatch):
+    # with room for one step's jumps only, every jump step ends its block: the result must
+    # not change
+    monkeypatch.setattr(fastloop, "JUMP_CAPACITY", 0)
+    sc = load_scenario(PAPER, ["simulation.duration=1", "simulation.log_rate=10"])
+    ref, fast = run_both(sc, tmp_path)
+    assert ref[0]["n_jumps"] > 1
+    assert_same(ref, fast)
+
+
+def test_steps_not_multiple_of_ticks(tmp_path):
+    sc = load_scenario(PAPER, ["simulation.duration=1", "simulation.log_rate=30"])
+    ref, fast = run_both(sc, tmp_path, steps=4321)
+    assert_same(ref, fast)
+
+
+def test_without_logger(tmp_path):
+    sc = load_scenario(PAPER, ["simulation.duration=1.2"])
+    ref, fast = run_both(sc, tmp_path, log=False)
+    assert_same(ref, fast)
+
+
+def test_fmu_failure_raises_the_same_error(tmp_path):
+    # h = 10 ms makes the paper loop diverge: the plant refuses a non-finite state
+    sc = load_scenario(PAPER, ["simulation.duration=20", "simulation.step=0.01",
+                               "simulation.log_rate=200"])
+    res = []
+    for compiled in (False, True):
+        plant = FmuPlant.from_scenario(sc)
+        path = tmp_path / f"f{compiled}.mcap"
+        logger = McapLogger(path, sc)
+        m = Master(sc, plant, "hybrid", logger)
+        m.use_compiled = compiled
+        with pytest.raises(FMUError) as ei:
+            m.run(sc.n_steps())
+        logger.close()
+        res.append((str(ei.value), ei.value.function, plant._k, m.jumps, messages(path)))
+        plant.close()
+    assert res[0] == res[1]
+    assert "fmi2DoStep" in res[0][0]
+
+
+def test_only_fleet_fmu_with_network_controller_is_compiled():
+    sc = load_scenario(PAPER, ["simulation.duration=0.01"])
+    from cosim.master import make_controller
+
+    ctrl = make_controller("hybrid", sc)
+    p = PerBodyFmuPlant.from_scenario(sc)
+    try:
+        assert fastloop.compiled_fleet(p, ctrl) is None
+    finally:
+        p.close()
+    p = FmuPlant.from_scenario(sc)
+    try:
+        assert fastloop.compiled_fleet(p, ctrl) is p._fmu
+        assert fastloop.compiled_fleet(p, object()) is None
+    finally:
+        p.close()
+
+
+def test_record_fast_equals_record(tmp_path):
+    """Byte-identical messages, also for non-finite values and jumping edges (fallbacks)."""
+    sc = random_tree_scenario(7, 1)
+    rng = np.random.default_rng(0)
+    N, M = 7, 6
+    paths = [tmp_path / "a.mcap", tmp_path / "b.mcap"]
+    lgs = [McapLogger(p, sc) for p in paths]
+    for r in range(6):
+        args = (rng.standard_normal((N, 18)) * 10.0 ** rng.integers(-20, 20, (N, 18)),
+                rng.standard_normal((N, 6)), rng.standard_normal(M), rng.random(M),
+                rng.random(M) < (0.3 if r == 2 else 0.0), rng.random(M), rng.random(M),
+                rng.random(M), rng.standard_normal((N, 4)), float(rng.random()),
+                float(rng.random()))
+        if r == 4:
+            args[0][1, 2] = np.nan
+            args[1][0, 0] = np.inf
+        t_ns = 1_000_000_000 * r + 123_456 * r
+        lgs[0].record(t_ns, *args)
+        lgs[1].record_fast(t_ns, *args)
+    for lg in lgs:
+        lg.close()
+    a, b = messages(paths[0]), messages(paths[1])
+    assert len(a) == 24 and a == b
+    json.loads(a[0][3])
+
+
+STOP_SCRIPT = r"""
+import sys, json
+sys.path.insert(0, {root!r})
+from cosim.api import run_scenario
+s = run_scenario({paper!r}, log_path={log!r}, duration=400)
+print(json.dumps({{"steps": s["steps"], "interrupted": s["interrupted"]}}))
+"""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_stops_within_a_block_with_a_complete_log(tmp_path, sig):
+    log = tmp_path / "s.mcap"
+    code = STOP_SCRIPT.format(root=str(ROOT), paper=str(PAPER), log=str(log))
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 120  # a guard against a hang, not a speed assertion
+        while time.monotonic() < deadline:
+            if log.exists() and log.stat().st_size > 200_000:
+                break
+            if proc.poll() is not None:
+                pytest.fail("the run ended before it could be stopped")
+            time.sleep(0.05)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    s = json.loads(out.decode().strip().splitlines()[-1])
+    assert s["interrupted"] is True and 0 < s["steps"] < 4_000_000
+    back = read_log(log)
+    assert not back["truncated"]
+    # every log tick of the steps done is in the log (the stop came between two blocks)
+    dec = 100
+    n_ticks = -(-s["steps"] // dec)
+    assert len(back["messages"]["/tf"]) == n_ticks
+    assert len(back["messages"]["/lyapunov"]) == n_ticks
