@@ -1,0 +1,171 @@
+"""Benchmark of the compiled block loop (cosim/fastloop.py); not a test.
+
+    python benchmarks/bench_fastloop.py [--seconds 20] [--big 1000] [--skip-fmpy] [--skip-big]
+
+All numbers come from one process and one run each; compare them as ratios.
+  paper    paper scenario, h = 0.1 ms, MCAP log at 100 Hz: compiled loop with and without the
+           log, the Python reference loop with the log, and fmpy.simulate_fmu stepping the same
+           FMU open loop at the same step (output every step, no controller);
+  records  cost of one log record (/tf, /edges, /agents, /lyapunov) through `record` (the
+           reference encoder) and `record_fast` (templates), at N = 6 and N = --big;
+  big      --big-agent random tree, h = 1 ms, log at 100 Hz, 1 s simulated: compiled loop
+           with and without the log (the logging share of the step time);
+  startup  a fresh process: import + first compiled block from the on-disk numba cache.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+PAPER = ROOT / "scenarios" / "paper_6uav.toml"
+
+
+def random_tree_text(n, seed=1, step=1e-3, duration=1.0):
+    """The paper's TOML with n agents on a random tree (random orientations), random poses."""
+    rng = np.random.default_rng(seed)
+    edges = []
+    for i in range(1, n):
+        e = [int(rng.integers(0, i)) + 1, i + 1]
+        edges.append(e if rng.random() < 0.5 else e[::-1])
+    text = PAPER.read_text().replace("count = 6 ", f"count = {n} ")
+    text = text.replace("edges = [[1, 2], [2, 3], [3, 4], [2, 5], [5, 6]]", f"edges = {edges}")
+    text = text.replace('generator = "paper"\naxis = [0.2686, 0.8549, 0.4438]',
+                        f'generator = "random"\nseed = {seed}\nposition_box = 1.0')
+    text = text.replace("duration = 40.0", f"duration = {duration}")
+    return text.replace("step = 1e-4", f"step = {step}")
+
+
+def run(sc, compiled=True, log=None):
+    from cosim.master import Master
+    from cosim.mcaplog import McapLogger
+    from cosim.plant import FmuPlant
+
+    plant = FmuPlant.from_scenario(sc)
+    logger = McapLogger(log, sc) if log else None
+    try:
+        m = Master(sc, plant, "hybrid", logger)
+        m.use_compiled = compiled
+        t0 = time.perf_counter()
+        s = m.run(sc.n_steps())
+        if logger is not None:
+            logger.close()  # part of the cost: the writer thread has drained by now
+        wall = time.perf_counter() - t0
+    finally:
+        plant.close()
+    return wall, s
+
+
+def record_cost(sc, n_rec, fast):
+    """Seconds per record of McapLogger.record / record_fast (random finite values, no jump)."""
+    from cosim.mcaplog import McapLogger
+
+    N, M = sc.graph.n, sc.graph.M
+    rng = np.random.default_rng(0)
+    S = rng.standard_normal((n_rec, N, 18))
+    u = rng.standard_normal((n_rec, N, 6))
+    e = rng.standard_normal((n_rec, 5, M))
+    q = rng.standard_normal((n_rec, N, 4))
+    no = np.zeros(M, np.bool_)
+    with tempfile.TemporaryDirectory() as d:
+        lg = McapLogger(os.path.join(d, "r.mcap"), sc)
+        rec = lg.record_fast if fast else lg.record
+        t0 = time.perf_counter()
+        for r in range(n_rec):
+            rec(10_000_000 * r, S[r], u[r], e[r, 0], e[r, 1], no, e[r, 2], e[r, 3], e[r, 4], q[r],
+                0.5, 0.25)
+        lg.close()
+        return (time.perf_counter() - t0) / n_rec
+
+
+STARTUP = r"""
+import sys, time
+t0 = time.perf_counter()
+sys.path.insert(0, {root!r})
+from cosim.scenario import load_scenario
+from cosim.master import Master
+from cosim.plant import FmuPlant
+sc = load_scenario({paper!r}, ["simulation.duration=0.01"])
+p = FmuPlant.from_scenario(sc)
+t1 = time.perf_counter()
+Master(sc, p, "hybrid").run(100)
+t2 = time.perf_counter()
+p.close()
+print(t1 - t0, t2 - t1)
+"""
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--big", type=int, default=1000, help="agents of the random tree")
+    ap.add_argument("--skip-fmpy", action="store_true")
+    ap.add_argument("--skip-big", action="store_true")
+    args = ap.parse_args()
+
+    from cosim.scenario import load_scenario, parse_scenario
+    from plant_fmu.build import fmu_path
+
+    sc = load_scenario(PAPER, [f"simulation.duration={args.seconds}"])
+    n = sc.n_steps()
+    print(f"paper: {sc.graph.n} agents, h = {sc.step:g} s, {n} steps, log {sc.log_rate:g} Hz")
+    run(load_scenario(PAPER, ["simulation.duration=0.05"]))  # warm-up (FMU, numba cache)
+    with tempfile.TemporaryDirectory() as d:
+        w_log, s = run(sc, True, os.path.join(d, "a.mcap"))
+        w_nolog, _ = run(sc, True)
+        w_ref, _ = run(sc, False, os.path.join(d, "b.mcap"))
+    us = lambda w: w / n * 1e6  # noqa: E731
+    print(f"  compiled + log   {w_log:7.3f} s  {us(w_log):6.2f} µs/step  ({s['n_jumps']} jumps)")
+    print(f"  compiled, no log {w_nolog:7.3f} s  {us(w_nolog):6.2f} µs/step")
+    print(f"  Python loop + log{w_ref:7.3f} s  {us(w_ref):6.2f} µs/step")
+    print(f"  compiled / Python loop = {w_log / w_ref:.3f}×; logging share "
+          f"{(w_log - w_nolog) / w_log * 100:.1f} % of the step time")
+    if not args.skip_fmpy:
+        from fmpy import simulate_fmu
+
+        t0 = time.perf_counter()
+        simulate_fmu(str(fmu_path(sc.graph.n)), stop_time=args.seconds, step_size=sc.step,
+                     output_interval=sc.step, fmi_type="CoSimulation")
+        w_fmpy = time.perf_counter() - t0
+        print(f"  fmpy.simulate_fmu open loop {w_fmpy:7.3f} s  {us(w_fmpy):6.2f} µs/step; "
+              f"compiled + log / fmpy = {w_log / w_fmpy:.3f}×")
+
+    print("record cost (one record = 4 messages, incl. MCAP chunking + zstd):")
+    sizes = [(sc, 400)]
+    big = None
+    if not args.skip_big:
+        big = parse_scenario(random_tree_text(args.big), name=f"tree{args.big}")
+        sizes.append((big, 40))
+    for s_, k in sizes:
+        slow, fast = record_cost(s_, k, False), record_cost(s_, k, True)
+        print(f"  N = {s_.graph.n:5d}: record {slow * 1e6:9.1f} µs, record_fast "
+              f"{fast * 1e6:9.1f} µs ({slow / fast:.1f}× faster)")
+
+    if big is not None:
+        nb = big.n_steps()
+        run(parse_scenario(random_tree_text(args.big, duration=0.005), name="warm"))
+        with tempfile.TemporaryDirectory() as d:
+            wb_log, _ = run(big, True, os.path.join(d, "c.mcap"))
+            size = os.path.getsize(os.path.join(d, "c.mcap"))
+            wb_nolog, _ = run(big, True)
+        print(f"{args.big}-agent random tree, h = {big.step:g} s, {nb} steps, log 100 Hz "
+              f"({size / 1e6:.1f} MB):")
+        print(f"  compiled + log {wb_log:7.3f} s ({wb_log / nb * 1e6:8.1f} µs/step), no log "
+              f"{wb_nolog:7.3f} s; logging share {(wb_log - wb_nolog) / wb_log * 100:.1f} %")
+
+    out = subprocess.run([sys.executable, "-c", STARTUP.format(root=str(ROOT), paper=str(PAPER))],
+                         capture_output=True, text=True, check=True).stdout.split()
+    print(f"start-up (fresh process, numba cache on disk): imports + FMU {float(out[0]):.3f} s, "
+          f"first 100 compiled steps {float(out[1]):.3f} s")
+
+
+if __name__ == "__main__":
+    main()
