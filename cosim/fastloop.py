@@ -352,6 +352,8 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, hybrid, smp_S, smp_theta,
     kX = float(master._P[K.P_KX])
     zeros_M, false_M = master._zeros_M, master._false_M
 
+    sleep = time.sleep
+
     def write():
         lg = writer.logger
         rec_fast = getattr(lg, "record_fast", lg.record)
@@ -366,6 +368,9 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, hybrid, smp_S, smp_theta,
                      rec.theta[r] if hybrid else zeros_M, rec.mu[r] if hybrid else zeros_M,
                      rec.jumped[r] if hybrid else false_M, rec.rot[r], rec.pos[r], rec.U[r],
                      rec.quat[r], float(rec.V[r]), float(kX * rec.U[r].sum()))
+            # hand the GIL over: a block that ends waits for it, by default up to the 5 ms
+            # switch interval, which would serialise the loop behind the encoder
+            sleep(0)
         while i < njmp:
             t = jstep[i] * h
             lg.jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
