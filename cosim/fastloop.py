@@ -219,7 +219,8 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
 
     Same per-step semantics, ticks and events as the reference loop: jumps are recorded with
     their exact step, log records at n % dec == 0, summary samples at n % spl == 0; Ctrl-C
-    (master._stop) is checked between blocks of at most MAX_BLOCK steps.
+    (master._stop) and the wall-clock budget (master.deadline) are checked between blocks of
+    at most MAX_BLOCK steps, cut shorter when they would take more than TARGET_BLOCK_S.
     """
     from .master import MAX_BLOCK
 
@@ -247,6 +248,9 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
     n = 0
     interrupted = False
     pending = None
+    # a wall-clock budget: master.deadline (a time.perf_counter() value), checked between
+    # blocks like Ctrl-C; setting master._stop from elsewhere also stops at the next block
+    deadline = getattr(master, "deadline", None)
     restore = _quiet_signals(master)
     try:
         while n < n_steps:
@@ -277,7 +281,7 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
                 break
             if bar is not None:
                 bar.update(n - bar.n)
-            if master._stop:
+            if master._stop or (deadline is not None and time.perf_counter() > deadline):
                 interrupted = True
                 break
             if writer is not None and writer.error is not None:

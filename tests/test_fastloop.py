@@ -231,3 +231,28 @@ def test_signal_stops_within_a_block_with_a_complete_log(tmp_path, sig):
     n_ticks = -(-s["steps"] // dec)
     assert len(back["messages"]["/tf"]) == n_ticks
     assert len(back["messages"]["/lyapunov"]) == n_ticks
+
+
+def test_deadline_stops_between_blocks_with_consistent_state(tmp_path):
+    # an expired wall-clock budget stops after the first block; the plant's state and the
+    # step count then match a reference run of that many steps
+    sc = load_scenario(PAPER, ["simulation.duration=0.25"])
+    plant = FmuPlant.from_scenario(sc)
+    try:
+        m = Master(sc, plant, "hybrid")
+        m.deadline = time.perf_counter() - 1.0
+        s = m.run(sc.n_steps())
+        assert s["interrupted"] is True
+        n1 = s["steps"]
+        assert 0 < n1 <= 1000 and plant._k == n1
+        S_mid = plant.read().copy()
+    finally:
+        plant.close()
+    ref = FmuPlant.from_scenario(sc)
+    try:
+        m = Master(sc, ref, "hybrid")
+        m.use_compiled = False
+        m.run(n1)
+        assert np.array_equal(ref.read(), S_mid)
+    finally:
+        ref.close()
