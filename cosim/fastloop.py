@@ -361,12 +361,13 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, hybrid, smp_S, smp_theta,
     def write():
         lg = writer.logger
         rec_fast = getattr(lg, "record_fast", lg.record)
+        jump = getattr(lg, "jump_fast", lg.jump)
         steps = rec.step[:nrec].tolist()
         i = 0
         for r, s in enumerate(steps):
             while i < njmp and jstep[i] <= s:  # a step's jumps come before its record
                 t = jstep[i] * h
-                lg.jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
+                jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
                 i += 1
             rec_fast(round(s * h * 1e9), rec.S[r], rec.u[r],
                      rec.theta[r] if hybrid else zeros_M, rec.mu[r] if hybrid else zeros_M,
@@ -377,7 +378,7 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, hybrid, smp_S, smp_theta,
             sleep(0)
         while i < njmp:
             t = jstep[i] * h
-            lg.jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
+            jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
             i += 1
 
     writer.put(write)

@@ -167,7 +167,8 @@ def test_only_fleet_fmu_with_network_controller_is_compiled():
 
 
 def test_record_fast_equals_record(tmp_path):
-    """Byte-identical messages, also for non-finite values and jumping edges (fallbacks)."""
+    """Byte-identical messages (record/record_fast, jump/jump_fast), also for non-finite
+    values and jumping edges (the fallbacks)."""
     sc = random_tree_scenario(7, 1)
     rng = np.random.default_rng(0)
     N, M = 7, 6
@@ -185,10 +186,14 @@ def test_record_fast_equals_record(tmp_path):
         t_ns = 1_000_000_000 * r + 123_456 * r
         lgs[0].record(t_ns, *args)
         lgs[1].record_fast(t_ns, *args)
+        lgs[0].jump(t_ns, t_ns * 1e-9, r + 1, *args[2][:3].tolist())
+        lgs[1].jump_fast(t_ns, t_ns * 1e-9, r + 1, *args[2][:3].tolist())
+    lgs[0].jump(7, 7e-9, 2, 0.5, float("nan"), -float("inf"))
+    lgs[1].jump_fast(7, 7e-9, 2, 0.5, float("nan"), -float("inf"))
     for lg in lgs:
         lg.close()
     a, b = messages(paths[0]), messages(paths[1])
-    assert len(a) == 24 and a == b
+    assert len(a) == 31 and a == b
     json.loads(a[0][3])
 
 
