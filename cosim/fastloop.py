@@ -39,7 +39,8 @@ CALL_NAMES = ("fmi2GetReal", "fmi2SetReal", "fmi2DoStep")
 O_N, O_REC, O_JMP, O_STATUS, O_CALL, O_SAMPLED = range(6)
 FMI2_ERROR = 3
 JUMP_CAPACITY = 4096  # jumps a block can hold (at least M: one step's worth)
-TARGET_BLOCK_S = 0.1  # a block is cut shorter when MAX_BLOCK steps would take longer (Ctrl-C)
+TARGET_BLOCK_S = 0.1
+QUEUE_BYTES = 128 << 20  # record arrays that may wait for the log writer  # a block is cut shorter when MAX_BLOCK steps would take longer (Ctrl-C)
 
 
 @intrinsic
@@ -183,9 +184,10 @@ def compiled_fleet(plant, controller):
 class _Writer:
     """Encodes the blocks' log items on a thread, in order (the logger is used by it alone)."""
 
-    def __init__(self, logger):
+    def __init__(self, logger, block_bytes):
         self.logger = logger
-        self.q = queue.Queue(maxsize=64)
+        # blocks waiting for the encoder hold their record arrays: bound them in bytes
+        self.q = queue.Queue(maxsize=int(min(64, max(2, QUEUE_BYTES // max(1, block_bytes)))))
         self.error = None
         self.t = threading.Thread(target=self._loop, name="se3sync-log", daemon=True)
         self.t.start()
@@ -243,7 +245,9 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
     smp_S = np.zeros((N, 18))
     smp_theta = np.zeros(M)
     out = np.zeros(6, dtype=np.int64)
-    writer = _Writer(logger) if logging else None
+    writer = None
+    if logging:
+        writer = _Writer(logger, 8 * (N * 28 + 5 * M) * ((MAX_BLOCK - 1) // dec + 1))
     block = MAX_BLOCK
     n = 0
     interrupted = False

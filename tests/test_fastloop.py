@@ -39,21 +39,28 @@ def random_tree_scenario(n, seed):
     return parse_scenario(text, name=f"tree{n}")
 
 
-def messages(path):
+def messages(path, decoded=False):
+    """(topic, log time, sequence, payload) of every message; decoded: the payload as the
+    repr of its JSON value (exact for floats: repr is shortest round-trip, keeps −0.0)."""
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
-        return [(c.topic, m.log_time, m.sequence, bytes(m.data))
+        return [(c.topic, m.log_time, m.sequence,
+                 repr(json.loads(m.data)) if decoded else bytes(m.data))
                 for _, c, m in make_reader(f).iter_messages()]
 
 
-def run_both(sc, tmp_path, controller="hybrid", log=True, steps=None):
-    """(summary, final state, log messages) of the reference loop, then of the compiled one."""
+def run_both(sc, tmp_path, controller="hybrid", log=True, steps=None, fast_json=False):
+    """(summary, final state, log messages) of the reference loop, then of the compiled one.
+    fast_json: the compiled loop's log encodes numbers with orjson (compared as values),
+    else with float repr (compared as bytes)."""
     out = []
     for compiled in (False, True):
         plant = FmuPlant.from_scenario(sc)
         path = tmp_path / f"{'c' if compiled else 'py'}.mcap"
         logger = McapLogger(path, sc, controller=controller) if log else None
+        if logger is not None:
+            logger.orjson = fast_json
         try:
             m = Master(sc, plant, controller, logger)
             m.use_compiled = compiled
@@ -64,7 +71,7 @@ def run_both(sc, tmp_path, controller="hybrid", log=True, steps=None):
             if logger is not None:
                 logger.close()
             plant.close()
-        out.append((s, S, messages(path) if log else None))
+        out.append((s, S, messages(path, decoded=fast_json) if log else None))
     return out
 
 
@@ -93,11 +100,19 @@ def test_paper_first_2s_bit_identical(tmp_path):
     assert topics.count("/tf") == sc.n_steps() // dec
 
 
-def test_random_tree_50_bit_identical(tmp_path):
+@pytest.mark.parametrize("fast_json", [False, True])
+def test_random_tree_50_bit_identical(tmp_path, fast_json):
     sc = with_timing(random_tree_scenario(50, 3), duration=0.3)
-    ref, fast = run_both(sc, tmp_path)
+    ref, fast = run_both(sc, tmp_path, fast_json=fast_json)
     assert_same(ref, fast)
     assert ref[0]["steps"] == sc.n_steps()
+
+
+def test_paper_orjson_log_decodes_to_the_same_values(tmp_path):
+    pytest.importorskip("orjson")
+    sc = load_scenario(PAPER, ["simulation.duration=0.5"])
+    ref, fast = run_both(sc, tmp_path, fast_json=True)
+    assert_same(ref, fast)
 
 
 def test_gradient_controller_bit_identical(tmp_path):
@@ -167,13 +182,14 @@ def test_only_fleet_fmu_with_network_controller_is_compiled():
 
 
 def test_record_fast_equals_record(tmp_path):
-    """Byte-identical messages (record/record_fast, jump/jump_fast), also for non-finite
-    values and jumping edges (the fallbacks)."""
+    """record/record_fast and jump/jump_fast: the same bytes with float repr, the same values
+    with orjson, also for non-finite values and jumping edges (the fallbacks)."""
     sc = random_tree_scenario(7, 1)
     rng = np.random.default_rng(0)
     N, M = 7, 6
-    paths = [tmp_path / "a.mcap", tmp_path / "b.mcap"]
+    paths = [tmp_path / "a.mcap", tmp_path / "b.mcap", tmp_path / "c.mcap"]
     lgs = [McapLogger(p, sc) for p in paths]
+    lgs[1].orjson = False
     for r in range(6):
         args = (rng.standard_normal((N, 18)) * 10.0 ** rng.integers(-20, 20, (N, 18)),
                 rng.standard_normal((N, 6)), rng.standard_normal(M), rng.random(M),
@@ -186,15 +202,26 @@ def test_record_fast_equals_record(tmp_path):
         t_ns = 1_000_000_000 * r + 123_456 * r
         lgs[0].record(t_ns, *args)
         lgs[1].record_fast(t_ns, *args)
+        lgs[2].record_fast(t_ns, *args)
         lgs[0].jump(t_ns, t_ns * 1e-9, r + 1, *args[2][:3].tolist())
         lgs[1].jump_fast(t_ns, t_ns * 1e-9, r + 1, *args[2][:3].tolist())
-    lgs[0].jump(7, 7e-9, 2, 0.5, float("nan"), -float("inf"))
-    lgs[1].jump_fast(7, 7e-9, 2, 0.5, float("nan"), -float("inf"))
+        lgs[2].jump_fast(t_ns, t_ns * 1e-9, r + 1, *args[2][:3].tolist())
     for lg in lgs:
+        (lg.jump if lg is lgs[0] else lg.jump_fast)(7, 7e-9, 2, 0.5, float("nan"), -np.inf)
         lg.close()
     a, b = messages(paths[0]), messages(paths[1])
     assert len(a) == 31 and a == b
+    # orjson: same values (exactly), and really another text for some numbers
+    assert messages(paths[0], decoded=True) == messages(paths[2], decoded=True)
+    if fastloop_orjson():
+        assert messages(paths[2]) != a
     json.loads(a[0][3])
+
+
+def fastloop_orjson():
+    from cosim import mcaplog
+
+    return mcaplog._orjson is not None
 
 
 STOP_SCRIPT = r"""
