@@ -64,8 +64,9 @@ def run(sc, compiled=True, log=None):
     return wall, s
 
 
-def record_cost(sc, n_rec, fast):
-    """Seconds per record of McapLogger.record / record_fast (random finite values, no jump)."""
+def record_cost(sc, n_rec, fast, use_orjson=True):
+    """Seconds per record of McapLogger.record / record_fast (random finite values, no jump);
+    use_orjson=False: record_fast with float-repr templates (the bytes of `record`)."""
     from cosim.mcaplog import McapLogger
 
     N, M = sc.graph.n, sc.graph.M
@@ -77,6 +78,7 @@ def record_cost(sc, n_rec, fast):
     no = np.zeros(M, np.bool_)
     with tempfile.TemporaryDirectory() as d:
         lg = McapLogger(os.path.join(d, "r.mcap"), sc)
+        lg.orjson = use_orjson
         rec = lg.record_fast if fast else lg.record
         t0 = time.perf_counter()
         for r in range(n_rec):
@@ -144,20 +146,26 @@ def main():
     if not args.skip_big:
         big = parse_scenario(random_tree_text(args.big), name=f"tree{args.big}")
         sizes.append((big, 40))
+    from cosim import mcaplog
+
     for s_, k in sizes:
-        slow, fast = record_cost(s_, k, False), record_cost(s_, k, True)
-        print(f"  N = {s_.graph.n:5d}: record {slow * 1e6:9.1f} µs, record_fast "
-              f"{fast * 1e6:9.1f} µs ({slow / fast:.1f}× faster)")
+        slow, tpl = record_cost(s_, k, False), record_cost(s_, k, True, False)
+        line = (f"  N = {s_.graph.n:5d}: record {slow * 1e6:9.1f} µs, record_fast (repr) "
+                f"{tpl * 1e6:9.1f} µs ({slow / tpl:.1f}×)")
+        if mcaplog._orjson is not None:
+            fast = record_cost(s_, k, True, True)
+            line += f", record_fast (orjson) {fast * 1e6:9.1f} µs ({slow / fast:.1f}×)"
+        print(line)
 
     if big is not None:
         nb = big.n_steps()
         run(parse_scenario(random_tree_text(args.big, duration=0.005), name="warm"))
         with tempfile.TemporaryDirectory() as d:
-            wb_log, _ = run(big, True, os.path.join(d, "c.mcap"))
+            wb_log, sb = run(big, True, os.path.join(d, "c.mcap"))
             size = os.path.getsize(os.path.join(d, "c.mcap"))
             wb_nolog, _ = run(big, True)
         print(f"{args.big}-agent random tree, h = {big.step:g} s, {nb} steps, log 100 Hz "
-              f"({size / 1e6:.1f} MB):")
+              f"({size / 1e6:.1f} MB, {sb['n_jumps']} jumps = /jumps messages):")
         print(f"  compiled + log {wb_log:7.3f} s ({wb_log / nb * 1e6:8.1f} µs/step), no log "
               f"{wb_nolog:7.3f} s; logging share {(wb_log - wb_nolog) / wb_log * 100:.1f} %")
 
