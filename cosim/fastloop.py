@@ -358,25 +358,40 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, hybrid, smp_S, smp_theta,
     if writer is None or (njmp == 0 and nrec == 0):
         return
     kX = float(master._P[K.P_KX])
-    zeros_M, false_M = master._zeros_M, master._false_M
+    M = master.M
 
     sleep = time.sleep
 
     def write():
         lg = writer.logger
-        rec_fast = getattr(lg, "record_fast", lg.record)
         jump = getattr(lg, "jump_fast", lg.jump)
+        block = getattr(lg, "record_block", None)
         steps = rec.step[:nrec].tolist()
-        i = 0
-        for r, s in enumerate(steps):
-            while i < njmp and jstep[i] <= s:  # a step's jumps come before its record
+        inf = float("inf")
+        i = r = 0
+        while r < nrec:
+            while i < njmp and jstep[i] <= steps[r]:  # a step's jumps come before its record
                 t = jstep[i] * h
                 jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
                 i += 1
-            rec_fast(round(s * h * 1e9), rec.S[r], rec.u[r],
-                     rec.theta[r] if hybrid else zeros_M, rec.mu[r] if hybrid else zeros_M,
-                     rec.jumped[r] if hybrid else false_M, rec.rot[r], rec.pos[r], rec.U[r],
-                     rec.quat[r], float(rec.V[r]), float(kX * rec.U[r].sum()))
+            nxt_jump = jstep[i] if i < njmp else inf
+            rb = r + 1  # records r … rb−1 have no jump between them: encoded together
+            while rb < nrec and steps[rb] < nxt_jump:
+                rb += 1
+            sl = slice(r, rb)
+            k = rb - r
+            args = ([round(st * h * 1e9) for st in steps[sl]], rec.S[sl], rec.u[sl],
+                    rec.theta[sl] if hybrid else np.zeros((k, M)),
+                    rec.mu[sl] if hybrid else np.zeros((k, M)),
+                    rec.jumped[sl] if hybrid else np.zeros((k, M), np.bool_), rec.rot[sl],
+                    rec.pos[sl], rec.U[sl], rec.quat[sl], rec.V[sl].tolist(),
+                    [float(kX * x.sum()) for x in rec.U[sl]])
+            if block is not None:
+                block(*args)
+            else:
+                for q in range(k):
+                    lg.record(*(a[q] for a in args))
+            r = rb
             # hand the GIL over: a block that ends waits for it, by default up to the 5 ms
             # switch interval, which would serialise the loop behind the encoder
             sleep(0)

@@ -302,6 +302,47 @@ class McapLogger:
                                           "theta_before": theta_before,
                                           "theta_after": theta_after, "mu": mu}))
 
+    def record_block(self, t_ns, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U):
+        """`record_fast` for R consecutive records at once (t_ns a list of R ints, every other
+        argument stacked on a first axis of length R): one orjson call per channel for the
+        whole block. Rows with a jump or a non-finite value go through `record`."""
+        R = len(t_ns)
+        if R == 0:
+            return
+        if not (self.orjson and _orjson is not None):
+            for r in range(R):
+                self.record_fast(t_ns[r], S[r], u[r], theta[r], mu[r], jumped[r], rot_err[r],
+                                 pos_err[r], U[r], quat[r], V[r], kX_U[r])
+            return
+        tf_v = np.concatenate((S[:, :, 0:3], quat), axis=2)
+        ed_v = np.stack((theta, mu, rot_err, pos_err, U), axis=2)
+        ag_v = np.concatenate((S[:, :, 12:18], u), axis=2)
+        plain = ~jumped.any(axis=1)
+        for v in (tf_v, ed_v, ag_v):
+            plain &= np.isfinite(v).all(axis=(1, 2))
+        tpl = getattr(self, "_tpl", None) or self._templates()
+        tb = getattr(self, "_tpl_b", None)
+        if tb is None:
+            tb = self._tpl_b = tuple(t.replace("%r", "%s").encode() for t in tpl)
+        opt = _orjson.OPT_SERIALIZE_NUMPY
+        chans = []
+        for topic, t, v in (("/tf", tb[0], tf_v), ("/edges", tb[1], ed_v),
+                            ("/agents", tb[2], ag_v)):
+            parts = _orjson.dumps(np.ascontiguousarray(v).ravel(), option=opt)[1:-1].split(b",")
+            chans.append((topic, t, parts, v.shape[1] * v.shape[2]))
+        msg_b, msg, r_ = self._msg_bytes, self._msg, _r
+        for r in range(R):
+            tn = t_ns[r]
+            if not plain[r]:
+                self.record(tn, S[r], u[r], theta[r], mu[r], jumped[r], rot_err[r], pos_err[r],
+                            U[r], quat[r], V[r], kX_U[r])
+                continue
+            ts = f'{{"sec":{tn // 1_000_000_000},"nsec":{tn % 1_000_000_000}}}'
+            tsb = ts.encode()
+            for topic, t, parts, k in chans:
+                msg_b(topic, tn, t.replace(b"@TS@", tsb) % tuple(parts[r * k:(r + 1) * k]))
+            msg("/lyapunov", tn, f'{{"timestamp":{ts},"V":{r_(V[r])},"kX_U":{r_(kX_U[r])}}}')
+
     _JUMP_TPL = ('{"timestamp": {"sec": %d, "nsec": %d}, "t": %r, "edge": %d, '
                  '"theta_before": %r, "theta_after": %r, "mu": %r}')
 

@@ -288,3 +288,31 @@ def test_deadline_stops_between_blocks_with_consistent_state(tmp_path):
         assert np.array_equal(ref.read(), S_mid)
     finally:
         ref.close()
+
+
+def test_record_block_equals_record_per_row(tmp_path):
+    sc = random_tree_scenario(5, 2)
+    rng = np.random.default_rng(1)
+    R, N, M = 6, 5, 4
+    S = rng.standard_normal((R, N, 18)) * 10.0 ** rng.integers(-30, 30, (R, N, 18))
+    u, quat = rng.standard_normal((R, N, 6)), rng.standard_normal((R, N, 4))
+    e = rng.standard_normal((5, R, M))
+    jumped = np.zeros((R, M), np.bool_)
+    jumped[2, 1] = True
+    S[4, 0, 13] = np.nan
+    t_ns = [10_000_000 * r + 7 for r in range(R)]
+    V, kxu = rng.random(R).tolist(), rng.random(R).tolist()
+    paths = [tmp_path / f"{k}.mcap" for k in "abc"]
+    lgs = [McapLogger(p, sc) for p in paths]
+    lgs[2].orjson = False
+    for r in range(R):
+        lgs[0].record(t_ns[r], S[r], u[r], e[0, r], e[1, r], jumped[r], e[2, r], e[3, r],
+                      e[4, r], quat[r], V[r], kxu[r])
+    for lg in lgs[1:]:
+        lg.record_block(t_ns, S, u, e[0], e[1], jumped, e[2], e[3], e[4], quat, V, kxu)
+    for lg in lgs:
+        lg.close()
+    a = messages(paths[0])
+    assert len(a) == 4 * R
+    assert messages(paths[2]) == a
+    assert messages(paths[1], decoded=True) == messages(paths[0], decoded=True)
