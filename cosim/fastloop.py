@@ -83,12 +83,13 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
               theta_prev, theta_jump, n0, n1, dec, spl, Pm, masses, J, rot, pos, U, quat,
               rec_step, rec_S, rec_u, rec_theta, rec_mu, rec_jumped, rec_rot, rec_pos, rec_U,
               rec_quat, rec_V, jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu,
-              smp_S, smp_theta, out):
+              smp_S, smp_theta, k0, out):
     """Steps n0 … n1−1 (stopping early before a step whose jumps might not fit the buffers).
 
     fn = (fmi2GetReal, fmi2SetReal, fmi2DoStep) addresses, comp the fmi2Component. A step n
     with dec > 0 and n % dec == 0 stores a log record; n0 % spl == 0 stores the summary sample
-    (a block never crosses a sample tick). out receives the steps done (completed doSteps),
+    (a block never crosses a sample tick). doStep runs from (n + k0)·h: k0 is the plant's
+    own step counter at the start of the run (FmuPlant.advance steps from k·h). out receives the steps done (completed doSteps),
     records, jumps (those of a failing step included, as the Python loop has them), the first
     FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
     """
@@ -148,7 +149,7 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
             out[O_STATUS] = st
             out[O_CALL] = CALL_SET
             break
-        st = _fmi2_do_step(fn[2], comp, n * h, h)
+        st = _fmi2_do_step(fn[2], comp, (n + k0) * h, h)
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
             out[O_CALL] = CALL_STEP
@@ -249,6 +250,7 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
     if logging:
         writer = _Writer(logger, 8 * (N * 28 + 5 * M) * ((MAX_BLOCK - 1) // dec + 1))
     block = MAX_BLOCK
+    k0 = int(plant._k)
     n = 0
     interrupted = False
     pending = None
@@ -267,11 +269,11 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
             run_block(fn, comp, fmu._vr_state, fmu._vr_input, S, u, theta, edges, P, h, hybrid,
                       ctrl.mu, ctrl.jumped, ctrl.theta_prev, ctrl.theta_jump, n, nxt, dec, spl,
                       Pm, master._masses, master._J, rot, pos, U, quat, *rec.arrays(), *jb,
-                      smp_S, smp_theta, out)
+                      smp_S, smp_theta, k0, out)
             dt = time.perf_counter() - t0
             n0, n = n, int(out[O_N])
-            plant._k = n
-            fmu.time = n * h
+            plant._k = k0 + n
+            fmu.time = (k0 + n) * h
             if u is not fmu._u:
                 fmu._u[...] = u
             if n > n0 and dt > TARGET_BLOCK_S * 1.5:
