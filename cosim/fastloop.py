@@ -227,7 +227,7 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
     """
     from .master import MAX_BLOCK
 
-    sc, ctrl, plant = master.scenario, master.controller, master.plant
+    ctrl, plant = master.controller, master.plant
     h = master.h
     N, M = master.N, master.M
     hybrid = master.controller_kind == "hybrid"
