@@ -98,9 +98,9 @@ def _cmd_connect(args) -> int:
     if args.vehicle:
         cfg = cfg.with_endpoints(args.vehicle)
     if not args.force:
-        from cosim.stability import analyse
+        from cosim.analysis.stability import analyse
 
-        st = analyse(sc, hybrid=True, bisect=False)
+        st = analyse(sc, law="hybrid", bisect=False)
         if not st["stable"]:
             raise ScenarioError("simulation.step", f"h = {sc.step:g} s makes the sampled loop unstable "
                                 f"(spectral radius {st['spectral_radius']:.6f} >= 1); use --force to run anyway",
@@ -141,28 +141,12 @@ def _ms(x):
 
 
 def warm_up(scenario) -> None:
-    """Two co-simulation steps of the scenario (JIT compilation of the controller and metrics),
-    so that the first control steps over the links are on time."""
-    from cosim.master import Master
-    from cosim.plant import FmuPlant
+    from .hil import warm_up as _warm_up
 
-    p = FmuPlant.from_scenario(scenario)
-    try:
-        Master(scenario, p, "hybrid").run(2)
-    finally:
-        p.close()
+    _warm_up(scenario)
 
 
-def run_hil(scenario, plant, *, log_path=None, summary_path=None, progress=False,
-            controller="hybrid") -> dict:
-    """cosim's run over a connected MavlinkPlant; the MCAP log says the time base is the wall
-    clock (t = n·h, paced) or lockstep."""
-    from cosim.api import run_scenario
+def run_hil(scenario, plant, **kw) -> dict:
+    from .hil import run_hil as _run_hil
 
-    tb = "simulated (lockstep)" if plant.lockstep else "wall (paced: t = n·h from the start of the run)"
-    return run_scenario(
-        scenario, plant=plant, controller=controller, log_path=log_path,
-        summary_path=summary_path, progress=progress,
-        log_metadata={"plant": "mavlink", "time_base": tb,
-                      "endpoints": ",".join(v.sock.endpoint for v in plant.vehicles)},
-        summary_extra={"plant": "mavlink", "lockstep": bool(plant.lockstep)})
+    return _run_hil(scenario, plant, **kw)

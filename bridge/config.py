@@ -1,7 +1,8 @@
 """The scenario's ``[bridge]`` table: schema, defaults and validation (`parse_bridge`).
 
-Every problem raises ``cosim.scenario.ScenarioError("bridge.<key path>", reason)``; the scenario
-loader prefixes the file name. See bridge/README.md for the table with every key.
+Every problem raises ``controller.errors.ConfigError("bridge.<key path>", reason)``; the scenario
+loader prefixes the file name. The table is registered with the scenario loader as the entry point
+``se3sync.tables: bridge`` (pyproject.toml). See bridge/README.md for the table with every key.
 """
 from __future__ import annotations
 
@@ -12,15 +13,8 @@ from pathlib import Path
 from .frames import WORLD_FRAMES
 from .mapping import MAPPINGS, AllocationSpec, MappingSpec
 
-try:
-    from cosim.scenario import ScenarioError
-except ImportError:  # pragma: no cover - cosim is part of the same project
-    from controller.errors import Se3SyncError
-
-    class ScenarioError(Se3SyncError):  # type: ignore[no-redef]
-        def __init__(self, keypath, reason, file=None):
-            self.keypath, self.reason, self.file = keypath, reason, file
-            super().__init__(f"{keypath}: {reason}")
+from controller.errors import ConfigError as ScenarioError
+from controller.errors import Se3SyncError
 
 OUTPUTS = ("actuator_control_target", "do_set_actuator")
 ROUTINGS = ("per_vehicle", "shared")
@@ -300,9 +294,7 @@ def default_config(n_agents: int) -> BridgeConfig:
 
 def read_key_file(path) -> bytes:
     """A signing key file: exactly 32 raw bytes, or 64 hexadecimal characters (whitespace and a
-    trailing newline allowed). Raises ScenarioError on anything else."""
-    from controller.errors import Se3SyncError
-
+    trailing newline allowed). Raises Se3SyncError on anything else."""
     p = Path(path)
     try:
         data = p.read_bytes()

@@ -15,7 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from controller.errors import Se3SyncError
+from controller import Gains, Graph, WeightingMatrix, design_synergy, se3
+from controller.errors import ConfigError, DesignError, GraphError, Se3SyncError, WeightingError
+
+from . import plugins
+from .initial import paper_state, random_state
 
 try:  # Python 3.11+
     import tomllib as _toml
@@ -30,27 +34,9 @@ DEFAULT_LOG_RATE = 100.0
 MAX_DEFAULT_INTERNAL_STEP = 1e-3
 
 
-class ScenarioError(Se3SyncError):
-    """A scenario problem: ``ScenarioError(keypath, reason)``; the loader adds the file name.
-
-    ``str(err)`` is one line: ``FILE: KEYPATH: REASON`` (or ``KEYPATH: REASON`` without a file).
-    """
-
-    def __init__(self, keypath: str, reason: str, file: str | None = None):
-        self.keypath = "" if keypath is None else str(keypath)
-        self.reason = " ".join(str(reason).split())  # one line, always
-        self.file = None if file is None else str(file)
-        super().__init__(self._line())
-
-    def _line(self) -> str:
-        parts = [p for p in (self.file, self.keypath) if p]
-        return ": ".join(parts + [self.reason])
-
-    def __str__(self) -> str:
-        return self._line()
-
-    def with_file(self, file) -> "ScenarioError":
-        return ScenarioError(self.keypath, self.reason, str(file))
+# A scenario problem: ``ScenarioError(keypath, reason)``; the loader adds the file name. The class
+# lives in controller.errors so that packages owning a table raise it without importing cosim.
+ScenarioError = ConfigError
 
 
 # ----------------------------------------------------------------------------- schema
@@ -65,8 +51,8 @@ SCHEMA: dict[str, Any] = {
                 "agent", "theta0"},
     "simulation": {"duration", "step", "log_rate"},
     "plant": {"gravity", "internal_step", "mode"},
-    "bridge": None,
 }
+# Further tables ([bridge], ...) are owned by other packages: see cosim/plugins.py.
 AGENT_KEYS = {"axis_angle", "quaternion", "position", "velocity"}
 REQUIRED = ("agents", "graph", "weighting", "gains", "initial", "simulation")
 
@@ -179,9 +165,9 @@ def apply_overrides(data: dict, overrides) -> dict:
         parts, value = parse_override(item)
         path = ".".join(parts)
         sec = parts[0]
-        if sec not in SCHEMA:
+        if sec not in SCHEMA and sec not in plugins.table_names():
             raise ScenarioError(path, f"unknown key (from --set {item})")
-        allowed = SCHEMA[sec]
+        allowed = SCHEMA.get(sec)
         if allowed is not None:
             if len(parts) != 2 or parts[1] not in allowed or parts[1] == "agent":
                 raise ScenarioError(path, f"unknown key (from --set {item})")
@@ -218,8 +204,13 @@ class Scenario:
     gravity: np.ndarray          # (3,)
     internal_step: float
     plant_mode: str              # "fleet" | "per-body"
-    bridge: Any = None
+    tables: dict = field(default_factory=dict)   # parsed tables owned by other packages
     overrides: tuple = field(default=())
+
+    @property
+    def bridge(self):
+        """The parsed [bridge] table (bridge.config.BridgeConfig) or None."""
+        return self.tables.get("bridge")
 
     @property
     def n_agents(self) -> int:
@@ -273,18 +264,15 @@ def parse_scenario(text: str, name: str = "scenario", path: str = "<string>", ov
 
 
 def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> Scenario:
-    from controller import Gains, Graph, WeightingMatrix, design_synergy
-    from controller.errors import DesignError, GraphError, WeightingError
-
-    _check_keys("", data, SCHEMA)
+    plugin_tables = plugins.table_names()
+    _check_keys("", data, set(SCHEMA) | plugin_tables)
     for sec in REQUIRED:
         if sec not in data:
             raise ScenarioError(sec, "missing required table")
     for sec, allowed in SCHEMA.items():
         if sec in data:
             _table(sec, data[sec])
-            if allowed is not None:
-                _check_keys(sec, data[sec], allowed)
+            _check_keys(sec, data[sec], allowed)
 
     # [agents]
     ag = data["agents"]
@@ -371,16 +359,10 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
             design = design_synergy(weighting, Theta=Theta, gamma=gamma, delta=delta, u_c1=u_c1,
                                     alpha_signs=signs)
     except DesignError as exc:
-        msg = str(exc)
-        key = "synergy"
-        for prefix, k in (("gamma", "synergy.gamma"), ("delta", "synergy.delta"),
-                          ("Theta", theta_key), ("u_c1", "synergy.u_c1"),
-                          ("alpha_signs", "synergy.alpha_signs"), ("the exact gap", theta_key),
-                          ("Δ*_W", "synergy.u_c1" if u_c1 is not None else "weighting")):
-            if msg.startswith(prefix):
-                key = k
-                break
-        raise ScenarioError(key, msg) from None
+        key = {"gamma": "synergy.gamma", "delta": "synergy.delta", "Theta": theta_key,
+               "u_c1": "synergy.u_c1", "alpha_signs": "synergy.alpha_signs",
+               "W": "weighting"}.get(exc.param, "synergy")
+        raise ScenarioError(key, str(exc)) from None
 
     # [gains]
     gn = data["gains"]
@@ -414,32 +396,22 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
     # [initial]
     S0, theta0 = _initial(data["initial"], N, graph, weighting)
 
-    # [bridge]
-    bridge = data.get("bridge")
-    if bridge is not None:
+    # tables owned by other packages ([bridge], ...)
+    tables = {}
+    for sec in sorted(plugin_tables & set(data)):
         try:
-            from bridge.config import parse_bridge  # noqa: F401
-        except ImportError:
-            parse_bridge = None
-        if parse_bridge is not None:
-            try:
-                bridge = parse_bridge(bridge, N)
-            except ScenarioError as exc:
-                kp = exc.keypath or "bridge"
-                if not kp.startswith("bridge"):
-                    kp = f"bridge.{kp}"
-                raise ScenarioError(kp, exc.reason) from None
+            tables[sec] = plugins.table_parser(sec)(_table(sec, data[sec]), N)
+        except ConfigError as exc:
+            raise exc.under(sec) from None
 
     return Scenario(name=name, path=path, text=text, values=data, graph=graph,
                     weighting=weighting, design=design, gains=gains, masses=masses,
                     inertias=inertias, S0=S0, theta0=theta0, duration=duration, step=step,
                     log_rate=log_rate, gravity=gravity, internal_step=internal,
-                    plant_mode=mode, bridge=bridge, overrides=overrides)
+                    plant_mode=mode, tables=tables, overrides=overrides)
 
 
 def _initial(ini: dict, N: int, graph, weighting):
-    from controller import se3
-
     S0 = np.zeros((N, 18))
     gen = ini.get("generator")
     M = graph.M
@@ -504,13 +476,7 @@ def _initial(ini: dict, N: int, graph, weighting):
             if e not in (1, 2, 3):
                 raise ScenarioError("initial.eigenvector", f"must be 1, 2 or 3, got {e}")
             v = weighting.eig()[1][:, e - 1]
-        c = weighting.b / weighting.d
-        for i in range(N):
-            ang = -math.pi / 2 if (i + 1) % 2 == 1 else math.pi / 2
-            R = se3.R_a(ang, v)
-            S0[i, 0:3] = c - R @ c
-            S0[i, 3:12] = R.ravel()
-        return S0, theta0
+        return paper_state(N, v, weighting), theta0
     if gen == "random":
         only({"seed", "position_box", "velocity_ball"}, "generator = \"random\"")
         seed = _num("initial.seed", ini.get("seed", 0), integer=True)
@@ -518,14 +484,5 @@ def _initial(ini: dict, N: int, graph, weighting):
             raise ScenarioError("initial.seed", f"must be >= 0, got {seed}")
         box = _num("initial.position_box", ini.get("position_box", 1.0), nonneg=True)
         ball = _num("initial.velocity_ball", ini.get("velocity_ball", 0.0), nonneg=True)
-        rng = np.random.default_rng(seed)
-        R = se3.random_rotation(rng, N)
-        p = rng.uniform(-box, box, size=(N, 3))
-        dirs = rng.standard_normal((N, 6))
-        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        rad = ball * rng.uniform(0, 1, size=(N, 1)) ** (1 / 6)
-        S0[:, 0:3] = p
-        S0[:, 3:12] = R.reshape(N, 9)
-        S0[:, 12:18] = dirs * rad
-        return S0, theta0
+        return random_state(np.random.default_rng(seed), N, box, ball), theta0
     raise ScenarioError("initial.generator", f"must be \"paper\" or \"random\", got {_fmtv(gen)}")

@@ -91,7 +91,7 @@ def test_missing_file(tmp_path, capsys):
 
 def test_check_stability_of_the_paper_gains(capsys):
     from cosim.scenario import load_scenario
-    from cosim.stability import analyse, spectral_radius
+    from cosim.analysis.stability import analyse, spectral_radius
 
     sc = load_scenario(PAPER)
     assert spectral_radius(sc, 2e-4) > 1.0

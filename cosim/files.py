@@ -5,6 +5,7 @@ renamed onto it, so a failed or interrupted command never leaves half a file beh
 """
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from contextlib import contextmanager
@@ -35,3 +36,10 @@ def atomic_path(path):
         except OSError:
             pass
         raise
+
+
+def write_json_atomic(path, obj) -> None:
+    """Writes JSON to a temporary file in the same directory, then renames it into place."""
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
+        json.dump(obj, f, indent=1, allow_nan=True)
+        f.write("\n")

@@ -18,7 +18,12 @@ from __future__ import annotations
 import json
 import time
 
+from mcap.records import Attachment, Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
+
+from controller import __version__
+from controller.errors import Se3SyncError
 
 __all__ = ["McapLogger", "SCHEMAS", "read_log"]
 
@@ -140,8 +145,6 @@ class McapLogger:
 
     def __init__(self, path, scenario, controller: str = "hybrid", model_description=None,
                  chunk_size: int = 256 * 1024, extra_metadata: dict | None = None):
-        from controller import __version__
-
         self.path = str(path)
         self._f = open(self.path, "wb")
         try:
@@ -263,10 +266,6 @@ def read_log(path) -> dict:
     torn tail (a killed run), yields every record before the tear. Raises Se3SyncError (one
     line) when the file is unreadable or is not an se3sync log.
     """
-    from controller.errors import Se3SyncError
-    from mcap.records import Attachment, Channel, Message, Metadata
-    from mcap.stream_reader import StreamReader
-
     out = {"metadata": None, "attachments": {}, "messages": {}, "truncated": False}
     channels = {}
     n_records = 0

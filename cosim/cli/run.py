@@ -2,9 +2,15 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
+from pathlib import Path
 
-__all__ = ["register"]
+from controller.errors import Se3SyncError
+
+from ..registry import LAWS, PLANTS
+
+__all__ = ["register", "check_outputs"]
 
 
 def _add_set(p):
@@ -32,11 +38,11 @@ def register(sub) -> None:
     p.add_argument("--step", type=float, metavar="H",
                    help="communication step h in s (overrides simulation.step)")
     _add_set(p)
-    p.add_argument("--plant", choices=("fleet", "per-body"), default=None,
-                   help="one N-body FMU instance (fleet, the default) or N single-body "
-                        "instances (per-body); default: the scenario's plant.mode")
-    p.add_argument("--controller", choices=("hybrid", "gradient"), default="hybrid",
-                   help="the paper's hybrid feedback (default) or the gradient-only baseline")
+    p.add_argument("--plant", choices=tuple(PLANTS), default=None,
+                   help="; ".join(f"{k}: {v[1]}" for k, v in PLANTS.items())
+                   + " (default: the scenario's plant.mode)")
+    p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
+                   help="; ".join(f"{k}: {v[1]}" for k, v in LAWS.items()) + " (default hybrid)")
     p.add_argument("--force", action="store_true",
                    help="run even if the sampled loop is unstable at this step")
     p.set_defaults(func=_cmd_run)
@@ -49,8 +55,8 @@ def register(sub) -> None:
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.add_argument("--step", type=float, metavar="H", help="check this step instead")
-    p.add_argument("--controller", choices=("hybrid", "gradient"), default="hybrid",
-                   help="which loop to linearise (default hybrid)")
+    p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
+                   help="which law's loop to linearise (default hybrid)")
     _add_set(p)
     p.set_defaults(func=_cmd_check)
 
@@ -64,20 +70,8 @@ def register(sub) -> None:
     p.set_defaults(func=_cmd_plot)
 
 
-def _design(sc) -> dict:
-    d = sc.design.as_dict()
-    return {k: d[k] for k in ("case", "u_c1", "u_c2", "delta_star", "gamma", "delta",
-                              "gamma_bound", "delta_bound", "exact_gap", "warnings", "Theta",
-                              "eigenvalues_W")}
-
-
-def _check_outputs(*paths):
+def check_outputs(*paths):
     """Refuse unwritable output locations before anything runs."""
-    import os
-    from pathlib import Path
-
-    from controller.errors import Se3SyncError
-
     for p in paths:
         if p is None:
             continue
@@ -89,18 +83,16 @@ def _check_outputs(*paths):
 
 
 def _cmd_run(args) -> int:
-    from controller.errors import Se3SyncError
-
-    from .api import run_scenario
-    from .scenario import ScenarioError, load_scenario
-    from .stability import analyse
+    from ..analysis.stability import analyse
+    from ..run import run_scenario
+    from ..scenario import ScenarioError, load_scenario
 
     sc = load_scenario(args.scenario, args.overrides, duration=args.duration, step=args.step)
-    _check_outputs(args.log, args.summary)
+    check_outputs(args.log, args.summary)
     if not args.force:
-        st = analyse(sc, hybrid=args.controller == "hybrid", bisect=False)
+        st = analyse(sc, law=args.controller, bisect=False)
         if not st["stable"]:
-            st = analyse(sc, hybrid=args.controller == "hybrid", bisect=True)
+            st = analyse(sc, law=args.controller, bisect=True)
             raise ScenarioError(
                 "simulation.step",
                 f"h = {sc.step:g} s makes the sampled loop unstable (spectral radius "
@@ -126,12 +118,13 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_check(args) -> int:
-    from .scenario import load_scenario
-    from .stability import analyse
+    from ..analysis.stability import analyse
+    from ..master import design_summary
+    from ..scenario import load_scenario
 
     sc = load_scenario(args.scenario, args.overrides, step=args.step)
-    st = analyse(sc, hybrid=args.controller == "hybrid")
-    out = {"scenario": sc.name, "design": _design(sc), "step": sc.step,
+    st = analyse(sc, law=args.controller)
+    out = {"scenario": sc.name, "design": design_summary(sc), "step": sc.step,
            "spectral_radius": st["spectral_radius"], "stable": st["stable"],
            "max_stable_step": st["max_stable_step"]}
     if args.json:
@@ -161,9 +154,9 @@ def _cmd_check(args) -> int:
 
 
 def _cmd_plot(args) -> int:
-    from .plot import plot_log
+    from ..log.plot import plot_log
 
-    _check_outputs(args.output)
+    check_outputs(args.output)
     out = plot_log(args.log, args.output)
     print(f"wrote {out}", file=sys.stderr)
     return 0

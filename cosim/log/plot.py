@@ -5,17 +5,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ._files import atomic_path
+from controller.errors import Se3SyncError
+
+from ..files import atomic_path
+from .mcap import read_log
 
 __all__ = ["load_series", "plot_log"]
 
 
 def load_series(path) -> dict:
     """Arrays from a log: t (T,), rot_err/pos_err/theta (T, M), omega/v (T, N, 3), jumps."""
-    from controller.errors import Se3SyncError
-
-    from .mcaplog import read_log
-
     log = read_log(path)
     edges = log["messages"].get("/edges", [])
     agents = log["messages"].get("/agents", [])
