@@ -85,7 +85,7 @@ def run_naive(sc, n_steps):
     from controller import se3
     from plant_fmu import layout
     from plant_fmu.build import fmu_path
-    from plant_fmu.fast import quat_from_R
+    from controller.se3 import rot_to_quat as quat_from_R
 
     N = sc.graph.n
     path = str(fmu_path(N))

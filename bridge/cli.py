@@ -61,7 +61,8 @@ def register(sub) -> None:
                     "master as `run`: same MCAP log and summary, plus link statistics. Endpoints come "
                     "from --vehicle or the scenario's [bridge] table. Exit codes: 0 ok, 2 bad input, "
                     f"{EXIT_NOT_CONNECTED} a vehicle never connected, {EXIT_LINK} a lockstep link failed, "
-                    "130 interrupted.")
+                    "130 interrupted by Ctrl-C, 143 by SIGTERM (log and summary finished, "
+                    "\"interrupted\": true).")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--vehicle", action="append", metavar="ENDPOINT",
                    help="the bridge-side endpoint of vehicle i (udpin:HOST:PORT | udpout:HOST:PORT), "
@@ -80,7 +81,21 @@ def register(sub) -> None:
     p.set_defaults(func=_cmd_connect)
 
 
+def _outputs(*pairs) -> None:
+    """Refuse unwritable outputs before waiting for any network peer."""
+    from cosim.files import check_output
+
+    for option, path, suffixes in pairs:
+        if path is not None:
+            check_output(option, path, suffixes)
+
+
 def _cmd_vehicle(args) -> int:
+    from controller.errors import Se3SyncError
+
+    if args.count is not None and args.count < 1:
+        raise Se3SyncError(f"--count: must be >= 1, got {args.count}")
+    _outputs(("--tlog", args.tlog, None), ("--stats", args.stats, None))
     from .vehicle import run_vehicle_cli
 
     return run_vehicle_cli(args)
@@ -93,6 +108,8 @@ def _cmd_connect(args) -> int:
     from .config import default_config
     from .plant import ConnectError, LinkError, MavlinkPlant
 
+    _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None),
+             ("--tlog", args.tlog, None))
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
     cfg = sc.bridge or default_config(sc.n_agents)
     if args.vehicle:

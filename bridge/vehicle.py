@@ -14,7 +14,6 @@ retry over a lossy link).
 """
 from __future__ import annotations
 
-import json
 import math
 import select
 import signal
@@ -23,6 +22,9 @@ import threading
 import time
 
 import numpy as np
+
+from cosim import signals
+from cosim.files import write_json_atomic
 
 from .link import Counters, Peer, TLog, UdpSocket, mavlink2
 from .mapping import FleetMapping, MappingSpec
@@ -398,7 +400,8 @@ class VehicleServer:
         in_main = threading.current_thread() is threading.main_thread()
         old = None
         if in_main:
-            old = signal.signal(signal.SIGTERM, lambda *a: self._stop.set())
+            old = signal.signal(signal.SIGTERM, lambda *a: (signals.note(signal.SIGTERM),
+                                                            self._stop.set()))
         t0 = time.monotonic()
         end = None if duration is None else t0 + duration
         tick = self.odom_period
@@ -480,8 +483,7 @@ def run_vehicle_cli(args) -> int:
     finally:
         srv.close()
     if args.stats:
-        with open(args.stats, "w") as f:
-            json.dump(st, f, indent=1)
+        write_json_atomic(args.stats, st)
     print(f"se3sync vehicle: stopped; sent {st['sent']}, received {st['received']}, malformed {st['malformed']}, "
           f"rejected {st['rejected']}, failsafe {st['failsafe']}", file=sys.stderr, flush=True)
-    return 0
+    return signals.exit_status() if signals.requested() else 0

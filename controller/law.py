@@ -161,7 +161,11 @@ def V_bar(graph: Graph, weighting: WeightingMatrix, design: SynergyDesign | None
 
 def jump_bound(V0: float, k_X: float, delta: float) -> int:
     """⌈V̄(0)/(k_X δ)⌉, Theorem 1's bound on the number of jumps."""
-    return int(math.ceil(V0 / (k_X * delta)))
+    q = V0 / (k_X * delta)
+    if not math.isfinite(q):
+        raise Se3SyncError(f"the jump bound V̄(0)/(k_X δ) = {V0:.6g}/({k_X:.6g}·{delta:.6g}) is "
+                           "not finite: the initial state or the gains are out of range")
+    return int(math.ceil(q))
 
 
 class AgentStepper:

@@ -11,8 +11,6 @@ This is the only step loop in se3sync: `run`, `connect` and the sweeps all drive
 """
 from __future__ import annotations
 
-import signal
-import threading
 import time
 
 import numpy as np
@@ -20,6 +18,7 @@ import numpy as np
 from controller import LawParameters, V_bar, jump_bound
 from controller.kernels import metrics, network_U
 
+from . import signals
 from .controllers import law_name, make_controller
 
 __all__ = ["Master", "make_controller", "design_summary"]
@@ -139,8 +138,12 @@ class Master:
             self.logger.record(round(t * 1e9), S, u, theta, ctrl.mu, ctrl.jumped, self._rot,
                                self._pos, self._U, self._quat, float(V), kxu)
 
-    def _on_sigint(self, signum, frame):
-        if self._stop:  # a second Ctrl-C: stop right now
+    def request_stop(self) -> None:
+        """Stop the run at the next check (between two blocks), as Ctrl-C does."""
+        self._stop = True
+
+    def _on_signal(self):
+        if self._stop:  # a second Ctrl-C or SIGTERM: stop right now
             raise KeyboardInterrupt
         self._stop = True
 
@@ -160,12 +163,9 @@ class Master:
 
             bar = tqdm(total=n_steps, unit="step", unit_scale=True, mininterval=0.5,
                        desc=self.scenario.name)
-        old_handler = None
-        if threading.current_thread() is threading.main_thread():
-            try:
-                old_handler = signal.signal(signal.SIGINT, self._on_sigint)
-            except ValueError:  # pragma: no cover
-                old_handler = None
+        catcher = signals.catching(self._on_signal).__enter__()
+        if signals.pending():  # a signal arrived before the loop (and may have been swallowed)
+            self._stop = True
         interrupted = False
         broken = False
         timed_out = False
@@ -173,7 +173,7 @@ class Master:
         n = 0
         t0 = time.perf_counter()
         try:
-            while n < n_steps:
+            while n < n_steps and not self._stop:
                 # tick step: a full step with the slow-path work
                 S = read()
                 u, ev = step(S, h)
@@ -215,12 +215,12 @@ class Master:
             interrupted = True
             broken = True  # the plant may be mid-step: do not read it again
         finally:
-            if old_handler is not None:
-                signal.signal(signal.SIGINT, old_handler)
+            catcher.__exit__()
             if bar is not None:
                 bar.update(n - bar.n)
                 bar.close()
         wall = time.perf_counter() - t0
+        interrupted = interrupted or (self._stop and n < n_steps)
         self.n_done = n
         return self._summary(n, wall, interrupted, broken, timed_out)
 

@@ -12,14 +12,20 @@ from __future__ import annotations
 
 import importlib
 from functools import lru_cache
-from importlib.metadata import entry_points
+from importlib.metadata import PackageNotFoundError, distribution, entry_points
 
 __all__ = ["command_modules", "table_names", "table_parser"]
 
 
 @lru_cache(maxsize=None)
 def _group(name: str) -> dict:
-    return {ep.name: ep.value for ep in entry_points(group=name)}
+    # Our own distribution's entry points only: scanning every installed distribution costs
+    # ~70 ms at start-up in a test environment, more than the rest of `se3sync --help`.
+    try:
+        eps = distribution("se3sync").entry_points
+    except PackageNotFoundError:  # pragma: no cover - running from an uninstalled tree
+        eps = entry_points()
+    return {ep.name: ep.value for ep in eps if ep.group == name}
 
 
 def command_modules() -> list[str]:

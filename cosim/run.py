@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 
+from . import signals
 from .controllers import law_name, make_controller
 from .files import write_json_atomic
 from .log.mcap import McapLogger
@@ -44,8 +46,9 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
     plant: "fleet" | "per-body" | a Plant instance (closed by the caller);
     controller: "hybrid" | "gradient" | a controller instance. log_path: MCAP written
     (streamed) there; summary_path: summary JSON written atomically. log_metadata adds to (or
-    overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C the run stops
-    cleanly, the log is finished and the summary has "interrupted": true.
+    overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C or SIGTERM the
+    run stops cleanly, the log is finished and the summary has "interrupted": true. A run that
+    fails (an exception) removes its log: no output is better than one that looks whole.
     """
     if not isinstance(scenario, Scenario):
         scenario = load_scenario(scenario)
@@ -56,21 +59,39 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
     ctrl_kind = law_name(ctrl)
     p = make_plant(plant, scenario, fmu_path) if own_plant else plant
     logger = None
+    failed = False
     try:
-        if log_path is not None:
-            md = getattr(p, "model_description", None)
-            logger = McapLogger(log_path, scenario, controller=ctrl_kind,
-                                model_description=md() if md is not None else None,
-                                extra_metadata={"plant": plant_kind, **(log_metadata or {})})
-        master = Master(scenario, p, ctrl, logger)
+        # A signal while the log and the master are set up stops the run at its first step
+        # (with a finished log and a summary), rather than somewhere inside the set-up.
+        requested = []
+        with signals.catching(lambda: requested.append(True)):
+            if log_path is not None:
+                md = getattr(p, "model_description", None)
+                logger = McapLogger(log_path, scenario, controller=ctrl_kind,
+                                    model_description=md() if md is not None else None,
+                                    extra_metadata={"plant": plant_kind, **(log_metadata or {})})
+            master = Master(scenario, p, ctrl, logger)
+        if requested:
+            master.request_stop()
         summary = master.run(scenario.n_steps(), progress=progress)
+    except Exception:
+        failed = True
+        raise
     finally:
         try:
             if logger is not None:
                 logger.close()
+        except OSError:
+            if not failed:
+                raise
         finally:
             if own_plant:
                 p.close()
+            if failed and logger is not None:
+                try:
+                    os.unlink(log_path)
+                except OSError:
+                    pass
     summary["plant"] = plant_kind
     summary.update(summary_extra or {})
     if log_path is not None:

@@ -16,9 +16,9 @@ import json
 import os
 import sys
 
-from .. import plugins
+from .. import plugins, signals
 
-__all__ = ["main", "build_parser", "require", "install_hint"]
+__all__ = ["main", "entry", "build_parser", "require", "install_hint"]
 
 # Optional dependencies and the extra that installs them.
 _EXTRAS = {"pymavlink": "mavlink", "fastcrc": "mavlink", "dask": "sweep", "distributed": "sweep",
@@ -83,8 +83,26 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Exit status: 0 ok, 2 bad input (one line on stderr), 130 SIGINT, 143 SIGTERM (outputs
+    finished, summaries with "interrupted": true); some commands add their own (see --help)."""
+    old = signals.install()
+    command = "se3sync"
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        command = f"se3sync {args.command}"
+        rc = _dispatch(args)
+    except KeyboardInterrupt:
+        print(f"{command}: interrupted ({signals.received() or 'SIGINT'})", file=sys.stderr)
+        return signals.exit_status()
+    finally:
+        signals.uninstall(old)
+    if rc == 130 and signals.received() == "SIGTERM":
+        rc = 143
+    return rc
+
+
+def _dispatch(args) -> int:
     from controller.errors import Se3SyncError
 
     try:
@@ -93,9 +111,6 @@ def main(argv: list[str] | None = None) -> int:
     except Se3SyncError as exc:
         print(f"se3sync {args.command}: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"se3sync {args.command}: interrupted", file=sys.stderr)
-        return 130
     except MissingExtra as exc:
         return _missing(args.command, exc.module)
     except ModuleNotFoundError as exc:
@@ -110,5 +125,20 @@ def main(argv: list[str] | None = None) -> int:
     return int(rc or 0)
 
 
+def entry() -> None:
+    """The `se3sync` executable: main(), then exit with its status. After a signal the status is
+    made final with os._exit (exit handlers run first): the interpreter would otherwise turn a
+    KeyboardInterrupt it saw anywhere, even one handled, into death by SIGINT (status −2)."""
+    rc = main()
+    if rc in (130, 143):
+        import atexit
+
+        sys.stdout.flush()
+        sys.stderr.flush()
+        atexit._run_exitfuncs()
+        os._exit(rc)
+    sys.exit(rc)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()

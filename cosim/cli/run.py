@@ -2,15 +2,17 @@
 from __future__ import annotations
 
 import json
-import os
 import sys
-from pathlib import Path
 
 from controller.errors import Se3SyncError
 
+from ..files import check_output
 from ..registry import LAWS, PLANTS
 
-__all__ = ["register", "check_outputs"]
+__all__ = ["register", "EXIT_UNSTABLE"]
+
+EXIT_UNSTABLE = 3   # `check`: the sampled loop is unstable at the step checked
+PLOT_FORMATS = (".png", ".pdf", ".svg", ".eps", ".ps")
 
 
 def _add_set(p):
@@ -26,8 +28,9 @@ def register(sub) -> None:
                     "step h under zero-order hold, the controller's network view evaluated at "
                     "every step. Refuses a step h for which the linearised sampled loop is "
                     "unstable (see `se3sync check`) unless --force. Exit codes: 0 ok, 2 bad "
-                    "input, 130 interrupted (Ctrl-C: the log is finished and the summary has "
-                    "\"interrupted\": true).")
+                    "input, 130 interrupted by Ctrl-C, 143 by SIGTERM (either way the log is "
+                    "finished and the summary has \"interrupted\": true). A run that fails "
+                    "leaves no log.")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--log", metavar="OUT.mcap",
                    help="write an MCAP log (streamed; simulated-time stamps) to this path")
@@ -51,7 +54,9 @@ def register(sub) -> None:
         "check", help="validate a scenario, print its synergy design and sampled-data stability",
         description="Validate a scenario and print the synergy design (Lemma 2) and the "
                     "stability of the zero-order-hold loop at the scenario's step h, linearised "
-                    "at consensus: spectral_radius (< 1 is stable) and max_stable_step.")
+                    "at consensus: spectral_radius (< 1 is stable) and max_stable_step. Exit "
+                    f"codes: 0 stable, 2 bad input, {EXIT_UNSTABLE} unstable at this step (the "
+                    "report is printed either way), so that check can gate a CI job.")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.add_argument("--step", type=float, metavar="H", help="check this step instead")
@@ -66,20 +71,8 @@ def register(sub) -> None:
                     "se3sync MCAP log (matplotlib, Agg backend).")
     p.add_argument("log", help="an MCAP log written by `se3sync run --log`")
     p.add_argument("-o", "--output", required=True, metavar="FIG.png",
-                   help="output image (format from the suffix: png, pdf, svg)")
+                   help="output image (format from the suffix: png, pdf, svg, eps, ps)")
     p.set_defaults(func=_cmd_plot)
-
-
-def check_outputs(*paths):
-    """Refuse unwritable output locations before anything runs."""
-    for p in paths:
-        if p is None:
-            continue
-        d = Path(p).parent if str(Path(p).parent) else Path(".")
-        if not d.is_dir():
-            raise Se3SyncError(f"{p}: directory {d} does not exist")
-        if not os.access(d, os.W_OK):
-            raise Se3SyncError(f"{p}: directory {d} is not writable")
 
 
 def _cmd_run(args) -> int:
@@ -87,8 +80,10 @@ def _cmd_run(args) -> int:
     from ..run import run_scenario
     from ..scenario import ScenarioError, load_scenario
 
+    for opt, path, sfx in (("--log", args.log, (".mcap",)), ("--summary", args.summary, None)):
+        if path is not None:
+            check_output(opt, path, sfx)
     sc = load_scenario(args.scenario, args.overrides, duration=args.duration, step=args.step)
-    check_outputs(args.log, args.summary)
     if not args.force:
         st = analyse(sc, law=args.controller, bisect=False)
         if not st["stable"]:
@@ -102,8 +97,9 @@ def _cmd_run(args) -> int:
     try:
         summary = run_scenario(sc, plant=args.plant or sc.plant_mode, controller=args.controller,
                                log_path=args.log, summary_path=args.summary, progress=progress)
-    except OSError as exc:
-        raise Se3SyncError(f"{exc.filename or ''}: {exc.strerror or exc}") from None
+    except OSError as exc:  # the streamed log is the file being written when the disk fills up
+        raise Se3SyncError(f"{exc.filename or args.log or args.summary}: "
+                           f"{exc.strerror or exc}") from None
     f = summary.get("final") or {}
     msg = (f"{sc.name}: {summary['steps']} steps, {summary['sim_time_s']:.4g} s simulated in "
            f"{summary['wall_time_s']:.3g} s ({summary['realtime_factor'] or 0:.3g}× real time); "
@@ -127,9 +123,10 @@ def _cmd_check(args) -> int:
     out = {"scenario": sc.name, "design": design_summary(sc), "step": sc.step,
            "spectral_radius": st["spectral_radius"], "stable": st["stable"],
            "max_stable_step": st["max_stable_step"]}
+    rc = 0 if st["stable"] else EXIT_UNSTABLE
     if args.json:
         print(json.dumps(out, indent=1))
-        return 0
+        return rc
     d = out["design"]
     fmt = lambda v: "[" + ", ".join(f"{x:.4f}" for x in v) + "]"  # noqa: E731
     lines = [
@@ -150,13 +147,13 @@ def _cmd_check(args) -> int:
         f"max_stable_step {st['max_stable_step']:.4g} s",
     ]
     print("\n".join(lines))
-    return 0
+    return rc
 
 
 def _cmd_plot(args) -> int:
     from ..log.plot import plot_log
 
-    check_outputs(args.output)
+    check_output("--output", args.output, PLOT_FORMATS)
     out = plot_log(args.log, args.output)
     print(f"wrote {out}", file=sys.stderr)
     return 0

@@ -84,7 +84,8 @@ def register(sub) -> None:
 
 
 def _cmd_sweep(args) -> int:
-    from ..sweep.runner import check_out_path, make_spec, read_results, run_sweep
+    from ..files import check_output
+    from ..sweep.runner import make_spec, read_results, run_sweep
 
     if args.workers is not None and args.workers < 0:
         _bad("--workers", f"must be >= 0, got {args.workers}")
@@ -97,7 +98,7 @@ def _cmd_sweep(args) -> int:
         _bad("--chunk", f"must be >= 1, got {args.chunk}")
     if not (math.isfinite(args.flush_every) and args.flush_every >= 0):
         _bad("--flush-every", f"must be a finite number >= 0, got {args.flush_every}")
-    out = check_out_path(args.out, "--out", (".parquet", ".csv"))
+    out = check_output("--out", args.out, (".parquet", ".csv"))
     spec, sc = make_spec(args.scenario, args.overrides, seed=args.seed, samples=args.samples,
                          position_box=args.position_box, velocity_ball=args.velocity_ball,
                          rot_tol=args.rot_tol, pos_tol=args.pos_tol, sample_dt=args.sample_dt,
@@ -133,14 +134,14 @@ def _cmd_sweep(args) -> int:
 
 
 def _cmd_report(args) -> int:
-    from ..sweep.runner import check_out_path
+    from ..files import check_output
 
     p = Path(args.results)
     if not p.is_file():
         _bad("results", f"no such file: {args.results!r}")
-    check_out_path(args.output, "--output", (".png", ".pdf", ".svg"))
+    check_output("--output", args.output, (".png", ".pdf", ".svg"))
     if args.json:
-        check_out_path(args.json, "--json", (".json",))
+        check_output("--json", args.json, (".json",))
     from ..sweep.report import report
 
     summary = report(p, args.output, json_path=args.json)

@@ -284,7 +284,8 @@ def read_log(path) -> dict:
                     if topic is not None:
                         out["messages"].setdefault(topic, []).append((rec.log_time, json.loads(rec.data)))
                 elif isinstance(rec, Channel):
-                    channels[rec.id] = rec.topic
+                    if rec.message_encoding == "json":  # se3sync writes JSON only
+                        channels[rec.id] = rec.topic
                 elif isinstance(rec, Metadata):
                     if rec.name == "se3sync":
                         out["metadata"] = dict(rec.metadata)

@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import sys
 import time
 from pathlib import Path
 
@@ -34,7 +32,7 @@ from ..files import atomic_path, write_json_atomic
 from ..scenario import load_scenario
 from .spec import COLUMNS, SweepSpec, error_row, load_spec_scenario, n_adversarial, run_chunk
 
-__all__ = ["SweepError", "run_sweep", "read_results", "write_results", "make_spec", "check_out_path"]
+__all__ = ["SweepError", "run_sweep", "read_results", "write_results", "make_spec"]
 
 CONTROLLERS = law_names()
 SINGLE_RETRIES = 1  # extra tries of a single sample whose task failed (e.g. its worker died)
@@ -47,20 +45,6 @@ class SweepError(Se3SyncError):
 # ----------------------------------------------------------------------------- CLI
 def _bad(option: str, reason: str):
     raise SweepError(f"{option}: {reason}")
-
-
-def check_out_path(path: str, option: str, suffixes) -> Path:
-    p = Path(path)
-    if p.suffix.lower() not in suffixes:
-        _bad(option, f"must end in {' or '.join(suffixes)}, got {path!r}")
-    d = p.parent if str(p.parent) else Path(".")
-    if not d.is_dir():
-        _bad(option, f"directory {str(d)!r} does not exist")
-    if not os.access(d, os.W_OK):
-        _bad(option, f"directory {str(d)!r} is not writable")
-    if p.exists() and p.is_dir():
-        _bad(option, f"{path!r} is a directory")
-    return p
 
 
 def make_spec(scenario_path, overrides=(), *, seed=0, samples=0, position_box=1.0,
