@@ -14,6 +14,8 @@ from ctypes import c_double, c_int, c_size_t, c_void_p
 from pathlib import Path
 
 import numpy as np
+from fmpy import extract, read_model_description
+from fmpy.fmi2 import FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
 
 from controller import layout as state_layout
 from controller.errors import Se3SyncError
@@ -71,9 +73,6 @@ class FleetFMU:
     """
 
     def __init__(self, n_bodies: int, fmu_path=None, instance_name: str = "plant", logger=None):
-        from fmpy import extract, read_model_description
-        from fmpy.fmi2 import FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
-
         self.n = n = int(n_bodies)
         if fmu_path is None:
             fmu_path = build.fmu_path(n)

@@ -21,9 +21,14 @@ Parquet reader; its types are restored from the known schema when it is read bac
 from __future__ import annotations
 
 import json
+import logging
 import math
+import signal
+import threading
 import time
 from pathlib import Path
+
+from tqdm import tqdm
 
 from controller.errors import Se3SyncError
 
@@ -221,8 +226,6 @@ def run_sweep(spec, out, *, controllers=CONTROLLERS, workers=None, scheduler=Non
 
     bar = None
     if progress and todo:
-        from tqdm import tqdm
-
         bar = tqdm(total=len(todo), unit="run", desc=spec.scenario_name, mininterval=0.5)
 
     def take(new_rows):
@@ -267,8 +270,6 @@ def run_sweep(spec, out, *, controllers=CONTROLLERS, workers=None, scheduler=Non
 
 
 def _run_dask(spec, todo, take, error_row, sc, stats, *, client, scheduler, workers, chunk):
-    import logging
-
     from distributed import Client, LocalCluster, as_completed
 
     cluster = None
@@ -285,9 +286,6 @@ def _run_dask(spec, todo, take, error_row, sc, stats, *, client, scheduler, work
             else:
                 # The worker processes inherit "ignore SIGINT": Ctrl-C stops the sweep (this
                 # process writes the finished rows), not the workers with tracebacks.
-                import signal
-                import threading
-
                 main = threading.current_thread() is threading.main_thread()
                 old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
                 try:
