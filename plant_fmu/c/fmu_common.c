@@ -220,6 +220,11 @@ static FmuStatus fmu_do_step(FmuInstance *c, const char *fn, double currentCommu
         FMU_LOG_ERROR(c, "%s: currentCommunicationPoint = %g is not finite", fn, currentCommunicationPoint);
         return FMU_ERROR;
     }
+    /* over the work budget: refused before any work, the instance stays usable */
+    if (model_check_step(&c->s.data, communicationStepSize, fmu_model_logger, c) != MODEL_OK) {
+        FMU_LOG_ERROR(c, "%s: step from t = %g refused (nothing was done)", fn, currentCommunicationPoint);
+        return FMU_ERROR;
+    }
     if (model_do_step(&c->s.data, communicationStepSize, fmu_model_logger, c) != MODEL_OK) {
         c->mode = M_STEP_FAILED;
         FMU_LOG_ERROR(c, "%s: step from t = %g failed", fn, currentCommunicationPoint);

@@ -636,13 +636,9 @@ static void rkmk4_step(Body *Bd, const double *gw, double h)
     memcpy(xi, xs, sizeof xs);
 }
 
-int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
+int model_check_step(const ModelData *d, double h, ModelLogger log, void *env)
 {
     const double ratio = h / d->h_internal;
-    double n_d, hs;
-    long long n;
-    int ok = 1;
-    const double *gw = (d->g[0] != 0.0 || d->g[1] != 0.0 || d->g[2] != 0.0) ? d->g : NULL;
     const long long max_n = MAX_BODY_SUBSTEPS / N_BODIES;
     /* ceil(ratio - 1e-9) <= max_n; also refuses ratio = inf / NaN */
     if (!(ratio - 1e-9 <= (double)max_n)) {
@@ -652,6 +648,17 @@ int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
              h, ceil(ratio - 1e-9), d->h_internal, N_BODIES, MAX_BODY_SUBSTEPS, max_n);
         return MODEL_ERROR;
     }
+    return MODEL_OK;
+}
+
+int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
+{
+    const double ratio = h / d->h_internal;
+    double n_d, hs;
+    long long n;
+    int ok = 1;
+    const double *gw = (d->g[0] != 0.0 || d->g[1] != 0.0 || d->g[2] != 0.0) ? d->g : NULL;
+    if (model_check_step(d, h, log, env) != MODEL_OK) return MODEL_ERROR;
     n_d = ceil(ratio - 1e-9);
     n = n_d < 1.0 ? 1 : (long long)n_d;
     hs = h / (double)n;

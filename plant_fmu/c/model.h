@@ -119,6 +119,10 @@ int model_validate_state(const ModelData *d, int initialized, int may_be_non_fin
  * (used to answer fmi2GetReal during initialization mode). */
 void model_preview(ModelData *d);
 
+/* MODEL_OK if a step of h is within the work budget (N_BODIES * substeps <= MAX_BODY_SUBSTEPS),
+ * else MODEL_ERROR with a logged message naming the limit. */
+int model_check_step(const ModelData *d, double h, ModelLogger log, void *env);
+
 /* Advances all bodies by h (h > 0 checked by the caller) in n = ceil(h/h_internal - 1e-9)
  * equal substeps.  Returns MODEL_ERROR without doing anything if N_BODIES * n exceeds
  * MAX_BODY_SUBSTEPS, and MODEL_ERROR (state not finite, unusable) if the result is not finite. */
