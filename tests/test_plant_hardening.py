@@ -321,6 +321,33 @@ def test_random_and_corrupted_states_are_all_refused(version):
     assert r["longest"] < 300  # every logged message is one short line
 
 
+def test_legitimate_states_of_every_mode_still_round_trip():
+    """not over-strict: a state after a failed step (non-finite by nature) and a state before
+    initialization with a parameter that initialization will refuse both deserialize; the
+    parameter is then refused where it always was, at exitInitializationMode."""
+    with FleetFMU(1, fmu_path=build.fmu_path(1)) as f:
+        f.set_parameters(J=np.eye(3) * 1e-200)
+        f.initialize()
+        f.set_input(np.array([[1e200, 0.0, 0.0, 0.0, 0.0, 0.0]]))  # J^-1 tau = 1e400: overflows
+        with pytest.raises(FMUError, match="no longer finite"):
+            f.do_step(0.0, 0.01)
+        s = f.get_fmu_state()
+        blob = f.serialize_fmu_state(s)
+        s2 = f.deserialize_fmu_state(blob)
+        assert f.serialize_fmu_state(s2) == blob
+        f.free_fmu_state(s)
+        f.free_fmu_state(s2)
+    with FleetFMU(1, fmu_path=build.fmu_path(1)) as f, FleetFMU(1, fmu_path=build.fmu_path(1)) as g:
+        f.set_parameters(mass=-1.0)
+        s = f.get_fmu_state()
+        s2 = g.deserialize_fmu_state(f.serialize_fmu_state(s))
+        g.set_fmu_state(s2)
+        with pytest.raises(FMUError, match=r"body\[1\]\.m = -1 must be > 0"):
+            g.initialize()
+        f.free_fmu_state(s)
+        g.free_fmu_state(s2)
+
+
 # ------------------------------------------------------------------ 13: double free
 
 
