@@ -46,8 +46,28 @@ class FMUError(Se3SyncError):
         self.function = function
         self.status = status
         self.messages = list(messages)
-        detail = "; ".join(messages) if messages else "no message logged"
-        super().__init__(f"{function} returned fmi2{_STATUS.get(status, status)}: {detail}")
+        super().__init__(f"{function} returned fmi2{_STATUS.get(status, status)}: {_one_line(self.messages)}")
+
+
+_DETAIL_MAX = 400  # characters of FMU messages in an FMUError (all of them stay in .messages)
+
+
+def _one_line(messages: list[str]) -> str:
+    """The logged messages joined into one line of at most about _DETAIL_MAX characters, whole
+    messages first to last, then "(+k more)"; a single overlong message is cut with "..."."""
+    parts = [" ".join(m.split()) for m in messages]
+    parts = [m for m in parts if m]
+    if not parts:
+        return "no message logged"
+    detail, used = "", 0
+    for m in parts:
+        if detail and len(detail) + 2 + len(m) > _DETAIL_MAX:
+            break
+        detail = f"{detail}; {m}" if detail else (m if len(m) <= _DETAIL_MAX else m[:_DETAIL_MAX - 3] + "...")
+        used += 1
+    if used < len(parts):
+        detail += f" (+{len(parts) - used} more)"
+    return detail
 
 
 def _as_array(x, shape, name) -> np.ndarray:
