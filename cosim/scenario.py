@@ -38,7 +38,8 @@ MAX_GAIN = 1e9
 MASS_RANGE = (1e-9, 1e9)   # kg; inertias: principal moments in this range too (kg m²)
 WEIGHTING_RANGE = (1e-9, 1e9)
 MAX_STEPS = 10 ** 9        # communication steps of one run
-MAX_SUBSTEPS = 10 ** 5     # plant substeps per communication step (h / internal_step)
+MAX_BODY_SUBSTEPS = 10 ** 6   # N · ⌈h / internal_step⌉ per step: the plant FMU's limit per doStep
+MIN_INTERNAL_STEP = 1e-9      # s, the plant FMU's floor
 # default internal step of the plant FMU: the communication step, but at most 1 ms
 MAX_DEFAULT_INTERNAL_STEP = 1e-3
 
@@ -443,12 +444,17 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
     pl = data.get("plant", {})
     gravity = _array("plant.gravity", pl.get("gravity", [0.0, 0.0, 0.0]), (3,))
     internal = min(step, MAX_DEFAULT_INTERNAL_STEP)
+    key = "simulation.step"
     if "internal_step" in pl:
+        key = "plant.internal_step"
         internal = _num("plant.internal_step", pl["internal_step"], positive=True)
-        sub = math.ceil(step / internal - 1e-9)
-        if sub > MAX_SUBSTEPS:
-            raise ScenarioError("plant.internal_step", f"{internal:g} s splits each step of "
-                                f"{step:g} s into {sub:.3g} substeps (at most {MAX_SUBSTEPS:.0e})")
+        if internal < MIN_INTERNAL_STEP:
+            raise ScenarioError(key, f"must be >= {MIN_INTERNAL_STEP:g} s, got {internal:g}")
+    sub = math.ceil(step / internal - 1e-9)
+    if N * sub > MAX_BODY_SUBSTEPS:
+        raise ScenarioError(key, f"h = {step:g} s with internal step {internal:g} s gives {N} × "
+                                 f"{sub:.3g} body-substeps per step, above the plant's "
+                                 f"{MAX_BODY_SUBSTEPS:.0e}")
     mode = pl.get("mode", "fleet")
     if mode not in ("fleet", "per-body"):
         raise ScenarioError("plant.mode", f"must be \"fleet\" or \"per-body\", got {_fmtv(mode)}")
