@@ -58,9 +58,17 @@ def register(sub) -> None:
         "plot", help="plot a run log like the paper's Fig. 2",
         description="Plot ‖I − R̄_k‖, ‖p̄_k‖, ‖ω_i‖, ‖v_i‖ and θ_k against simulated time from an "
                     "se3sync MCAP log (matplotlib, Agg backend).")
-    p.add_argument("log", help="an MCAP log written by `se3sync run --log`")
+    p.add_argument("log", nargs="+", help="MCAP log(s) written by `se3sync run --log`; "
+                   "several are overlaid")
     p.add_argument("-o", "--output", required=True, metavar="FIG.png",
                    help="output image (format from the suffix: png, pdf, svg)")
+    p.add_argument("--labels", metavar="A,B,...",
+                   help="comma-separated names of the overlaid runs (default: file names)")
+    p.add_argument("--linear", action="store_true",
+                   help="linear y axes (default: log axes for errors, speeds and V̄)")
+    p.add_argument("--tmin", type=float, metavar="S", help="start of the time axis (s)")
+    p.add_argument("--tmax", type=float, metavar="S", help="end of the time axis (s)")
+    p.add_argument("--dpi", type=int, default=150, help="raster resolution (default 150)")
     p.set_defaults(func=_cmd_plot)
 
 
@@ -161,9 +169,19 @@ def _cmd_check(args) -> int:
 
 
 def _cmd_plot(args) -> int:
-    from .plot import plot_log
+    from controller.errors import Se3SyncError
 
+    from .plot import plot_logs
+
+    labels = None
+    if args.labels is not None:
+        labels = [x.strip() for x in args.labels.split(",")]
+        if len(labels) != len(args.log):
+            raise Se3SyncError(f"--labels: {len(labels)} labels for {len(args.log)} logs")
+    if not 1 <= args.dpi <= 2400:
+        raise Se3SyncError(f"--dpi: must be in 1..2400, got {args.dpi}")
     _check_outputs(args.output)
-    out = plot_log(args.log, args.output)
+    out = plot_logs(args.log, args.output, labels, linear=args.linear, tmin=args.tmin,
+                    tmax=args.tmax, dpi=args.dpi)
     print(f"wrote {out}", file=sys.stderr)
     return 0
