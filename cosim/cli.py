@@ -13,6 +13,7 @@ _COMMAND_MODULES = (
     "plant_fmu.cli",
     "bridge.cli",
     "cosim.sweep",
+    "cosim.animate",
 )
 
 
