@@ -146,17 +146,24 @@ class SceneBuilder:
             ents.append(_entity(ts, "world", f"edge_{k + 1}", False, parts))
         return f'{{"deletions":[],"entities":[{",".join(ents)}]}}'
 
-    def trails(self, ts: str, S, quat) -> list[str]:
+    def trails(self, ts: str, S, quat, keep: bool = True) -> list[str]:
+        """One PosesInFrame per agent: the kept poses (at most trail_len) and the current one,
+        which is kept too when ``keep`` (the trail is thinned to the caller's trail rate)."""
         P = np.asarray(S)[:, :3].tolist()
         Q = np.asarray(quat).tolist()
         out = []
         n = self.trail_len
-        for i, (p, q, tr) in enumerate(zip(P, Q, self._trail)):
-            tr.append(f'{{"position":{{"x":{_f(p[0])},"y":{_f(p[1])},"z":{_f(p[2])}}},'
-                      f'"orientation":{{"x":{_f(q[0])},"y":{_f(q[1])},"z":{_f(q[2])},"w":{_f(q[3])}}}}}')
-            if len(tr) > n:
-                del tr[0]
-            out.append(f'{{"timestamp":{ts},"frame_id":"world","poses":[{",".join(tr)}]}}')
+        for p, q, tr in zip(P, Q, self._trail):
+            cur = (f'{{"position":{{"x":{_f(p[0])},"y":{_f(p[1])},"z":{_f(p[2])}}},'
+                   f'"orientation":{{"x":{_f(q[0])},"y":{_f(q[1])},"z":{_f(q[2])},"w":{_f(q[3])}}}}}')
+            if keep:
+                tr.append(cur)
+                if len(tr) > n:
+                    del tr[0]
+                poses = ",".join(tr)
+            else:
+                poses = ",".join(tr + [cur])
+            out.append(f'{{"timestamp":{ts},"frame_id":"world","poses":[{poses}]}}')
         return out
 
 

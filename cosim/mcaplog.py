@@ -150,13 +150,15 @@ class McapLogger:
     ``close()`` (also a context manager).
 
     ``scene_rate`` (Hz of simulated time, 0 = off) is the rate of the /scene and /trail
-    messages, ``trail_seconds`` the length of a trail; ``layout_path`` is where the Foxglove
+    messages, ``trail_seconds`` the length of a trail and ``trail_rate`` (Hz) the spacing of its
+    kept poses (each message adds the current pose); ``layout_path`` is where the Foxglove
     layout is written ("auto": beside the log as LOG.layout.json; None: not written).
     """
 
     def __init__(self, path, scenario, controller: str = "hybrid", model_description=None,
                  chunk_size: int = 256 * 1024, extra_metadata: dict | None = None,
-                 scene_rate: float = 20.0, trail_seconds: float = 5.0, layout_path="auto"):
+                 scene_rate: float = 20.0, trail_seconds: float = 5.0, trail_rate: float = 5.0,
+                 layout_path="auto"):
         from controller import __version__
 
         from . import foxglove as fg
@@ -206,7 +208,7 @@ class McapLogger:
                 self._scene = fg.SceneBuilder(
                     [list(e) for e in scenario.graph.edge_list], np.asarray(scenario.inertias, float),
                     np.asarray(scenario.masses, float),
-                    trail_len=max(1, int(round(trail_seconds * scene_rate))))
+                    trail_len=max(1, int(round(trail_seconds * min(trail_rate, scene_rate)))))
                 self._channel(fg.SCENE)
                 for i in range(n):
                     self._channel(f"{fg.TRAIL_PREFIX}{i + 1}")
@@ -225,6 +227,8 @@ class McapLogger:
         self.counts = {}
         self._scene_dt = round(1e9 / scene_rate) if scene_rate and scene_rate > 0 else 0
         self._next_scene = 0
+        self._trail_dt = round(1e9 / trail_rate) if trail_rate and trail_rate > 0 else 0
+        self._next_trail = 0
         self._jump_until = [-1] * scenario.graph.M  # edge k is drawn as jumping until this t_ns
         self._trail_topics = [f"{fg.TRAIL_PREFIX}{i + 1}" for i in range(n)]
         self._layout_path = None
@@ -295,7 +299,10 @@ class McapLogger:
         jl = jumped.tolist()
         jumping = [j or t_ns <= u for j, u in zip(jl, ju)]
         self._msg("/scene", t_ns, self._scene.scene(ts, S, rot_err, jumping))
-        for topic, m in zip(self._trail_topics, self._scene.trails(ts, S, quat)):
+        keep = t_ns >= self._next_trail
+        if keep:
+            self._next_trail = t_ns + self._trail_dt
+        for topic, m in zip(self._trail_topics, self._scene.trails(ts, S, quat, keep)):
             self._msg(topic, t_ns, m)
 
     def jump(self, t_ns: int, t: float, edge: int, theta_before: float, theta_after: float, mu: float):

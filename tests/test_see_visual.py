@@ -128,7 +128,8 @@ def test_trails_are_recent_poses(runs):
     tf = log["messages"]["/tf"]
     trail = log["messages"]["/trail/agent_4"]
     t_ns, m = trail[-1]
-    assert len(m["poses"]) == 100  # 5 s at 20 Hz
+    # 5 s of poses kept at 5 Hz, and the current one when it is not kept
+    assert len(m["poses"]) in (25, 26)
     tf_at = dict(tf)
     last = [x for x in tf_at[t_ns]["transforms"] if x["child_frame_id"] == "agent_4"][0]
     assert m["poses"][-1]["position"] == last["translation"]
