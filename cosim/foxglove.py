@@ -174,7 +174,7 @@ _PALETTE = ("#4e98e2", "#f5774d", "#f7df71", "#5cd6a9", "#b87fe2", "#e2606d", "#
 
 def _plot(title: str, paths: list[tuple[str, str]]) -> dict:
     return {"title": title, "paths": [
-        {"timestampMethod": "receiveTime", "value": v, "enabled": True,
+        {"id": f"{title}-{i}", "timestampMethod": "receiveTime", "value": v, "enabled": True,
          "color": _PALETTE[i % len(_PALETTE)], "label": lab}
         for i, (v, lab) in enumerate(paths)], "showLegend": True, "legendDisplay": "floating",
         "isSynced": True}
@@ -189,7 +189,7 @@ def layout(n_agents: int, n_edges: int) -> dict:
                                            "gradient": [_PALETTE[i % len(_PALETTE)] + "20",
                                                         _PALETTE[i % len(_PALETTE)] + "ff"]}
     three_d = {
-        "followTf": "world", "followMode": "follow-none",
+        "followTf": "world", "fixedFrame": "world", "followMode": "follow-none",
         "cameraState": {"perspective": True, "distance": 25, "phi": 60, "thetaOffset": 45,
                         "target": [0, 0, 0], "targetOffset": [0, 0, 0],
                         "targetOrientation": [0, 0, 0, 1], "fovy": 45, "near": 0.05,

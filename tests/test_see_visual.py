@@ -237,3 +237,15 @@ def test_animate_gif_frames(runs, tmp_path):
         assert im.n_frames == 6
     assert main(["animate", str(runs["hybrid"][0]), "-o", str(tmp_path / "x.avi")]) == 2
     assert sorted(p.name for p in tmp_path.iterdir()) == ["swarm.gif"]
+
+
+def test_animate_mp4_without_ffmpeg_names_it(runs, tmp_path, monkeypatch, capsys):
+    from matplotlib import animation
+
+    from cosim.cli import main
+
+    monkeypatch.setattr(animation.writers, "is_available", lambda name: False)
+    out = tmp_path / "swarm.mp4"
+    assert main(["animate", str(runs["hybrid"][0]), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "ffmpeg" in err[0] and not out.exists()
