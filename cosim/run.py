@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 
 from . import signals
 from .controllers import law_name, make_controller
@@ -80,18 +79,13 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
     finally:
         try:
             if logger is not None:
-                logger.close()
+                logger.close(discard=failed)
         except OSError:
             if not failed:
                 raise
         finally:
             if own_plant:
                 p.close()
-            if failed and logger is not None:
-                try:
-                    os.unlink(log_path)
-                except OSError:
-                    pass
     summary["plant"] = plant_kind
     summary.update(summary_extra or {})
     if log_path is not None:

@@ -69,10 +69,35 @@ def register(sub) -> None:
         "plot", help="plot a run log like the paper's Fig. 2",
         description="Plot ‖I − R̄_k‖, ‖p̄_k‖, ‖ω_i‖, ‖v_i‖ and θ_k against simulated time from an "
                     "se3sync MCAP log (matplotlib, Agg backend).")
-    p.add_argument("log", help="an MCAP log written by `se3sync run --log`")
+    p.add_argument("log", nargs="+", help="MCAP log(s) written by `se3sync run --log`; "
+                   "several are overlaid")
     p.add_argument("-o", "--output", required=True, metavar="FIG.png",
                    help="output image (format from the suffix: png, pdf, svg, eps, ps)")
+    p.add_argument("--labels", metavar="A,B,...",
+                   help="comma-separated names of the overlaid runs (default: file names)")
+    p.add_argument("--linear", action="store_true",
+                   help="linear y axes (default: log axes for errors, speeds and V̄)")
+    p.add_argument("--tmin", type=float, metavar="S", help="start of the time axis (s)")
+    p.add_argument("--tmax", type=float, metavar="S", help="end of the time axis (s)")
+    p.add_argument("--dpi", type=int, default=150, help="raster resolution (default 150)")
     p.set_defaults(func=_cmd_plot)
+
+    p = sub.add_parser(
+        "animate", help="render a 3D animation (MP4 or GIF) of a run log",
+        description="Render the bodies (boxes of their inertia, with axes) and the graph edges "
+                    "(coloured by ‖I − R̄_k‖_F, green to red on a log scale) of an se3sync MCAP "
+                    "log, with the simulated time and the max edge error. MP4 needs ffmpeg; GIF "
+                    "uses Pillow.")
+    p.add_argument("log", help="an MCAP log written by `se3sync run --log`")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.mp4|OUT.gif",
+                   help="output animation (.mp4 via ffmpeg, .gif via Pillow)")
+    p.add_argument("--duration", type=float, default=10.0, metavar="S",
+                   help="length of the animation in s of playback (default 10)")
+    p.add_argument("--fps", type=float, default=20.0, help="frames per second (default 20)")
+    p.add_argument("--tmin", type=float, metavar="S", help="first simulated time shown")
+    p.add_argument("--tmax", type=float, metavar="S", help="last simulated time shown")
+    p.add_argument("--dpi", type=int, default=100, help="resolution (default 100)")
+    p.set_defaults(func=_cmd_animate)
 
 
 def _cmd_run(args) -> int:
@@ -151,9 +176,29 @@ def _cmd_check(args) -> int:
 
 
 def _cmd_plot(args) -> int:
-    from ..log.plot import plot_log
+    from ..log.plot import plot_logs
 
+    labels = None
+    if args.labels is not None:
+        labels = [x.strip() for x in args.labels.split(",")]
+        if len(labels) != len(args.log):
+            raise Se3SyncError(f"--labels: {len(labels)} labels for {len(args.log)} logs")
+    if not 1 <= args.dpi <= 2400:
+        raise Se3SyncError(f"--dpi: must be in 1..2400, got {args.dpi}")
     check_output("--output", args.output, PLOT_FORMATS)
-    out = plot_log(args.log, args.output)
+    out = plot_logs(args.log, args.output, labels, linear=args.linear, tmin=args.tmin,
+                    tmax=args.tmax, dpi=args.dpi)
     print(f"wrote {out}", file=sys.stderr)
+    return 0
+
+
+def _cmd_animate(args) -> int:
+    from ..log.animate import animate_log
+
+    if not 1 <= args.dpi <= 1200:
+        raise Se3SyncError(f"--dpi: must be in 1..1200, got {args.dpi}")
+    check_output("--output", args.output, (".gif", ".mp4"))
+    n = animate_log(args.log, args.output, duration=args.duration, fps=args.fps,
+                    tmin=args.tmin, tmax=args.tmax, dpi=args.dpi, progress=sys.stderr.isatty())
+    print(f"wrote {args.output} ({n} frames)", file=sys.stderr)
     return 0
