@@ -88,7 +88,7 @@ class Px4SimServer:
             for i, b in enumerate(bodies):
                 self.links.append(_Px4Link(b, host, port + i if port else 0, i + 1))
         except OSError:
-            for b in bodies:
+            for b in bodies[len(self.links):]:
                 b.close()
             self.close()
             raise

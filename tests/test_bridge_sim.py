@@ -297,3 +297,25 @@ def test_ardupilot_json_holds_until_motors_spin():
         assert np.allclose(d["imu"]["accel_body"], -(R0.T @ G), atol=1e-12)
         assert np.allclose(d["position"], sc.S0[0, 0:3]) and np.allclose(d["velocity"], 0)
     assert not np.allclose(out[-1]["velocity"], 0)
+
+
+def test_sim_cli_errors_are_one_line_exit_2():
+    import subprocess
+    import sys
+
+    from test_bridge_helpers import HIL, ROOT
+
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen(1)
+    port = busy.getsockname()[1]
+    try:
+        for args, key in ((["--sim-protocol", "px4"], "--sim-protocol"),
+                          (["--sim-protocol", "px4", "--scenario", HIL, "--sim-port", str(port)], "--sim-port"),
+                          (["--sim-protocol", "px4", "--scenario", HIL, "--sim-step", "0"], "--sim-step")):
+            r = subprocess.run([sys.executable, "-m", "cosim.cli", "vehicle", *args], capture_output=True, text=True,
+                               timeout=120, cwd=str(ROOT))
+            lines = r.stderr.strip().splitlines()
+            assert r.returncode == 2 and len(lines) == 1 and key in lines[0], (r.returncode, r.stderr)
+    finally:
+        busy.close()
