@@ -33,7 +33,7 @@ Profiles (``bridge.output``, or per vehicle in ``[[bridge.vehicle]]``):
   a lost packet is a lockstep timeout (exit 4). Real ArduSub has no lockstep with a GCS.
 * ``px4_attitude_thrust`` — SET_ATTITUDE_TARGET (#82) to PX4 in Offboard mode (attitude
   control): ``thrust_body`` = c[3:6] (normalised FRD force, type_mask bit THRUST_BODY_SET = 32;
-  PX4 ≥ 1.13 copies it into the attitude setpoint), body rates ignored, and the attitude
+  PX4's MAVLink receiver copies it into the attitude setpoint), body rates ignored, and the attitude
   setpoint that realises the torque τ = c[0:3]·max_wrench[0:3] over one control period h:
   with ω̇ = J⁻¹(τ − ω×Jω), R_d = R exp(w^), w = ω h + ½ ω̇ h² — the attitude reached after h
   at constant angular acceleration, exact to O(h³) (the neglected terms are the change of ω×Jω
