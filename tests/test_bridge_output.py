@@ -201,7 +201,11 @@ def _sync_error(S, edges):
     return float(e)
 
 
-@pytest.mark.parametrize("profile", ["ardusub_manual_control", "px4_attitude_thrust"])
+MIXED = ("bridge.vehicle=[{id = 1, output = \"px4_attitude_thrust\"}, {id = 2, output = \"px4_attitude_thrust\"}, "
+         "{id = 3, output = \"actuator_control_target\"}, {id = 4, output = \"do_set_actuator\"}]")
+
+
+@pytest.mark.parametrize("profile", ["ardusub_manual_control", "px4_attitude_thrust", "mixed"])
 def test_closed_loop_lockstep_each_profile(profile):
     """hil_6uav for 2 s (500 steps) over UDP with the profile: bit-identical to the quantised
     reference, the vehicles' wrench equals the controller's within the profile's quantisation,
@@ -210,17 +214,22 @@ def test_closed_loop_lockstep_each_profile(profile):
     from cosim.plant import FmuPlant
 
     port = free_base_port(6)
-    sc = load([f"bridge.base_port={port}", f"bridge.output=\"{profile}\""])
+    if profile == "mixed":   # per-vehicle profiles: 1, 2 PX4; 3 #139; 4 #187; 5, 6 ArduSub
+        sc = load([f"bridge.base_port={port}", "bridge.output=\"ardusub_manual_control\"", MIXED])
+        assert [v.output for v in sc.bridge.vehicles] == ["px4_attitude_thrust"] * 2 + [
+            "actuator_control_target", "do_set_actuator"] + ["ardusub_manual_control"] * 2
+    else:
+        sc = load([f"bridge.base_port={port}", f"bridge.output=\"{profile}\""])
     n = 500
     diff, werr, st, vst, S_hil = _hil_vs_reference(sc, n)
     assert diff == 0.0, diff
     assert st["rejected"] == 0 and st["malformed"] == 0 and vst["rejected"] == 0
     assert min(vst["steps"]) == max(vst["steps"]) == n
-    if profile == "ardusub_manual_control":
-        bound = np.array([0.5e-3 * 50] * 3 + [0.5e-3 * 20] * 2 + [1e-3 * 20]) * (1 + 1e-9)
-    else:
-        dw = 4 * 2.0 ** -24 * 1.01
-        bound = np.array([np.linalg.norm(J6, 2) * 2 * dw / sc.step ** 2] * 3 + [20 * 2.0 ** -24] * 3)
+    ardusub = np.array([0.5e-3 * 50] * 3 + [0.5e-3 * 20] * 2 + [1e-3 * 20]) * (1 + 1e-9)
+    dw = 4 * 2.0 ** -24 * 1.01
+    px4 = np.array([np.linalg.norm(J6, 2) * 2 * dw / sc.step ** 2] * 3 + [20 * 2.0 ** -24] * 3)
+    bound = ardusub if profile == "ardusub_manual_control" else px4 if profile == "px4_attitude_thrust" \
+        else np.maximum(ardusub, px4)
     assert np.all(werr <= bound), (werr.max(axis=0), bound)
     print(f"{profile}: |vehicle wrench - controller wrench| over {n} steps (τx τy τz N·m, fx fy fz N): "
           f"max {werr.max(axis=0)}, rms {np.sqrt((werr ** 2).mean(axis=0))}")
