@@ -52,6 +52,17 @@ def register(sub) -> None:
     p.add_argument("--tlog", metavar="FILE", help="write all traffic to this tlog")
     p.add_argument("--stats", metavar="FILE", help="write the traffic counters (JSON) here on exit")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time")
+    p.add_argument("--sim-protocol", choices=("px4", "ardupilot"),
+                   help="instead of MAVLink to a bridge, be a flight stack's simulator (needs --scenario): "
+                        "px4 = PX4 SITL's simulator_mavlink interface (TCP 4560 + i, lockstep: "
+                        "HIL_ACTUATOR_CONTROLS in, HIL_SENSOR/HIL_GPS/HIL_STATE_QUATERNION out); "
+                        "ardupilot = ArduPilot SITL's JSON physics interface (UDP 9002 + 10 i)")
+    p.add_argument("--sim-port", type=int, metavar="PORT",
+                   help="first port of --sim-protocol (default 4560 for px4, 9002 for ardupilot)")
+    p.add_argument("--sim-step", type=float, default=0.004, metavar="S",
+                   help="px4: simulation step per HIL_SENSOR (default 0.004; ardupilot takes 1/frame_rate)")
+    p.add_argument("--sim-no-noise", action="store_true", help="ideal sensors (no white noise)")
+    p.add_argument("--sim-seed", type=int, default=0, help="sensor noise seed (default 0)")
     p.set_defaults(func=_cmd_vehicle)
 
     p = sub.add_parser(
@@ -96,6 +107,10 @@ def _cmd_vehicle(args) -> int:
     if args.count is not None and args.count < 1:
         raise Se3SyncError(f"--count: must be >= 1, got {args.count}")
     _outputs(("--tlog", args.tlog, None), ("--stats", args.stats, None))
+    if getattr(args, "sim_protocol", None):
+        from .sim_cli import run_sim_cli
+
+        return run_sim_cli(args)
     from .vehicle import run_vehicle_cli
 
     return run_vehicle_cli(args)
