@@ -46,8 +46,8 @@ def random_tree_text(n, seed=1, step=1e-3, duration=1.0):
 
 def run(sc, compiled=True, log=None):
     from cosim.master import Master
-    from cosim.mcaplog import McapLogger
-    from cosim.plant import FmuPlant
+    from cosim.log.mcap import McapLogger
+    from cosim.plants import FmuPlant
 
     plant = FmuPlant.from_scenario(sc)
     logger = McapLogger(log, sc) if log else None
@@ -68,7 +68,7 @@ def run(sc, compiled=True, log=None):
 def record_cost(sc, n_rec, fast, use_orjson=True):
     """Seconds per record of McapLogger.record / record_fast (random finite values, no jump);
     use_orjson=False: record_fast with float-repr templates (the bytes of `record`)."""
-    from cosim.mcaplog import McapLogger
+    from cosim.log.mcap import McapLogger
 
     N, M = sc.graph.n, sc.graph.M
     rng = np.random.default_rng(0)
@@ -95,7 +95,7 @@ t0 = time.perf_counter()
 sys.path.insert(0, {root!r})
 from cosim.scenario import load_scenario
 from cosim.master import Master
-from cosim.plant import FmuPlant
+from cosim.plants import FmuPlant
 sc = load_scenario({paper!r}, ["simulation.duration=0.01"])
 p = FmuPlant.from_scenario(sc)
 t1 = time.perf_counter()
@@ -153,7 +153,7 @@ def main():
     if not args.skip_big:
         big = parse_scenario(random_tree_text(args.big), name=f"tree{args.big}")
         sizes.append((big, 40))
-    from cosim import mcaplog
+    from cosim.log import mcap as mcaplog
 
     for s_, k in sizes:
         slow, tpl = record_cost(s_, k, False), record_cost(s_, k, True, False)

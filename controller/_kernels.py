@@ -3,8 +3,7 @@
 This is the single implementation of U, μ_U, ψ̄_∇, ∇_θU, the jump map and the control law.
 The network view, the per-agent view and the public functions in `potential` all call it.
 
-State layout, one row per agent, matching the plant FMU's output block:
-    S[i] = [p (3), R row-major (9), ξ = [ω; v] (6)]            (N, 18)
+State layout: `controller.layout` (S[i] = [p, R row-major, ξ], the plant FMU's output block).
 Parameter vector P (see `pack`): the weighting matrix, the synergy design and the gains,
 with W R_a(θ_j)ᵀ precomputed for every θ_j ∈ Θ so that a candidate costs nine products.
 
@@ -39,10 +38,7 @@ P_C = 35       # c = b/d, 3 (so that no edge divides)
 P_M = 38       # m = |Θ|
 P_THETA = 39   # Θ (m), then K_j = W R_a(θ_j)ᵀ (9 m), then γθ_j²/2 (m)
 
-S_P = 0
-S_R = 3
-S_XI = 12
-S_WIDTH = 18
+from .layout import S_P, S_R, S_WIDTH, S_XI  # noqa: F401 (the kernels index S with these)
 
 
 def pack(A, b, d, u_c1, u_c2, gamma, delta, Theta, k_X, k_xi, k_e, k_theta):
@@ -375,3 +371,86 @@ def network_U(S, theta, edges, P, out):
         Rb, pb = rel_pose(S, edges[k, 0], edges[k, 1])
         Ra, Rg = prepare(Rb, theta[k], P)
         out[k] = U_core(Rb, pb, theta[k], P, Rg)
+
+
+@jit(inline=True)
+def quat_of(r00, r01, r02, r10, r11, r12, r20, r21, r22):
+    """Unit quaternion (w, x, y, z), w ≥ 0, of a rotation matrix by Shepperd's method: of the
+    four algebraically equal forms, the one with the largest pivot (ties to the first)."""
+    tr = r00 + r11 + r22
+    if tr >= r00 and tr >= r11 and tr >= r22:
+        w = 0.5 * math.sqrt(max(1.0 + tr, 0.0))
+        s = 0.25 / w
+        x = (r21 - r12) * s
+        y = (r02 - r20) * s
+        z = (r10 - r01) * s
+    elif r00 >= r11 and r00 >= r22:
+        x = 0.5 * math.sqrt(max(1.0 + r00 - r11 - r22, 0.0))
+        s = 0.25 / x
+        w = (r21 - r12) * s
+        y = (r01 + r10) * s
+        z = (r02 + r20) * s
+    elif r11 >= r22:
+        y = 0.5 * math.sqrt(max(1.0 - r00 + r11 - r22, 0.0))
+        s = 0.25 / y
+        w = (r02 - r20) * s
+        x = (r01 + r10) * s
+        z = (r12 + r21) * s
+    else:
+        z = 0.5 * math.sqrt(max(1.0 - r00 - r11 + r22, 0.0))
+        s = 0.25 / z
+        w = (r10 - r01) * s
+        x = (r02 + r20) * s
+        y = (r12 + r21) * s
+    if w < 0.0:
+        return -w, -x, -y, -z
+    return w, x, y, z
+
+
+@jit
+def rot_to_quat_rows(R9, out):
+    """out[n] = (w, x, y, z) of the row-major rotation matrix R9[n] (n, 9)."""
+    for n in range(R9.shape[0]):
+        q = quat_of(R9[n, 0], R9[n, 1], R9[n, 2], R9[n, 3], R9[n, 4], R9[n, 5],
+                    R9[n, 6], R9[n, 7], R9[n, 8])
+        for a in range(4):
+            out[n, a] = q[a]
+
+
+@jit
+def metrics(S, edges, U, kX, masses, J, rot_err, pos_err, quat):
+    """Fills rot_err, pos_err (M,) and quat (N, 4: x, y, z, w, Foxglove's order); returns
+    (V̄, max|ξ|) with V̄ = k_X ΣU + Σ ξᵀ𝕀ξ (`V_def`) from U (M,) computed by `network_U`."""
+    N = S.shape[0]
+    M = edges.shape[0]
+    usum = 0.0
+    for k in range(M):
+        Rb, pb = rel_pose(S, edges[k, 0], edges[k, 1])
+        acc = 0.0
+        for a in range(3):
+            for c in range(3):
+                x = (1.0 if a == c else 0.0) - Rb[3 * a + c]
+                acc += x * x
+        rot_err[k] = math.sqrt(acc)
+        pos_err[k] = math.sqrt(pb[0] * pb[0] + pb[1] * pb[1] + pb[2] * pb[2])
+        usum += U[k]
+    kin = 0.0
+    ximax = 0.0
+    for i in range(N):
+        for a in range(6):
+            v = abs(S[i, S_XI + a])
+            if v > ximax:
+                ximax = v
+        for a in range(3):
+            for c in range(3):
+                kin += S[i, S_XI + a] * J[i, a, c] * S[i, S_XI + c]
+        for a in range(3):
+            kin += masses[i] * S[i, S_XI + 3 + a] * S[i, S_XI + 3 + a]
+        w, x, y, z = quat_of(S[i, S_R], S[i, S_R + 1], S[i, S_R + 2], S[i, S_R + 3],
+                             S[i, S_R + 4], S[i, S_R + 5], S[i, S_R + 6], S[i, S_R + 7],
+                             S[i, S_R + 8])
+        quat[i, 0] = x
+        quat[i, 1] = y
+        quat[i, 2] = z
+        quat[i, 3] = w
+    return kX * usum + kin, ximax

@@ -17,7 +17,6 @@ process-specific pointer.
 from __future__ import annotations
 
 import queue
-import signal
 import threading
 import time
 
@@ -26,9 +25,9 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from controller import _kernels as K
+from controller.kernels import metrics, network_step, network_U
 
-from ._metrics import metrics
+from . import signals
 
 __all__ = ["compiled_fleet", "run_compiled"]
 
@@ -80,10 +79,10 @@ def _fmi2_do_step(typingctx, fn, comp, t, h):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu, jumped,
-              theta_prev, theta_jump, n0, n1, dec, spl, Pm, masses, J, rot, pos, U, quat,
+              theta_prev, theta_jump, n0, n1, dec, spl, Pm, kX, masses, J, rot, pos, U, quat,
               rec_step, rec_S, rec_u, rec_theta, rec_mu, rec_jumped, rec_rot, rec_pos, rec_U,
               rec_quat, rec_V, jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu,
-              smp_S, smp_theta, k0, out):
+              smp_S, smp_theta, smp_u, k0, out):
     """Steps n0 … n1−1 (stopping early before a step whose jumps might not fit the buffers).
 
     fn = (fmi2GetReal, fmi2SetReal, fmi2DoStep) addresses, comp the fmi2Component. A step n
@@ -100,7 +99,6 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
     p_u = u.ctypes.data
     p_vs = vr_state.ctypes.data
     p_vi = vr_input.ctypes.data
-    kX = Pm[K.P_KX]
     nrec = 0
     njmp = 0
     out[O_STATUS] = 0
@@ -114,8 +112,7 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
             out[O_STATUS] = st
             out[O_CALL] = CALL_GET
             break
-        nj = K.network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev,
-                            theta_jump)
+        nj = network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev, theta_jump)
         if nj > 0:
             for k in range(M):
                 if jumped[k]:
@@ -128,9 +125,10 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
         if n == n0 and n % spl == 0:
             smp_S[:, :] = S
             smp_theta[:] = theta_jump
+            smp_u[:, :] = u
             out[O_SAMPLED] = 1
         if dec > 0 and n % dec == 0:
-            K.network_U(S, theta_jump, edges, Pm, U)
+            network_U(S, theta_jump, edges, Pm, U)
             V, ximax = metrics(S, edges, U, kX, masses, J, rot, pos, quat)
             rec_step[nrec] = n
             rec_S[nrec] = S
@@ -162,12 +160,12 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
 
 def compiled_fleet(plant, controller):
     """The FleetFMU under ``plant`` when the pair can run the compiled loop, else None:
-    a `cosim.plant.FmuPlant` (one FMI 2.0 instance for all bodies) and the network
+    a `cosim.plants.FmuPlant` (one FMI 2.0 instance for all bodies) and the network
     `HybridController`/`GradientController` stepping through `network_step`."""
     from controller import HybridController
     from plant_fmu.fast import FleetFMU
 
-    from .plant import FmuPlant
+    from .plants import FmuPlant
 
     if type(plant) is not FmuPlant or not isinstance(controller, HybridController):
         return None
@@ -217,34 +215,33 @@ class _Writer:
             raise self.error
 
 
-def run_compiled(master, fmu, n_steps, bar, spl, dec):
-    """The compiled counterpart of the loop in `Master.run`; returns (n, interrupted).
+def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
+    """The compiled counterpart of the loop in `Master.run`; returns (n, interrupted,
+    timed_out).
 
     Same per-step semantics, ticks and events as the reference loop: jumps are recorded with
-    their exact step, log records at n % dec == 0, summary samples at n % spl == 0; Ctrl-C
-    (master._stop) and the wall-clock budget (master.deadline) are checked between blocks of
-    at most MAX_BLOCK steps, cut shorter when they would take more than TARGET_BLOCK_S.
+    their exact step, log records at n % dec == 0, summary samples at n % spl == 0. Between
+    blocks of at most MAX_BLOCK steps (cut shorter when they would take more than
+    TARGET_BLOCK_S): Ctrl-C / SIGTERM / `Master.request_stop` (master._stop) and the wall-clock
+    budget, counted from the end of the first block as in the reference loop.
     """
     from .master import MAX_BLOCK
 
     ctrl, plant = master.controller, master.plant
     h = master.h
     N, M = master.N, master.M
-    hybrid = master.controller_kind == "hybrid"
     logger = master.logger
     logging = logger is not None
     fn = _addresses(fmu)
     comp = int(fmu._c.value)
     S = fmu._state
     u = ctrl.u
-    edges = ctrl.edges
-    P = ctrl.P
-    Pm = master._P
     theta = ctrl.theta
     rot, pos, U, quat = master._rot, master._pos, master._U, master._quat
     jcap = max(M, JUMP_CAPACITY)
     smp_S = np.zeros((N, 18))
     smp_theta = np.zeros(M)
+    smp_u = np.zeros((N, 6))
     out = np.zeros(6, dtype=np.int64)
     writer = None
     if logging:
@@ -252,25 +249,27 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
     block = MAX_BLOCK
     k0 = int(plant._k)
     n = 0
-    interrupted = False
+    interrupted = timed_out = False
+    deadline = None
     pending = None
-    # a wall-clock budget: master.deadline (a time.perf_counter() value), checked between
-    # blocks like Ctrl-C; setting master._stop from elsewhere also stops at the next block
-    deadline = getattr(master, "deadline", None)
-    restore = _quiet_signals(master)
+    # a signal only sets master._stop while blocks run (they are short): Python would run a
+    # raising handler between blocks only, where a KeyboardInterrupt would lose the step count
+    catcher = signals.catching(master.request_stop).__enter__()
     try:
-        while n < n_steps:
+        while n < n_steps and not master._stop:
             nxt = min(n_steps, n + block, (n // spl + 1) * spl)
             cap = (nxt - n - 1) // dec + 1 if logging else 0
             rec = _RecordBuffers(cap, N, M)
             jb = (np.empty(jcap, np.int64), np.empty(jcap, np.int64), np.empty(jcap),
                   np.empty(jcap), np.empty(jcap))
             t0 = time.perf_counter()
-            run_block(fn, comp, fmu._vr_state, fmu._vr_input, S, u, theta, edges, P, h, hybrid,
-                      ctrl.mu, ctrl.jumped, ctrl.theta_prev, ctrl.theta_jump, n, nxt, dec, spl,
-                      Pm, master._masses, master._J, rot, pos, U, quat, *rec.arrays(), *jb,
-                      smp_S, smp_theta, k0, out)
-            dt = time.perf_counter() - t0
+            run_block(fn, comp, fmu._vr_state, fmu._vr_input, S, u, theta, ctrl.edges, ctrl.P,
+                      h, bool(ctrl.hybrid), ctrl.mu, ctrl.jumped, ctrl.theta_prev,
+                      ctrl.theta_jump, n, nxt, dec, spl, master._P, master._kX, master._masses,
+                      master._J, rot, pos, U, quat, *rec.arrays(), *jb, smp_S, smp_theta, smp_u,
+                      k0, out)
+            now = time.perf_counter()
+            dt = now - t0
             n0, n = n, int(out[O_N])
             plant._k = k0 + n
             fmu.time = (k0 + n) * h
@@ -280,45 +279,31 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec):
                 block = max(1, int((n - n0) * TARGET_BLOCK_S / dt))
             elif block < MAX_BLOCK and dt < TARGET_BLOCK_S / 2:
                 block = min(MAX_BLOCK, 2 * block)
-            _hand_over(master, writer, rec, int(out[O_REC]), jb, int(out[O_JMP]), h, hybrid,
-                       smp_S if out[O_SAMPLED] else None, smp_theta, n0)
+            _hand_over(master, writer, rec, int(out[O_REC]), jb, int(out[O_JMP]), h,
+                       smp_S if out[O_SAMPLED] else None, smp_theta, smp_u, n0)
             if out[O_STATUS]:
                 pending = (CALL_NAMES[int(out[O_CALL])], int(out[O_STATUS]))
                 break
             if bar is not None:
                 bar.update(n - bar.n)
-            if master._stop or (deadline is not None and time.perf_counter() > deadline):
-                interrupted = True
+            if master._stop:
+                interrupted = n < n_steps
                 break
+            if budget is not None:
+                if deadline is None:
+                    deadline = now + float(budget)
+                elif now > deadline and n < n_steps:
+                    timed_out = True
+                    break
             if writer is not None and writer.error is not None:
                 raise writer.error
     finally:
-        for sig, old in restore:
-            signal.signal(sig, old)
+        catcher.__exit__()
         if writer is not None:
             writer.close()
     if pending is not None:
         fmu._fail(*pending)
-    return n, interrupted
-
-
-def _quiet_signals(master):
-    """While blocks run, Ctrl-C and SIGTERM only set master._stop (never raise): Python runs
-    a handler between blocks only, and a KeyboardInterrupt there would lose the step count.
-    Blocks are short (MAX_BLOCK steps, ≤ ~TARGET_BLOCK_S), so the stop comes within one."""
-    restore = []
-    if threading.current_thread() is not threading.main_thread():
-        return restore
-
-    def stop(signum, frame):
-        master._stop = True
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            restore.append((sig, signal.signal(sig, stop)))
-        except (ValueError, OSError):  # pragma: no cover
-            pass
-    return restore
+    return n, interrupted, timed_out
 
 
 def _addresses(fmu):
@@ -348,10 +333,12 @@ class _RecordBuffers:
                 self.U, self.quat, self.V)
 
 
-def _hand_over(master, writer, rec, nrec, jb, njmp, h, hybrid, smp_S, smp_theta, n0):
+def _hand_over(master, writer, rec, nrec, jb, njmp, h, smp_S, smp_theta, smp_u, n0):
     """The block's events, in step order: the summary sample (main thread, it fills
     master.samples), jumps (master.jumps now, the log on the writer) and log records."""
     if smp_S is not None:
+        if n0 == 0:
+            master.u0 = smp_u.copy()
         master._sample(n0 * h, smp_S, smp_theta)
     jstep, jedge, jbefore, jafter, jmu = (a[:njmp].tolist() for a in jb)
     for s, e, b, a, m in zip(jstep, jedge, jbefore, jafter, jmu):
@@ -359,8 +346,7 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, hybrid, smp_S, smp_theta,
                              "mu": m})
     if writer is None or (njmp == 0 and nrec == 0):
         return
-    kX = float(master._P[K.P_KX])
-    M = master.M
+    kX = master._kX
 
     sleep = time.sleep
 
@@ -383,9 +369,7 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, hybrid, smp_S, smp_theta,
             sl = slice(r, rb)
             k = rb - r
             args = ([round(st * h * 1e9) for st in steps[sl]], rec.S[sl], rec.u[sl],
-                    rec.theta[sl] if hybrid else np.zeros((k, M)),
-                    rec.mu[sl] if hybrid else np.zeros((k, M)),
-                    rec.jumped[sl] if hybrid else np.zeros((k, M), np.bool_), rec.rot[sl],
+                    rec.theta[sl], rec.mu[sl], rec.jumped[sl], rec.rot[sl],
                     rec.pos[sl], rec.U[sl], rec.quat[sl], rec.V[sl].tolist(),
                     [float(kX * x.sum()) for x in rec.U[sl]])
             if block is not None:

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from cosim import fastloop
-from cosim.api import with_timing
+from cosim.run import with_timing
 from cosim.master import Master
-from cosim.mcaplog import McapLogger, read_log
-from cosim.plant import FmuPlant, PerBodyFmuPlant
+from cosim.log.mcap import McapLogger, read_log
+from cosim.plants import FmuPlant, PerBodyFmuPlant
 from cosim.scenario import load_scenario, parse_scenario
 from plant_fmu.fast import FMUError
 
@@ -103,6 +103,7 @@ def test_paper_first_2s_bit_identical(tmp_path):
 @pytest.mark.parametrize("fast_json", [False, True])
 def test_random_tree_50_bit_identical(tmp_path, fast_json):
     sc = with_timing(random_tree_scenario(50, 3), duration=0.3)
+    assert sc.graph.n == 50 and sc.graph.M == 49
     ref, fast = run_both(sc, tmp_path, fast_json=fast_json)
     assert_same(ref, fast)
     assert ref[0]["steps"] == sc.n_steps()
@@ -210,7 +211,7 @@ def test_record_fast_equals_record(tmp_path):
         (lg.jump if lg is lgs[0] else lg.jump_fast)(7, 7e-9, 2, 0.5, float("nan"), -np.inf)
         lg.close()
     a, b = messages(paths[0]), messages(paths[1])
-    assert len(a) == 31 and a == b
+    assert len(a) >= 31 and a == b  # + /scene and /trail messages when due
     # orjson: same values (exactly), and really another text for some numbers
     assert messages(paths[0], decoded=True) == messages(paths[2], decoded=True)
     if fastloop_orjson():
@@ -219,7 +220,7 @@ def test_record_fast_equals_record(tmp_path):
 
 
 def fastloop_orjson():
-    from cosim import mcaplog
+    from cosim.log import mcap as mcaplog
 
     return mcaplog._orjson is not None
 
@@ -227,7 +228,7 @@ def fastloop_orjson():
 STOP_SCRIPT = r"""
 import sys, json
 sys.path.insert(0, {root!r})
-from cosim.api import run_scenario
+from cosim.run import run_scenario
 s = run_scenario({paper!r}, log_path={log!r}, duration=400)
 print(json.dumps({{"steps": s["steps"], "interrupted": s["interrupted"]}}))
 """
@@ -265,19 +266,21 @@ def test_signal_stops_within_a_block_with_a_complete_log(tmp_path, sig):
     assert len(back["messages"]["/lyapunov"]) == n_ticks
 
 
-def test_deadline_stops_between_blocks_with_consistent_state(tmp_path):
-    # an expired wall-clock budget stops after the first block; the plant's state and the
-    # step count then match a reference run of that many steps
-    sc = load_scenario(PAPER, ["simulation.duration=0.25"])
+def test_budget_and_request_stop_between_blocks(tmp_path):
+    # a zero wall-clock budget stops after the second block (the budget counts from the end
+    # of the first, as in the reference loop); request_stop() before a run stops it at once
+    sc = load_scenario(PAPER, ["simulation.duration=0.5"])
     plant = FmuPlant.from_scenario(sc)
     try:
         m = Master(sc, plant, "hybrid")
-        m.deadline = time.perf_counter() - 1.0
-        s = m.run(sc.n_steps())
-        assert s["interrupted"] is True
+        s = m.run(sc.n_steps(), budget=0.0)
+        assert s.get("timed_out") is True and s["interrupted"] is False
         n1 = s["steps"]
-        assert 0 < n1 <= 1000 and plant._k == n1
+        assert 0 < n1 <= 2000 and plant._k == n1
         S_mid = plant.read().copy()
+        m2 = Master(sc, plant, "hybrid")
+        m2.request_stop()
+        assert m2.run(100)["steps"] == 0
     finally:
         plant.close()
     ref = FmuPlant.from_scenario(sc)
@@ -288,6 +291,25 @@ def test_deadline_stops_between_blocks_with_consistent_state(tmp_path):
         assert np.array_equal(ref.read(), S_mid)
     finally:
         ref.close()
+
+
+def test_second_run_on_the_same_plant(tmp_path):
+    # a Master run on a plant that has already stepped: doStep times continue from the
+    # plant's own step counter, as FmuPlant.advance does
+    sc = load_scenario(PAPER, ["simulation.duration=0.1"])
+    finals = []
+    for compiled in (False, True):
+        plant = FmuPlant.from_scenario(sc)
+        try:
+            for _ in range(2):
+                m = Master(sc, plant, "hybrid")
+                m.use_compiled = compiled
+                m.run(sc.n_steps())
+            finals.append((plant.read().copy(), plant._k, plant._fmu.time))
+        finally:
+            plant.close()
+    assert np.array_equal(finals[0][0], finals[1][0])
+    assert finals[0][1:] == finals[1][1:] == (2 * sc.n_steps(), finals[0][2])
 
 
 def test_record_block_equals_record_per_row(tmp_path):
@@ -313,25 +335,6 @@ def test_record_block_equals_record_per_row(tmp_path):
     for lg in lgs:
         lg.close()
     a = messages(paths[0])
-    assert len(a) == 4 * R
+    assert sum(m[0] == "/lyapunov" for m in a) == R
     assert messages(paths[2]) == a
     assert messages(paths[1], decoded=True) == messages(paths[0], decoded=True)
-
-
-def test_second_run_on_the_same_plant(tmp_path):
-    # a Master run on a plant that has already stepped: doStep times continue from the
-    # plant's own step counter, as FmuPlant.advance does
-    sc = load_scenario(PAPER, ["simulation.duration=0.1"])
-    finals = []
-    for compiled in (False, True):
-        plant = FmuPlant.from_scenario(sc)
-        try:
-            for _ in range(2):
-                m = Master(sc, plant, "hybrid")
-                m.use_compiled = compiled
-                m.run(sc.n_steps())
-            finals.append((plant.read().copy(), plant._k, plant._fmu.time))
-        finally:
-            plant.close()
-    assert np.array_equal(finals[0][0], finals[1][0])
-    assert finals[0][1:] == finals[1][1:] == (2 * sc.n_steps(), finals[0][2])
