@@ -147,7 +147,8 @@ def main():
         print(f"  fmpy.simulate_fmu open loop {w_fmpy:7.3f} s  {us(w_fmpy):6.2f} µs/step; "
               f"compiled + log / fmpy = {w_log / w_fmpy:.3f}×")
 
-    print("record cost (one record = 4 messages, incl. MCAP chunking + zstd):")
+    print("record cost (/tf, /edges, /agents, /lyapunov + /scene and trails when due; MCAP "
+          "chunking + zstd included):")
     sizes = [(sc, 400)]
     big = None
     if not args.skip_big:
