@@ -502,8 +502,8 @@ def delayed_network_step(S, n, sched, r, ring_S, ring_theta, arrival, held, recv
     Links: 2k carries the positive end a's (X_a, ξ_a, θ_k after the jump stage) to the negative
     end b of edge k; 2k + 1 carries (X_b, ξ_b) to a. sched[r, l] is the transit time in steps of
     link l's message of sample n (−1: lost). ring_S (L, N, 18) / ring_theta (L, M) hold the
-    published samples n − L + 1 .. n at slot s mod L, arrival (2M, L) their arrival steps (−1:
-    lost); held (2M,) is the newest sample received on each link (−1: none yet, recv_* hold S0
+    published samples n − L + 1 .. n at slot s mod L; arrival[l, a mod L] is the newest sample
+    arriving over link l at step a (−1: none); held (2M,) is the newest sample received on each link (−1: none yet, recv_* hold S0
     and θ(0)), recv_S (2M, 18) / recv_theta (2M,) its data.
 
     Each agent accumulates −k_ξ ξ_i, then its edges' terms in ascending edge order, with the
@@ -537,22 +537,17 @@ def delayed_network_step(S, n, sched, r, ring_S, ring_theta, arrival, held, recv
         t = sched[r, l]
         counts[l, 0] += 1
         if t < 0:
-            arrival[l, slot] = -1
             counts[l, 1] += 1
-        else:
-            arrival[l, slot] = n + t
-        lo = n - L + 1
-        if lo < 0:
-            lo = 0
-        s = n
-        while s >= lo and s > held[l]:
-            a = arrival[l, s % L]
-            if a >= 0 and a <= n:
-                held[l] = s
-                for c in range(S.shape[1]):
-                    recv_S[l, c] = ring_S[s % L, src, c]
-                break
-            s -= 1
+        else:  # transit t ≤ L − 1 steps: slots of arrival steps n .. n + L − 1 are distinct
+            a = (n + t) % L
+            if n > arrival[l, a]:
+                arrival[l, a] = n
+        s = arrival[l, slot]  # the newest sample arriving at step n (−1: none)
+        arrival[l, slot] = -1
+        if s > held[l]:
+            held[l] = s
+            for c in range(S.shape[1]):
+                recv_S[l, c] = ring_S[s % L, src, c]
         age = n - held[l] if held[l] >= 0 else n
         age_hist[l, age if age < H else H - 1] += 1
         if age > max_age + hold:
