@@ -549,7 +549,7 @@ def delayed_network_step(S, n, sched, r, ring_S, ring_theta, arrival, held, recv
             for c in range(S.shape[1]):
                 recv_S[l, c] = ring_S[s % L, src, c]
         age = n - held[l] if held[l] >= 0 else n
-        age_hist[l, age if age < H else H - 1] += 1
+        age_hist[l, min(max(age, 0), H - 1)] += 1
         if age > max_age + hold:
             failsafe[dst, 0] = 1
     for i in range(N):
