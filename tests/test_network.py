@@ -76,13 +76,18 @@ def _pose(row):
     return X
 
 
-def reference_run(sc, d, n_steps):
-    """N AgentSteppers stepping the plant with neighbour data (pose, ξ, published θ) delayed by
-    d steps; before the first message arrives, S0 and θ(0)."""
+def reference_run(sc, d, n_steps, sample=None):
+    """N AgentSteppers stepping the plant. Agent i uses from neighbour j the data (pose, ξ,
+    published θ) of sample ``sample(n, j, i)`` (default n − d), and S0, θ(0) while that is −1
+    (no message arrived yet)."""
+    if sample is None:
+        def sample(n, frm, to):
+            return n - d if n >= d else -1
     edges = [(int(a), int(b)) for a, b in sc.graph.edges]
     N = sc.graph.n
+    theta0 = {k: float(sc.theta0[k]) for k in range(len(edges))}
     agents = [AgentStepper(i, {k: e for k, e in enumerate(edges) if i in e}, sc.weighting,
-                           sc.design, sc.gains, {k: sc.theta0[k] for k in range(len(edges))})
+                           sc.design, sc.gains, theta0)
               for i in range(N)]
     plant = make_plant("fleet", sc)
     hist, published = [], []
@@ -90,23 +95,32 @@ def reference_run(sc, d, n_steps):
         for n in range(n_steps):
             S = plant.read().copy()
             hist.append(S)
-            Sd = hist[n - d] if n >= d else hist[0]
+
+            def row(frm, to):
+                s = sample(n, frm, to)
+                return hist[max(s, 0)][frm]
+
             rel = []
             for i in range(N):
                 r = {}
                 for k, (a, b) in agents[i].local_edges.items():
                     if a == i:   # owner: X̄ = X_b(s)⁻¹ X_a(n)
-                        r[k] = np.linalg.solve(_pose(Sd[b]), _pose(S[a]))
+                        r[k] = np.linalg.solve(_pose(row(b, a)), _pose(S[a]))
                     else:        # negative end: X̄ = X_b(n)⁻¹ X_a(s)
-                        r[k] = np.linalg.solve(_pose(S[b]), _pose(Sd[a]))
+                        r[k] = np.linalg.solve(_pose(S[b]), _pose(row(a, b)))
                 rel.append(r)
             for i in range(N):
                 agents[i].jump(rel[i])
             published.append({k: v for ag in agents for k, v in ag.theta_owned.items()})
-            th_used = published[n - d] if n >= d else dict(enumerate(sc.theta0))
             u = np.zeros((N, 6))
             for i in range(N):
-                nbrs = {j: Sd[j, 12:] for j in range(N)}
+                nbrs, th_used = {}, {}
+                for k, (a, b) in agents[i].local_edges.items():
+                    j = b if a == i else a
+                    nbrs[j] = row(j, i)[12:]
+                    if a == j:
+                        s = sample(n, j, i)
+                        th_used[k] = published[s][k] if s >= 0 else theta0[k]
                 u[i] = agents[i].wrench(rel[i], S[i, 12:], nbrs, th_used)
                 agents[i].flow(rel[i], H)
             plant.apply(u)
@@ -127,7 +141,7 @@ def delayed_run(sc, n_steps):
         plant.close()
 
 
-@pytest.mark.parametrize("d", [3])
+@pytest.mark.parametrize("d", [1, 3, 7])
 def test_delay_matches_agent_stepper_reference(d):
     n_steps = 60
     sc = scenario(f"delay = {d * H}")  # ⌈delay/h − 1e-9⌉ = d
@@ -147,6 +161,37 @@ def test_delay_matches_agent_stepper_reference(d):
 
 
 # ------------------------------------------------------------------ loss and jitter
+
+def test_jitter_and_loss_use_the_newest_arrived_sample():
+    """Against the reference fed, per link, with the newest sample whose message has arrived,
+    found by brute force from the transit times the controller drew (−1: lost)."""
+    n_steps = 60
+    sc = scenario("delay = 0.008\njitter = 0.012\nloss = 0.3\nseed = 11")
+    S, th, ctrl = delayed_run(sc, n_steps)
+    sched = ctrl.sched[:n_steps].copy()          # (steps, links): transit steps or −1
+    edges = [(int(a), int(b)) for a, b in sc.graph.edges]
+    link = {}
+    for k, (a, b) in enumerate(edges):
+        link[(a, b)], link[(b, a)] = 2 * k, 2 * k + 1
+    assert (sched < 0).any() and len(set(sched[sched >= 0].ravel())) > 1  # loss and jitter
+
+    def sample(n, frm, to):
+        col = sched[:n + 1, link[(frm, to)]]
+        ok = [s for s in range(n + 1) if col[s] >= 0 and s + col[s] <= n]
+        return max(ok) if ok else -1
+
+    S_ref, th_ref = reference_run(sc, 0, n_steps, sample)
+    assert np.allclose(S, S_ref, rtol=0, atol=1e-9 * max(1.0, np.abs(S_ref).max()))
+    assert np.allclose(th, th_ref, rtol=0, atol=1e-9)
+    # the age statistics: nearest-rank percentiles of the brute-force ages
+    st = ctrl.network_stats()
+    for frm_to, l in link.items():
+        ages = np.sort([n - max(sample(n, *frm_to), 0) for n in range(n_steps)])
+        rec = next(x for x in st["links"] if (x["from"] - 1, x["to"] - 1) == frm_to)
+        assert rec["lost"] == int((sched[:, l] < 0).sum())
+        assert rec["age_p50_steps"] == ages[math.ceil(0.5 * n_steps) - 1]
+        assert rec["age_p99_steps"] == ages[math.ceil(0.99 * n_steps) - 1]
+
 
 def test_loss_and_jitter_are_seeded_and_counted():
     net = "delay = 0.008\njitter = 0.012\nloss = 0.2\nseed = {}"
