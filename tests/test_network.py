@@ -49,11 +49,12 @@ def test_zero_delay_is_bit_identical_to_the_network_step():
     assert tot["age_p99_steps"] == 0
 
 
-def test_zero_delay_kernel_equals_network_step_on_moving_states():
+@pytest.mark.parametrize("law", ["hybrid", "gradient"])
+def test_zero_delay_kernel_equals_network_step_on_moving_states(law):
     """Step by step, wrench, θ, μ and jumps equal the network view's exactly."""
     sc = scenario("delay = 0.0")
-    ref = make_controller("hybrid", sc)
-    ctrl = networked(sc, make_controller("hybrid", sc))
+    ref = make_controller(law, sc)
+    ctrl = networked(sc, make_controller(law, sc))
     assert isinstance(ctrl, NetworkController)
     rng = np.random.default_rng(1)
     S = sc.S0.copy()
@@ -65,6 +66,25 @@ def test_zero_delay_kernel_equals_network_step_on_moving_states():
         assert np.array_equal(u, u_ref) and ev == ev_ref
         for name in ("theta", "theta_jump", "mu", "jumped"):
             assert np.array_equal(getattr(ctrl, name), getattr(ref, name)), name
+
+
+def test_reset_starts_the_links_again():
+    """After reset(θ0) the same inputs give the same wrenches: no link state survives."""
+    sc = scenario("delay = 0.012\njitter = 0.008\nloss = 0.2\nseed = 3")
+    ctrl = networked(sc, make_controller("hybrid", sc))
+    rng = np.random.default_rng(2)
+    states = []
+    for n in range(40):
+        S = sc.S0.copy()
+        S[:, :3] += 0.01 * rng.standard_normal((6, 3))
+        states.append(S)
+    runs = []
+    for _ in range(2):
+        ctrl.reset(sc.theta0)
+        runs.append([ctrl.step_state(S, H)[0].copy() for S in states])
+        runs[-1].append(ctrl.network_stats())
+    assert all(np.array_equal(a, b) for a, b in zip(runs[0][:-1], runs[1][:-1]))
+    assert runs[0][-1] == runs[1][-1]
 
 
 # ------------------------------------------------------------------ delay d against AgentSteppers
