@@ -10,6 +10,7 @@ from .controllers import law_name, make_controller
 from .files import write_json_atomic
 from .log.mcap import McapLogger
 from .master import Master
+from .network import networked
 from .plants import make_plant
 from .scenario import MAX_DEFAULT_INTERNAL_STEP, Scenario, ScenarioError, load_scenario
 
@@ -55,6 +56,7 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
     own_plant = isinstance(plant, str)
     plant_kind = plant if own_plant else type(plant).__name__
     ctrl = make_controller(controller, scenario) if isinstance(controller, str) else controller
+    ctrl = networked(scenario, ctrl)  # the law per agent over the [network] links, if any
     ctrl_kind = law_name(ctrl)
     p = make_plant(plant, scenario, fmu_path) if own_plant else plant
     logger = None
@@ -87,6 +89,9 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
             if own_plant:
                 p.close()
     summary["plant"] = plant_kind
+    net_stats = getattr(ctrl, "network_stats", None)
+    if net_stats is not None:
+        summary["network"] = net_stats()
     summary.update(summary_extra or {})
     if log_path is not None:
         summary["log"] = str(log_path)
