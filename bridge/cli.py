@@ -125,6 +125,10 @@ def _cmd_connect(args) -> int:
     cfg = sc.bridge or default_config(sc.n_agents)
     if args.vehicle:
         cfg = cfg.with_endpoints(args.vehicle)
+    from .link import require_key_or_insecure  # before the slow stability check and warm-up
+
+    require_key_or_insecure([v.endpoint for v in cfg.vehicles], args.key or cfg.key_file, args.insecure,
+                            "se3sync connect")
     if not args.force:
         from cosim.stability import analyse
 
