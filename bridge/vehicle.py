@@ -24,7 +24,7 @@ import time
 
 import numpy as np
 
-from .link import Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2, require_key_or_insecure
+from .link import DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2, require_key_or_insecure
 from .signing_state import open_signing_state
 from .mapping import FleetMapping, MappingSpec
 from .transport import state_to_wire
@@ -443,17 +443,20 @@ class VehicleServer:
 
     def _drain(self, ready, deadline: float) -> float:
         """One bounded pass over the ready sockets (each gives at most DRAIN_BUDGET datagrams),
-        stopping early once the tick deadline has passed so that the timer (fail-safe, physics)
+        stopping early once the tick deadline has passed while a socket is flooded (it filled its
+        budget) so that the timer (fail-safe, physics)
         keeps its deadline under a flood; the sockets are visited in rotating order so a flooded
         one cannot always go first. Returns time.monotonic() after the pass."""
         now = time.monotonic()
         n = len(ready)
         if n:
             self._rr = (getattr(self, "_rr", 0) + 1) % n
+            flooded = False
             for j in range(n):
-                self._receive(self._by_fd[ready[(self._rr + j) % n]], now)
+                flooded |= self._receive(self._by_fd[ready[(self._rr + j) % n]], now) >= DRAIN_BUDGET
                 now = time.monotonic()
-                if now >= deadline:
+                # without a flood every ready socket is read before the tick (no added latency)
+                if flooded and now >= deadline and j < n - 1:
                     self.drain_deadline_hits += 1
                     break
         return now
