@@ -390,3 +390,35 @@ def test_insecure_needed_for_non_loopback_without_key(tmp_path):
     eps = [a for i in range(6) for a in ("--vehicle", f"udpin:0.0.0.0:{port + i}")]
     r = _cli("connect", ROOT / "scenarios" / "hil_6uav.toml", *eps)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "--insecure" in r.stderr, r.stderr
+
+
+def test_bridge_keeps_signing_state_beside_the_key(tmp_path):
+    """The bridge side: state written at close beside the key file (or at bridge.signing_state),
+    and a restarted bridge signs above the stored own timestamp by the margin."""
+    from bridge.plant import MavlinkPlant
+    from bridge.signing_state import wall_timestamp
+
+    key = tmp_path / "k.hex"
+    key.write_text(KEY.hex())
+    port = free_base_port(6)
+    sc = load([f"bridge.base_port={port}"])
+    w0 = wall_timestamp()
+    p = MavlinkPlant(sc, key=key, on_event=lambda s: None)
+    p.close()
+    saved = json.loads((tmp_path / "k.hex.signing.json").read_text())
+    assert saved["timestamp"] >= w0
+    elsewhere = tmp_path / "state" / "bridge.json"
+    elsewhere.parent.mkdir()
+    sc = load([f"bridge.base_port={port}", f"bridge.signing_state=\"{elsewhere}\""])
+    p = MavlinkPlant(sc, key=key, on_event=lambda s: None)
+    try:
+        assert p.signing.path == str(elsewhere) and not elsewhere.exists()
+        p.signing.timestamp = saved["timestamp"] + 10**9     # as if it had signed far ahead
+    finally:
+        p.close()
+    assert elsewhere.exists()
+    p = MavlinkPlant(sc, key=key, on_event=lambda s: None)
+    try:
+        assert min(v.peer.mav.signing.timestamp for v in p.vehicles) >= saved["timestamp"] + 10**9 + 60 * 100_000
+    finally:
+        p.close()
