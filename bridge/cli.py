@@ -90,7 +90,7 @@ def _security_options(p) -> None:
                    help="allow a socket reachable from other machines (not 127.x) without --key")
     p.add_argument("--signing-state", metavar="FILE",
                    help="with --key: where the signing timestamps persist across restarts "
-                        "(default: KEYFILE.signing.json)")
+                        "(default: KEYFILE.bridge.signing.json, KEYFILE.vehicle.signing.json)")
 
 
 def _commander(text: str):

@@ -93,7 +93,7 @@ class BridgeConfig:
     lockstep_resend: float = 0.05
     lockstep_timeout: float = 5.0
     key_file: str | None = None
-    signing_state: str | None = None   # persisted signing timestamps (default: <key_file>.signing.json)
+    signing_state: str | None = None   # persisted signing timestamps (default: <key_file>.bridge.signing.json)
     allow_unsigned_heartbeat: bool = False
     tlog: str | None = None
     arm: bool = False

@@ -7,8 +7,11 @@ timestamp in memory only, so a restarted side would accept a captured session ag
 stream is accepted if it is less than a minute behind the own timestamp). As autopilots do with
 their key storage, we keep both in a small JSON file next to the key and restore them at start-up:
 
-* the own timestamp: restored as max(wall clock, stored + ``margin``); the margin covers the
-  packets sent between the last write and a crash (writes are periodic, not per packet);
+* the own timestamp: restored as max(wall clock, stored + ``margin``); the margin (10 s, ten
+  write periods) covers what the own timestamp can advance between the last write and a crash
+  (the wall clock, plus 10 µs per packet signed). It is kept well below the one minute within
+  which a receiver accepts a new stream, so a restart does not put us so far ahead of the wall
+  clock that a peer's fresh session (stamped with the wall clock) would be refused;
 * the per-stream timestamps: restored as stored, so a replay of anything seen before the last
   write is refused as ``replay``.
 
@@ -35,9 +38,11 @@ def wall_timestamp(t: float | None = None) -> int:
     return int(((time.time() if t is None else t) - EPOCH_2015) * UNITS_PER_S)
 
 
-def default_state_path(key_file) -> str:
-    """Where the signing state of a key file is kept: beside it, ``<key file>.signing.json``."""
-    return f"{os.fspath(key_file)}.signing.json"
+def default_state_path(key_file, side: str) -> str:
+    """Where a side's signing state is kept: beside the key, ``<key file>.<side>.signing.json``
+    (one file per side: a bridge and a vehicle sharing a key file must not overwrite each other's
+    replay window)."""
+    return f"{os.fspath(key_file)}.{side}.signing.json"
 
 
 class SigningState:
@@ -45,7 +50,7 @@ class SigningState:
     pymavlink MAVLink object that signs with the key, call tick() from the main loop and close()
     at exit."""
 
-    def __init__(self, path, period: float = 1.0, margin: float = 60.0):
+    def __init__(self, path, period: float = 1.0, margin: float = 10.0):
         self.path = os.fspath(path)
         self.period = float(period)
         self.margin_units = int(margin * UNITS_PER_S)
@@ -129,11 +134,11 @@ class SigningState:
             self.save()
 
 
-def open_signing_state(key, path=None, key_file=None) -> SigningState | None:
+def open_signing_state(key, path=None, key_file=None, side: str = "bridge") -> SigningState | None:
     """The persistent signing state of a side: at ``path`` if given, else beside the key file;
     None without a key, or with a key given as bytes and no path (nothing persisted)."""
     if key is None:
         return None
     if path is None and key_file is not None:
-        path = default_state_path(key_file)
+        path = default_state_path(key_file, side)
     return SigningState(path) if path is not None else None

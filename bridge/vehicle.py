@@ -375,7 +375,7 @@ class VehicleServer:
             else:
                 eps.append(f"udpout:{host}:{base_port + sids[i] - 1}")
         require_key_or_insecure(eps, key, insecure, "se3sync vehicle")
-        self.signing = open_signing_state(key, signing_state, key_file)
+        self.signing = open_signing_state(key, signing_state, key_file, "vehicle")
         try:
             for i in range(self.count):
                 self.vehicles.append(SimVehicle(self, i, sids[i], eps[i], specs[i], masses[i], Js[i], S0[i], g, h_int))

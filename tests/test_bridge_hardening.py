@@ -386,7 +386,7 @@ def test_insecure_needed_for_non_loopback_without_key(tmp_path):
     key.write_text(KEY.hex())
     r = _cli("vehicle", "--endpoint", f"udpin:0.0.0.0:{port}", "--duration", "0.2", "--key", key)
     assert r.returncode == 0, r.stderr
-    assert (tmp_path / "k.hex.signing.json").exists()   # the signing state is kept with the key
+    assert (tmp_path / "k.hex.vehicle.signing.json").exists()   # the signing state is kept with the key
     eps = [a for i in range(6) for a in ("--vehicle", f"udpin:0.0.0.0:{port + i}")]
     r = _cli("connect", ROOT / "scenarios" / "hil_6uav.toml", *eps)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "--insecure" in r.stderr, r.stderr
@@ -405,7 +405,7 @@ def test_bridge_keeps_signing_state_beside_the_key(tmp_path):
     w0 = wall_timestamp()
     p = MavlinkPlant(sc, key=key, on_event=lambda s: None)
     p.close()
-    saved = json.loads((tmp_path / "k.hex.signing.json").read_text())
+    saved = json.loads((tmp_path / "k.hex.bridge.signing.json").read_text())
     assert saved["timestamp"] >= w0
     elsewhere = tmp_path / "state" / "bridge.json"
     elsewhere.parent.mkdir()
@@ -419,6 +419,6 @@ def test_bridge_keeps_signing_state_beside_the_key(tmp_path):
     assert elsewhere.exists()
     p = MavlinkPlant(sc, key=key, on_event=lambda s: None)
     try:
-        assert min(v.peer.mav.signing.timestamp for v in p.vehicles) >= saved["timestamp"] + 10**9 + 60 * 100_000
+        assert min(v.peer.mav.signing.timestamp for v in p.vehicles) >= saved["timestamp"] + 10**9 + p.signing.margin_units
     finally:
         p.close()
