@@ -50,6 +50,10 @@ def register(sub) -> None:
     p.add_argument("--gravity", metavar="GX,GY,GZ", help="gravity in NED without --scenario (e.g. 0,0,9.81)")
     p.add_argument("--require-arm", action="store_true", help="ignore commands until armed")
     p.add_argument("--tlog", metavar="FILE", help="write all traffic to this tlog")
+    _security_options(p)
+    p.add_argument("--commander", type=_commander, metavar="SYS[:COMP]",
+                   help="the only system (and component; 0 = any) whose packets are obeyed (default: "
+                        "the scenario's bridge.source_system:source_component, else 255:191)")
     p.add_argument("--stats", metavar="FILE", help="write the traffic counters (JSON) here on exit")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time")
     p.add_argument("--sim-protocol", choices=("px4", "ardupilot"),
@@ -89,6 +93,7 @@ def register(sub) -> None:
                    "connected after S seconds (default: bridge.connect_timeout, 10)")
     p.add_argument("--tlog", metavar="FILE", help="write all traffic to this tlog (mavlogdump.py reads it)")
     p.add_argument("--force", action="store_true", help="run even if the sampled loop is unstable at this step")
+    _security_options(p)
     p.set_defaults(func=_cmd_connect)
 
 
@@ -99,6 +104,29 @@ def _outputs(*pairs) -> None:
     for option, path, suffixes in pairs:
         if path is not None:
             check_output(option, path, suffixes)
+
+
+def _security_options(p) -> None:
+    p.add_argument("--insecure", action="store_true",
+                   help="allow a socket reachable from other machines (not 127.x) without --key")
+    p.add_argument("--signing-state", metavar="FILE",
+                   help="with --key: where the signing timestamps persist across restarts "
+                        "(default: KEYFILE.bridge.signing.json, KEYFILE.vehicle.signing.json)")
+
+
+def _commander(text: str):
+    import argparse
+
+    try:
+        parts = [int(x) for x in text.split(":")]
+        if len(parts) == 1:
+            parts.append(0)
+        if len(parts) != 2 or not 1 <= parts[0] <= 255 or not 0 <= parts[1] <= 255:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be SYS or SYS:COMP with SYS in 1..255 and COMP in 0..255, "
+                                         f"got {text!r}") from None
+    return tuple(parts)
 
 
 def _cmd_vehicle(args) -> int:
@@ -129,6 +157,10 @@ def _cmd_connect(args) -> int:
     cfg = sc.bridge or default_config(sc.n_agents)
     if args.vehicle:
         cfg = cfg.with_endpoints(args.vehicle)
+    from .link import require_key_or_insecure  # before the slow stability check and warm-up
+
+    require_key_or_insecure([v.endpoint for v in cfg.vehicles], args.key or cfg.key_file, args.insecure,
+                            "se3sync connect")
     if not args.force:
         from cosim.analysis.stability import analyse
 
@@ -139,7 +171,8 @@ def _cmd_connect(args) -> int:
                                 sc.path)
     warm_up(sc)  # compile the controller and metrics now, not while the vehicles wait for commands
     plant = MavlinkPlant(sc, cfg, lockstep=True if args.lockstep else None, key=args.key, tlog=args.tlog,
-                         connect_timeout=args.connect_timeout)
+                         connect_timeout=args.connect_timeout, insecure=args.insecure,
+                         signing_state=args.signing_state)
     try:
         try:
             plant.connect()

@@ -46,6 +46,7 @@ DEFAULTS = {
     "lockstep_resend": 0.05,
     "lockstep_timeout": 5.0,
     "key_file": None,
+    "signing_state": None,
     "allow_unsigned_heartbeat": False,
     "tlog": None,
     "arm": False,
@@ -88,6 +89,7 @@ class BridgeConfig:
     lockstep_resend: float = 0.05
     lockstep_timeout: float = 5.0
     key_file: str | None = None
+    signing_state: str | None = None   # persisted signing timestamps (default: <key_file>.bridge.signing.json)
     allow_unsigned_heartbeat: bool = False
     tlog: str | None = None
     arm: bool = False
@@ -226,6 +228,8 @@ def parse_bridge(table: dict, n_agents: int) -> BridgeConfig:
     cfg.odometry_rate = _float("bridge.odometry_rate", t["odometry_rate"], nonneg=True)
     if t["key_file"] is not None:
         cfg.key_file = _str("bridge.key_file", t["key_file"])
+    if t["signing_state"] is not None:
+        cfg.signing_state = _str("bridge.signing_state", t["signing_state"])
     if t["tlog"] is not None:
         cfg.tlog = _str("bridge.tlog", t["tlog"])
 

@@ -28,6 +28,7 @@ from collections import defaultdict
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
+from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
 MAGIC_V2 = 0xFD
 MAGIC_V1 = 0xFE
@@ -38,7 +39,8 @@ MSG_HEARTBEAT = 0
 
 REJECT_REASONS = ("unsigned", "bad_signature", "replay", "wrong_system", "not_for_us",
                   "unknown_message", "stale", "out_of_order", "nan", "non_unit_quaternion",
-                  "bad_frame", "bad_command")
+                  "bad_frame", "bad_command", "not_commander", "future")
+LOOPBACK_HOSTS = ("localhost",)
 
 
 class Counters:
@@ -52,6 +54,8 @@ class Counters:
         self.malformed = 0           # datagrams dropped: bad magic, MAVLink 1, truncated, bad CRC, ...
         self.dropped = 0             # packets lost on the way (gaps in the senders' sequence numbers)
         self.rejected = defaultdict(int)   # packets refused, by reason
+        self.drain_max = 0           # most datagrams read in one pass over a socket
+        self.drain_capped = 0        # passes that stopped at the per-pass budget (the rest waits)
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
@@ -60,7 +64,13 @@ class Counters:
         return {"sent": self.sent, "send_errors": self.send_errors, "received": self.received,
                 "datagrams": self.datagrams, "malformed": self.malformed, "dropped": self.dropped,
                 "rejected": int(sum(self.rejected.values())),
-                "rejected_by_reason": {k: int(v) for k, v in sorted(self.rejected.items())}}
+                "rejected_by_reason": {k: int(v) for k, v in sorted(self.rejected.items())},
+                "drain_max": self.drain_max, "drain_capped": self.drain_capped}
+
+    def refusals(self) -> int:
+        """Packets refused so far (rejected or malformed): a handler accepted a packet iff this
+        did not change while it ran."""
+        return self.malformed + int(sum(self.rejected.values()))
 
 
 class TLog:
@@ -124,7 +134,8 @@ class Peer:
     tracking, the shared counters and tlog."""
 
     def __init__(self, src_system: int, src_component: int, counters: Counters, key: bytes | None = None,
-                 allow_unsigned_heartbeat: bool = False, link_id: int = 0, tlog: TLog | None = None):
+                 allow_unsigned_heartbeat: bool = False, link_id: int = 0, tlog: TLog | None = None,
+                 signing_state=None):
         self.mav = mavlink2.MAVLink(None, srcSystem=src_system, srcComponent=src_component)
         self.mav.robust_parsing = True
         self.counters = counters
@@ -136,7 +147,11 @@ class Peer:
             allow = (lambda mav, msgid: msgid == MSG_HEARTBEAT) if allow_unsigned_heartbeat else None
             mavutil.mavfile.setup_signing(_Holder(self.mav), key, sign_outgoing=True,
                                           allow_unsigned_callback=allow, link_id=link_id)
+            if signing_state is not None:
+                signing_state.attach(self.mav)
         self.rx_errors: dict = defaultdict(int)
+        self._pending_seq = None
+        self.last_signed = False     # the latest accepted packet carried a valid signature
 
     # ------------------------------------------------------------------ out
     def pack(self, msg) -> bytes:
@@ -148,6 +163,22 @@ class Peer:
         return buf
 
     # ------------------------------------------------------------------ in
+    def _count_seq(self, sysid, compid, seq) -> None:
+        key = (sysid, compid)
+        last = self._last_seq.get(key)
+        if last is not None:
+            gap = (seq - last - 1) & 0xFF
+            if gap < 128:  # larger "gaps" are duplicates/reordering, not losses
+                self.counters.dropped += gap
+        self._last_seq[key] = seq
+
+    def commit_sequence(self) -> None:
+        """Without a key: the latest accepted packet was also accepted by the application, so its
+        sequence number is trusted for loss counting."""
+        if self._pending_seq is not None:
+            self._count_seq(*self._pending_seq)
+            self._pending_seq = None
+
     def accept(self, pkt: bytes):
         """A framed packet -> message, or None (counted: rejected by reason, or malformed)."""
         c = self.counters
@@ -179,25 +210,76 @@ class Peer:
         if isinstance(m, mavlink2.MAVLink_unknown):
             c.reject("unknown_message")
             return None
-        key = (sysid, compid)
-        last = self._last_seq.get(key)
-        if last is not None:
-            gap = (seq - last - 1) & 0xFF
-            if gap < 128:  # larger "gaps" are duplicates/reordering, not losses
-                c.dropped += gap
-        self._last_seq[key] = seq
+        self.last_signed = signed and self.key is not None
+        # Sequence gaps count as losses only on authenticated packets: with a key, the signed
+        # ones (a spoofed unsigned HEARTBEAT would otherwise interleave a foreign sequence);
+        # without a key, the ones the application accepts (commit_sequence).
+        self._pending_seq = None
+        if self.key is None:
+            self._pending_seq = (sysid, compid, seq)
+        elif signed:
+            self._count_seq(sysid, compid, seq)
         c.received += 1
         if self.tlog is not None:
             self.tlog.write(pkt)
         return m
 
 
-def receive_datagrams(sock, counters, on_packet) -> None:
-    """Read every pending datagram on sock, split it into MAVLink 2 frames and hand each frame
+def crc_ok(pkt: bytes) -> bool | None:
+    """The X.25 checksum of a framed MAVLink 2 packet is right (None: unknown message id, no
+    CRC_EXTRA to check with)."""
+    plen = pkt[1]
+    msgid = pkt[7] | (pkt[8] << 8) | (pkt[9] << 16)
+    entry = mavlink2.mavlink_map.get(msgid)
+    if entry is None:
+        return None
+    crc = x25crc(bytes(pkt[1:HEADER_LEN + plen]))
+    crc.accumulate(bytes((entry.crc_extra,)))
+    return crc.crc == (pkt[HEADER_LEN + plen] | (pkt[HEADER_LEN + plen + 1] << 8))
+
+
+def is_loopback(host: str) -> bool:
+    return host in LOOPBACK_HOSTS or host.startswith("127.")
+
+
+def binds_non_loopback(endpoint: str) -> bool:
+    """Does a socket for this endpoint accept datagrams from other machines? udpin binds HOST;
+    udpout to a remote host binds 0.0.0.0 (see UdpSocket)."""
+    _, (host, _) = parse_endpoint(endpoint)
+    return not is_loopback(host)
+
+
+def require_key_or_insecure(endpoints, key, insecure: bool, what: str) -> None:
+    """Refuses (Se3SyncError) a non-loopback socket without a signing key unless --insecure."""
+    if key is not None or insecure:
+        return
+    bad = [e for e in endpoints if binds_non_loopback(e)]
+    if bad:
+        from controller.errors import Se3SyncError
+
+        raise Se3SyncError(f"{what}: {bad[0]} accepts datagrams from other machines and there is no "
+                           "signing key (--key): anyone on the network could command the vehicles; "
+                           "give --key, or --insecure to run unauthenticated")
+
+
+DRAIN_BUDGET = 64   # datagrams per socket per pass; the caller's timer runs between passes
+
+
+def receive_datagrams(sock, counters, on_packet, limit: int = DRAIN_BUDGET) -> int:
+    """Read at most ``limit`` pending datagrams on sock (a flood must not starve the caller's
+    timer: the rest waits in the socket buffer for the next pass, and what the kernel drops
+    beyond its buffer is the flood's loss), split each into MAVLink 2 frames and hand each frame
     to on_packet(pkt, addr). Network input is untrusted: a datagram that does not frame, or
-    whose frames break their handler, is counted once as malformed and dropped, never raised."""
+    whose frames break their handler, is counted once as malformed and dropped, never raised.
+    Returns the number of datagrams read."""
     c = counters
-    for data, addr in sock.recv_all():
+    batch = sock.recv_all(limit)
+    nb = len(batch)
+    if nb > c.drain_max:
+        c.drain_max = nb
+    if nb >= limit:
+        c.drain_capped += 1
+    for data, addr in batch:
         c.datagrams += 1
         try:
             pkts, err = split_datagram(data)
@@ -211,6 +293,7 @@ def receive_datagrams(sock, counters, on_packet) -> None:
                 c.malformed = m0 + 1  # one bad datagram counts once
         except Exception:  # noqa: BLE001 - untrusted input never crashes us
             c.malformed += 1
+    return nb
 
 
 def parse_endpoint(ep: str):

@@ -16,7 +16,9 @@ import numpy as np
 from controller.errors import Se3SyncError
 
 from .config import default_config, read_key_file
-from .link import Counters, Peer, TLog, UdpSocket, mavlink2, receive_datagrams
+from .link import (Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2, receive_datagrams,
+                   require_key_or_insecure)
+from .signing_state import open_signing_state
 from .state import StateTracker
 from .transport import WIRE, Transport, wire_to_state
 
@@ -96,7 +98,7 @@ class MavlinkPlant:
     """
 
     def __init__(self, scenario, config=None, *, lockstep=None, key=None, tlog=None,
-                 connect_timeout=None, on_event=None):
+                 connect_timeout=None, on_event=None, insecure=False, signing_state=None):
         cfg = config if config is not None else (scenario.bridge or default_config(scenario.n_agents))
         self.cfg = cfg
         self.n = n = scenario.n_agents
@@ -110,9 +112,13 @@ class MavlinkPlant:
         self.connect_timeout = cfg.connect_timeout if connect_timeout is None else float(connect_timeout)
         if key is None and cfg.key_file:
             key = cfg.key_file
+        key_path = None
         if isinstance(key, (str,)) or hasattr(key, "__fspath__"):
+            key_path = key
             key = read_key_file(key)
         self.key = key
+        require_key_or_insecure([vs.endpoint for vs in cfg.vehicles], key, insecure, "se3sync connect")
+        self.signing = open_signing_state(key, signing_state or getattr(cfg, "signing_state", None), key_path)
         tl = tlog if tlog is not None else cfg.tlog
         self.tlog = TLog(tl) if tl else None
         self.on_event = on_event or (lambda s: print(f"se3sync connect: {s}", file=sys.stderr, flush=True))
@@ -147,7 +153,7 @@ class MavlinkPlant:
                     self._route[sock.fileno()] = {}
                 peer = Peer(cfg.source_system, cfg.source_component, self.counters, key=self.key,
                             allow_unsigned_heartbeat=cfg.allow_unsigned_heartbeat, link_id=i & 0xFF,
-                            tlog=self.tlog)
+                            tlog=self.tlog, signing_state=self.signing)
                 tr = StateTracker(self.counters, cfg.stale_after, check_stale=not self.lockstep,
                                   fallback=not self.lockstep)
                 v = _Vehicle(i, vs.system_id, sock, peer, tr)
@@ -199,18 +205,31 @@ class MavlinkPlant:
         def on_packet(pkt, addr):
             v = route.get(pkt[5])
             if v is None:
-                c.reject("wrong_system")
+                if crc_ok(pkt) is False:
+                    c.malformed += 1     # corrupted, not a stranger: its system id is noise
+                else:
+                    c.reject("wrong_system")
                 return
             m = v.peer.accept(pkt)
             if m is None:
                 return
-            if sock.mode == "udpin":
-                v.addr = addr
-            self._dispatch(v, m, now)
+            if self._dispatch(v, m, now):
+                self._accepted(v, addr)
 
         receive_datagrams(sock, c, on_packet)
 
-    def _dispatch(self, v: _Vehicle, m, now: float) -> None:
+    def _accepted(self, v: _Vehicle, addr) -> None:
+        """A packet passed the link and was used: only now may it count for loss
+        statistics and (udpin) tell where the vehicle is. With a key only a signed packet moves
+        the address (an unsigned HEARTBEAT let in by allow_unsigned_heartbeat does not); udpout
+        endpoints never move."""
+        v.peer.commit_sequence()
+        if v.sock.mode == "udpin" and addr != v.addr and (self.key is None or v.peer.last_signed):
+            v.addr = addr
+
+    def _dispatch(self, v: _Vehicle, m, now: float) -> bool:
+        """Hands a message to its consumer; True if it was used (a state accepted, a heartbeat,
+        an acknowledgement or a status text), False if refused or not (yet) used."""
         mid = m.get_msgId()
         tr = v.tracker
         ok = False
@@ -244,6 +263,7 @@ class MavlinkPlant:
                 v.lost = False
                 v.recoveries += 1
                 self._event(f"vehicle {v.i + 1} (system {v.sysid}): link recovered")
+        return ok or mid in (ID_HEARTBEAT, ID_ACK, ID_STATUSTEXT)
 
     def poll(self, timeout: float) -> None:
         """Services the links for at most ``timeout`` seconds (returns after the first batch)."""
@@ -251,6 +271,8 @@ class MavlinkPlant:
         now = time.monotonic()
         for fd in r:
             self._receive(fd, now)
+        if self.signing is not None:
+            self.signing.tick(now)
 
     # ------------------------------------------------------------------ connection
     def connect(self) -> "MavlinkPlant":
@@ -399,5 +421,7 @@ class MavlinkPlant:
         self._closed = True
         for s in self.socks:
             s.close()
+        if getattr(self, "signing", None) is not None:
+            self.signing.close()
         if self.tlog is not None:
             self.tlog.close()

@@ -26,7 +26,9 @@ import numpy as np
 from cosim import signals
 from cosim.files import write_json_atomic
 
-from .link import Counters, Peer, TLog, UdpSocket, mavlink2
+from .link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
+                   receive_datagrams, require_key_or_insecure)
+from .signing_state import open_signing_state
 from .mapping import FleetMapping, MappingSpec
 from .output import PX4_ATTITUDE_THRUST, profiles_for
 from .transport import state_to_wire
@@ -39,6 +41,8 @@ ID_LPOS = M.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 STREAMABLE = (ID_HEARTBEAT, ID_ODOMETRY, ID_ATTQ, ID_LPOS)
 WRENCH_MSGS = (M.MAVLINK_MSG_ID_MANUAL_CONTROL, M.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET)
 NAN21 = [float("nan")] + [0.0] * 20
+MAX_AHEAD_US = 1_000_000        # a command may be stamped at most 1 s ahead of the vehicle's clock
+DEFAULT_COMMANDER = (255, 191)  # the bridge's default source_system, source_component
 
 
 class SimVehicle:
@@ -54,7 +58,7 @@ class SimVehicle:
         self.sock = UdpSocket(endpoint)
         self.peer = Peer(system_id, 1, server.counters, key=server.key,
                          allow_unsigned_heartbeat=server.allow_unsigned_heartbeat,
-                         link_id=index & 0xFF, tlog=server.tlog)
+                         link_id=index & 0xFF, tlog=server.tlog, signing_state=server.signing)
         self.mapping = FleetMapping([mapping_spec])
         self.mass = float(mass)
         self.g = np.asarray(g_ned, float)
@@ -203,8 +207,6 @@ class SimVehicle:
     def handle(self, m, addr, now: float) -> None:
         srv = self.server
         mid = m.get_msgId()
-        if self.sock.mode == "udpin":
-            self.gcs_addr = addr  # udpin: answer whoever talked to us last
         if mid == ID_HEARTBEAT:
             self.gcs_seen = now
             return
@@ -219,6 +221,8 @@ class SimVehicle:
                 srv.counters.reject("bad_command")
                 return
             c = m.controls[:6]
+            if not srv.lockstep and self.future(m.time_usec):
+                return
             if srv.lockstep:
                 k_us = self.k * srv.h_us
                 self.lockstep_command(m.time_usec == k_us, m.time_usec < k_us, c, now)
@@ -258,6 +262,15 @@ class SimVehicle:
             self.lockstep_command(m.time_boot_ms == k_ms, m.time_boot_ms == prof.stamp(self.k - 1), c, now)
         else:  # MANUAL_CONTROL has no time field: lockstep by sequence, one step per command
             self.lockstep_command(True, False, c, now)
+
+    def future(self, t_us: int) -> bool:
+        """Real time: a command stamped more than MAX_AHEAD_US ahead of our clock (both sides
+        stamp Unix time) is refused as ``future``; accepted, it would hold the ordering window
+        and make every genuine command ``out_of_order`` until the clock caught up."""
+        if t_us > time.time() * 1e6 + MAX_AHEAD_US:
+            self.server.counters.reject("future")
+            return True
+        return False
 
     def command_long(self, m, now: float) -> None:
         srv = self.server
@@ -326,7 +339,8 @@ class VehicleServer:
                  scenario=None, rate: float = 250.0, aux_rate: float = 10.0, step: float | None = None,
                  command_timeout: float | None = None, first_system_id: int = 1, tlog=None,
                  allow_unsigned_heartbeat: bool = False, require_arm: bool = False,
-                 gravity_ned=(0.0, 0.0, 0.0), quiet: bool = True):
+                 gravity_ned=(0.0, 0.0, 0.0), quiet: bool = True, commander=None,
+                 insecure: bool = False, signing_state=None, key_file=None):
         cfg = None
         if scenario is not None:
             from .config import default_config
@@ -338,6 +352,10 @@ class VehicleServer:
         self.count = int(count)
         self.lockstep = bool(lockstep)
         self.key = key
+        # only the commander (system, component; component 0 = any) may talk to the vehicles
+        self.commander = tuple(commander) if commander is not None else \
+            ((cfg.source_system, cfg.source_component) if cfg else DEFAULT_COMMANDER)
+        self.signing = None
         self.allow_unsigned_heartbeat = allow_unsigned_heartbeat or bool(cfg and cfg.allow_unsigned_heartbeat)
         self.require_arm = require_arm
         self.rate = float(rate)
@@ -352,6 +370,7 @@ class VehicleServer:
         self.tlog = TLog(tlog) if tlog else None
         self.encode_errors = 0
         self.repeats = 0
+        self.drain_deadline_hits = 0      # receive passes cut short by the tick deadline
         self.failsafe_delays: list = []   # command timeout detected: seconds since the last command
         self.started_commands: dict = {}
         self.quiet = quiet
@@ -377,15 +396,19 @@ class VehicleServer:
             specs = [MappingSpec()] * self.count
             sids = list(range(first_system_id, first_system_id + self.count))
             h_int = min(self.h, 1e-3)
+        eps = []
+        for i in range(self.count):
+            if endpoints:
+                eps.append(endpoints[i])
+            elif shared_port or (cfg is not None and cfg.routing == "shared"):
+                eps.append(f"udpout:{host}:{base_port}")
+            else:
+                eps.append(f"udpout:{host}:{base_port + sids[i] - 1}")
+        require_key_or_insecure(eps, key, insecure, "se3sync vehicle")
+        self.signing = open_signing_state(key, signing_state, key_file, "vehicle")
         try:
             for i in range(self.count):
-                if endpoints:
-                    ep = endpoints[i]
-                elif shared_port or (cfg is not None and cfg.routing == "shared"):
-                    ep = f"udpout:{host}:{base_port}"
-                else:
-                    ep = f"udpout:{host}:{base_port + sids[i] - 1}"
-                self.vehicles.append(SimVehicle(self, i, sids[i], ep, specs[i], masses[i], Js[i], S0[i], g, h_int))
+                self.vehicles.append(SimVehicle(self, i, sids[i], eps[i], specs[i], masses[i], Js[i], S0[i], g, h_int))
         except Exception:
             self.close()
             raise
@@ -410,20 +433,64 @@ class VehicleServer:
         d.update(failsafe=self.failsafe_count, failsafe_active=[v.failsafe for v in self.vehicles],
                  commands=sum(v.commands for v in self.vehicles), steps=[v.k for v in self.vehicles],
                  repeats=self.repeats, encode_errors=self.encode_errors,
+                 drain_deadline_hits=self.drain_deadline_hits, commander=list(self.commander),
                  failsafe_delay_max=max(self.failsafe_delays) if self.failsafe_delays else None,
                  failsafe_delays=[round(x, 6) for x in self.failsafe_delays[:200]],
                  command_timeout=self.command_timeout, control_period=self.h)
         return d
 
     def _receive(self, v: SimVehicle, now: float) -> None:
-        from .link import receive_datagrams
+        c = self.counters
+        csys, ccomp = self.commander
 
         def on_packet(pkt, addr):
+            if pkt[5] != csys or (ccomp and pkt[6] != ccomp):
+                if crc_ok(pkt) is False:
+                    c.malformed += 1
+                else:
+                    c.reject("not_commander")
+                return
             m = v.peer.accept(pkt)
-            if m is not None:
+            if m is None:
+                return
+            n0 = c.refusals()
+            try:
                 v.handle(m, addr, now)
+            except (ValueError, TypeError, OverflowError):  # e.g. int(nan) of a parameter
+                c.reject("bad_command")
+                return
+            if c.refusals() == n0:
+                self._accepted(v, addr)
 
-        receive_datagrams(v.sock, self.counters, on_packet)
+        return receive_datagrams(v.sock, c, on_packet)
+
+    def _accepted(self, v: SimVehicle, addr) -> None:
+        """A packet from the commander passed the link and its handler: only now may it count
+        for loss statistics and (udpin) tell where to answer. With a key only a signed packet
+        moves the address; udpout endpoints never move."""
+        v.peer.commit_sequence()
+        if v.sock.mode == "udpin" and (self.key is None or v.peer.last_signed):
+            v.gcs_addr = addr
+
+    def _drain(self, ready, deadline: float) -> float:
+        """One bounded pass over the ready sockets (each gives at most DRAIN_BUDGET datagrams),
+        stopping early once the tick deadline has passed while a socket is flooded (it filled its
+        budget) so that the timer (fail-safe, physics)
+        keeps its deadline under a flood; the sockets are visited in rotating order so a flooded
+        one cannot always go first. Returns time.monotonic() after the pass."""
+        now = time.monotonic()
+        n = len(ready)
+        if n:
+            self._rr = (getattr(self, "_rr", 0) + 1) % n
+            flooded = False
+            for j in range(n):
+                flooded |= self._receive(self._by_fd[ready[(self._rr + j) % n]], now) >= DRAIN_BUDGET
+                now = time.monotonic()
+                # without a flood every ready socket is read before the tick (no added latency)
+                if flooded and now >= deadline and j < n - 1:
+                    self.drain_deadline_hits += 1
+                    break
+        return now
 
     def run(self, duration: float | None = None) -> dict:
         """Serves until stop(), SIGTERM/SIGINT (main thread) or ``duration`` seconds."""
@@ -445,9 +512,9 @@ class VehicleServer:
                     break
                 timeout = max(0.0, min(next_tick - now, 0.05))
                 r, _, _ = select.select(fds, [], [], timeout)
-                now = time.monotonic()
-                for fd in r:
-                    self._receive(self._by_fd[fd], now)
+                now = self._drain(r, next_tick)
+                if self.signing is not None:
+                    self.signing.tick(now)
                 if now < next_tick:
                     continue
                 if not self.lockstep:
@@ -486,6 +553,9 @@ class VehicleServer:
                 pass
         if self.tlog is not None:
             self.tlog.close()
+        if self.signing is not None:
+            self.signing.close()
+            self.signing = None
 
 
 def run_vehicle_cli(args) -> int:
@@ -504,7 +574,8 @@ def run_vehicle_cli(args) -> int:
                         rate=args.rate, aux_rate=args.aux_rate, step=args.step,
                         command_timeout=args.command_timeout, first_system_id=args.first_system_id,
                         tlog=args.tlog, allow_unsigned_heartbeat=args.allow_unsigned_heartbeat,
-                        require_arm=args.require_arm, gravity_ned=g)
+                        require_arm=args.require_arm, gravity_ned=g, commander=args.commander,
+                        insecure=args.insecure, signing_state=args.signing_state, key_file=args.key)
     eps = ", ".join(v.sock.endpoint for v in srv.vehicles[:3]) + (" ..." if srv.count > 3 else "")
     print(f"se3sync vehicle: {srv.count} vehicle(s) ({'lockstep' if srv.lockstep else f'real time, {srv.rate:g} Hz'}) "
           f"-> {eps}", file=sys.stderr, flush=True)
