@@ -27,21 +27,26 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 PAPER = ROOT / "scenarios" / "paper_6uav.toml"
+HIL = ROOT / "scenarios" / "hil_6uav.toml"
 
 
 def random_tree_text(n, seed=1, step=1e-3, duration=1.0):
-    """The paper's TOML with n agents on a random tree (random orientations), random poses."""
+    """hil_6uav's weighting and gains (designed for h = 4 ms, so the loop is stable at h = 1 ms)
+    with n agents on a random tree (random orientations), random initial poses, log at 100 Hz."""
     rng = np.random.default_rng(seed)
     edges = []
     for i in range(1, n):
         e = [int(rng.integers(0, i)) + 1, i + 1]
         edges.append(e if rng.random() < 0.5 else e[::-1])
-    text = PAPER.read_text().replace("count = 6 ", f"count = {n} ")
+    text = HIL.read_text()
+    text = text[:text.index("[bridge]")]
+    text = text.replace("count = 6\n", f"count = {n}\n")
     text = text.replace("edges = [[1, 2], [2, 3], [3, 4], [2, 5], [5, 6]]", f"edges = {edges}")
-    text = text.replace('generator = "paper"\naxis = [0.2686, 0.8549, 0.4438]',
+    text = text.replace('generator = "paper"\naxis = [0.2997, 0.8380, 0.4560]',
                         f'generator = "random"\nseed = {seed}\nposition_box = 1.0')
-    text = text.replace("duration = 40.0", f"duration = {duration}")
-    return text.replace("step = 1e-4", f"step = {step}")
+    text = text.replace("duration = 20.0", f"duration = {duration}")
+    text = text.replace("log_rate = 50.0", "log_rate = 100.0")
+    return text.replace("step = 0.004", f"step = {step}")
 
 
 def run(sc, compiled=True, log=None):

@@ -19,6 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from controller import layout
+from controller.se3 import rot_to_quat as _r2q
+
 P_W = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 P_B = np.diag([1.0, -1.0, -1.0])
 
@@ -53,8 +56,6 @@ def quat_norm_error(q: np.ndarray) -> np.ndarray:
 
 def rot_to_quat(R9: np.ndarray) -> np.ndarray:
     """(n,9) row-major rotation matrices -> (n,4) unit quaternions (w first, w >= 0)."""
-    from controller.se3 import rot_to_quat as _r2q
-
     R9 = np.asarray(R9, dtype=np.float64)
     return _r2q(R9.reshape(-1, 3, 3))
 
@@ -110,9 +111,9 @@ def state_world_to_ned(S: np.ndarray, world: str) -> np.ndarray:
     """(n,18) [p, R, ξ] in the scenario frames -> NED/FRD (exact)."""
     S = np.asarray(S, dtype=np.float64)
     out = np.empty_like(S)
-    out[:, 0:3] = world_to_ned_p(S[:, 0:3], world)
-    out[:, 3:12] = rot_world_to_ned(S[:, 3:12], world)
-    out[:, 12:18] = body_to_frd(S[:, 12:18], world)
+    out[:, layout.P] = world_to_ned_p(S[:, layout.P], world)
+    out[:, layout.R] = rot_world_to_ned(S[:, layout.R], world)
+    out[:, layout.XI] = body_to_frd(S[:, layout.XI], world)
     return out
 
 

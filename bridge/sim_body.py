@@ -75,9 +75,8 @@ class SimBody:
         self.mapping = FleetMapping([mapping_spec])
         self.fmu = FleetFMU(1, instance_name=name)
         S0 = np.asarray(S0_ned, float).reshape(1, 18)
-        self.fmu.set_parameters(mass=[self.mass], J=np.asarray(J, float).reshape(1, 3, 3), p0=S0[:, 0:3],
-                                R0=S0[:, 3:12].reshape(1, 3, 3), xi0=S0[:, 12:18], gravity=self.g,
-                                h_internal=h_internal)
+        self.fmu.set_initial_state(S0, mass=[self.mass], J=np.asarray(J, float).reshape(1, 3, 3),
+                                   gravity=self.g, h_internal=h_internal)
         self.fmu.initialize(0.0)
         self.t = 0.0
         self.held = True

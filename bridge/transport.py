@@ -16,6 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from controller import layout
+from plant_fmu.fast import FleetFMU
+
 from . import frames
 from .mapping import FleetMapping
 
@@ -31,9 +34,9 @@ def state_to_wire(S_ned: np.ndarray, q: np.ndarray) -> np.ndarray:
     """The vehicle side: (n,18) NED/FRD states and (n,4) quaternions -> (n,13) float32 values."""
     S_ned = np.asarray(S_ned, dtype=np.float64)
     out = np.empty((S_ned.shape[0], WIRE))
-    out[:, 0:3] = S_ned[:, 0:3]
+    out[:, 0:3] = S_ned[:, layout.P]
     out[:, 3:7] = q
-    out[:, 7:13] = S_ned[:, 12:18]
+    out[:, 7:13] = S_ned[:, layout.XI]
     return f32(out)
 
 
@@ -41,15 +44,15 @@ def wire_to_state(wire: np.ndarray, world: str) -> np.ndarray:
     """The bridge side: (n,13) wire values -> (n,18) [p, R, ξ] in the scenario's frames."""
     wire = np.asarray(wire, dtype=np.float64)
     S = np.empty((wire.shape[0], 18))
-    S[:, 0:3] = wire[:, 0:3]
-    S[:, 3:12] = frames.quat_to_rot(wire[:, 3:7])
-    S[:, 12:18] = wire[:, 7:13]
+    S[:, layout.P] = wire[:, 0:3]
+    S[:, layout.R] = frames.quat_to_rot(wire[:, 3:7])
+    S[:, layout.XI] = wire[:, 7:13]
     return frames.state_ned_to_world(S, world)
 
 
 def gravity_feedforward(S: np.ndarray, masses: np.ndarray, g: np.ndarray) -> np.ndarray:
     """(n,3) body force −m Rᵀ g that cancels gravity g (world frame, the plant's gravity)."""
-    R = S[:, 3:12]
+    R = S[:, layout.R]
     out = np.empty((S.shape[0], 3))
     for i in range(3):  # (Rᵀ g)_i = R[0,i] g0 + R[1,i] g1 + R[2,i] g2, in that order
         out[:, i] = -masses * (R[:, i] * g[0] + R[:, 3 + i] * g[1] + R[:, 6 + i] * g[2])
@@ -94,14 +97,11 @@ class VehicleFleet:
     loopback vehicle sets up each of its single-body FMUs."""
 
     def __init__(self, scenario, world: str, fmu_path=None):
-        from plant_fmu.fast import FleetFMU
-
         n = scenario.n_agents
         self.n = n
         self.fmu = FleetFMU(n, fmu_path=fmu_path, instance_name="reference")
         m, J, S0, g = vehicle_setup(scenario, world)
-        self.fmu.set_parameters(mass=m, J=J, p0=S0[:, 0:3], R0=S0[:, 3:12].reshape(n, 3, 3),
-                                xi0=S0[:, 12:18], gravity=g, h_internal=scenario.internal_step)
+        self.fmu.set_initial_state(S0, mass=m, J=J, gravity=g, h_internal=scenario.internal_step)
         self.fmu.initialize(0.0)
         self.k = 0
 

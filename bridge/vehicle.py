@@ -25,6 +25,7 @@ import numpy as np
 
 from cosim import signals
 from cosim.files import write_json_atomic
+from plant_fmu.fast import FleetFMU
 
 from .link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
                    receive_datagrams, require_key_or_insecure)
@@ -50,8 +51,6 @@ class SimVehicle:
 
     def __init__(self, server, index: int, system_id: int, endpoint: str, mapping_spec: MappingSpec,
                  mass: float, J, S0_ned, g_ned, h_internal: float):
-        from plant_fmu.fast import FleetFMU
-
         self.server = server
         self.index = index
         self.sysid = system_id
@@ -64,9 +63,8 @@ class SimVehicle:
         self.g = np.asarray(g_ned, float)
         self.fmu = FleetFMU(1, instance_name=f"vehicle{system_id}")
         S0 = np.asarray(S0_ned, float).reshape(1, 18)
-        self.fmu.set_parameters(mass=[mass], J=np.asarray(J, float).reshape(1, 3, 3), p0=S0[:, 0:3],
-                                R0=S0[:, 3:12].reshape(1, 3, 3), xi0=S0[:, 12:18], gravity=self.g,
-                                h_internal=h_internal)
+        self.fmu.set_initial_state(S0, mass=[mass], J=np.asarray(J, float).reshape(1, 3, 3),
+                                   gravity=self.g, h_internal=h_internal)
         self.fmu.initialize(0.0)
         self.k = 0
         self.controls = np.zeros(6)
