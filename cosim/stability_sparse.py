@@ -240,7 +240,7 @@ def common_mode_eigenvalues(h, I6inv, k_xi):
 class Linearisation:
     """Everything h-independent: the edge Jacobian, and the Laplacian spectrum if modal."""
 
-    def __init__(self, scenario, hybrid=True, gains=None, force_sparse=False):
+    def __init__(self, scenario, hybrid=True, gains=None, force_sparse=False, laplacian=None):
         sc = scenario
         self.scenario = sc
         self.hybrid = bool(hybrid)
@@ -255,7 +255,8 @@ class Linearisation:
         self.blocks = modal_blocks(self.J) if same and not force_sparse else None
         self.method = "modal" if self.blocks is not None else "sparse"
         if self.method == "modal":
-            lam = laplacian_eigenvalues(self.N, self.edges)
+            lam = laplacian_eigenvalues(self.N, self.edges) if laplacian is None else laplacian
+            self.laplacian = lam
             self.s = lam[1:]           # λ_1 = 0 is the common mode
             if self.s.size and self.s[0] <= 1e-12 * max(1.0, lam[-1]):
                 raise RuntimeError("graph Laplacian: a second zero eigenvalue (not connected)")
@@ -348,8 +349,12 @@ def _sparse_radius(Phi, lin, k=6):
         return y - Q @ (Q.T @ y)
 
     op = sla.LinearOperator((n, n), matvec=mv, dtype=float)
-    lam = sla.eigs(op, k=k, which="LM", tol=1e-13, ncv=max(4 * k, 60), maxiter=20000,
-                   return_eigenvectors=False)
+    try:
+        lam = sla.eigs(op, k=k, which="LM", tol=1e-13, ncv=max(4 * k, 60), maxiter=20000,
+                       return_eigenvectors=False)
+    except sla.ArpackNoConvergence as exc:
+        raise RuntimeError(f"stability: ARPACK did not converge on the {n}-state loop of "
+                           f"heterogeneous agents ({exc})") from None
     return float(np.abs(lam).max())
 
 
