@@ -51,6 +51,8 @@ def register(sub) -> None:
     p.add_argument("--step", type=float, metavar="H", help="check this step instead")
     p.add_argument("--controller", choices=("hybrid", "gradient"), default="hybrid",
                    help="which loop to linearise (default hybrid)")
+    p.add_argument("--from-error", type=float, metavar="E", dest="from_error",
+                   help="error to converge from (default: the scenario's initial error)")
     _add_set(p)
     p.set_defaults(func=_cmd_check)
 
@@ -129,11 +131,14 @@ def _cmd_check(args) -> int:
     from .scenario import load_scenario
     from .stability import analyse
 
+    from .stability_report import check_extras, check_lines
+
     sc = load_scenario(args.scenario, args.overrides, step=args.step)
     st = analyse(sc, hybrid=args.controller == "hybrid")
     out = {"scenario": sc.name, "design": _design(sc), "step": sc.step,
            "spectral_radius": st["spectral_radius"], "stable": st["stable"],
            "max_stable_step": st["max_stable_step"]}
+    out.update(check_extras(sc, st, args.controller == "hybrid", args.from_error))
     if args.json:
         print(json.dumps(out, indent=1))
         return 0
@@ -156,6 +161,7 @@ def _cmd_check(args) -> int:
         f"spectral_radius {st['spectral_radius']:.8f} ({'stable' if st['stable'] else 'UNSTABLE'})",
         f"max_stable_step {st['max_stable_step']:.4g} s",
     ]
+    lines += check_lines(out)
     print("\n".join(lines))
     return 0
 
