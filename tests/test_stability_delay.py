@@ -52,7 +52,7 @@ def _linear_growth(sc, d, steps, seed=0):
     rng = np.random.default_rng(seed)
     s = np.zeros(12 * N + M)
     s[:6 * N] = 1e-3 * rng.standard_normal(6 * N)
-    hist = [s.copy() for _ in range(d + 1)]        # hist[-1 - k] = s(n − k); s(<0) = s(0)
+    hist = [s.copy() for _ in range(d)]            # s(n − d), …, s(n − 1); s(< 0) = s(0)
 
     def rel(x):
         dl = x[:6 * N].reshape(N, 6)
@@ -60,9 +60,8 @@ def _linear_growth(sc, d, steps, seed=0):
 
     e0 = np.linalg.norm(rel(s))
     for _ in range(steps):
-        s = Phi_plant @ s + Bd_K0 @ s + Bd_Kd @ hist[0]
-        hist.append(s)
-        hist.pop(0)
+        hist.append(s)                             # now hist[0] = s(n − d)
+        s = Phi_plant @ s + Bd_K0 @ s + Bd_Kd @ hist.pop(0)
     return np.linalg.norm(rel(s)) / e0
 
 
@@ -143,8 +142,8 @@ def _nonlinear_growth(sc, d, steps, seed=1):
     S[:, 3:12] = X[:, :3, :3].reshape(N, 9)
     theta = np.zeros(M)
     inc = [[k for k in range(M) if i in E[k]] for i in range(N)]
-    S_hist = [S.copy() for _ in range(d + 1)]       # published rows, oldest first
-    th_hist = [theta.copy() for _ in range(d + 1)]  # published θ (after the jump stage)
+    S_hist = [S.copy() for _ in range(d)]           # published rows of steps n − d … n − 1
+    th_hist = [theta.copy() for _ in range(d)]      # published θ (after the jump stage)
 
     def err(S, theta):
         R = S[:, 3:12].reshape(N, 3, 3)
@@ -155,10 +154,13 @@ def _nonlinear_growth(sc, d, steps, seed=1):
 
     e0 = err(S, theta)
     for _ in range(steps):
-        Sd, thd = S_hist[0], th_hist[0]
+        S_hist.append(S)                  # rows are published at once, θ after its jump stage
+        Sd = S_hist.pop(0)                # = S(n − d)
+        # near consensus no jump fires (asserted below), so θ after the jump stage is θ(n)
+        th_hist.append(theta.copy())
+        thd = th_hist.pop(0)
         u = np.zeros((N, 6))
         th_new = theta.copy()
-        th_pub = theta.copy()
         for i in range(N):
             nb = [int(E[k, 1] if E[k, 0] == i else E[k, 0]) for k in inc[i]]
             rows = [i] + nb
@@ -169,18 +171,14 @@ def _nonlinear_growth(sc, d, steps, seed=1):
             th_loc = np.array([theta[k] if E[k, 0] == i else thd[k] for k in inc[i]])
             m_ = len(inc[i])
             u_loc = np.zeros((len(rows), 6))
-            tj = np.zeros(m_)
-            K.network_step(S_loc, th_loc, e_loc, P, h, True, u_loc, np.zeros(m_),
-                           np.zeros(m_, dtype=np.bool_), np.zeros(m_), tj)
+            jumped = np.zeros(m_, dtype=np.bool_)
+            K.network_step(S_loc, th_loc, e_loc, P, h, True, u_loc, np.zeros(m_), jumped,
+                           np.zeros(m_), np.zeros(m_))
+            assert not jumped.any()
             u[i] = u_loc[0]
             for c, k in enumerate(inc[i]):
-                if E[k, 0] == i:           # the owner flows θ_k and publishes its jump-stage θ
+                if E[k, 0] == i:           # the owner flows θ_k
                     th_new[k] = th_loc[c]
-                    th_pub[k] = tj[c]
-        S_hist.append(S.copy())
-        th_hist.append(th_pub)
-        S_hist.pop(0)
-        th_hist.pop(0)
         S = _rigid_body_rk4(S, u, sc.inertias, sc.masses, h)
         theta = th_new
     return err(S, theta) / e0
