@@ -191,5 +191,5 @@ def test_delay_margin_matches_the_nonlinear_law_with_delayed_neighbour_data():
     assert dm is not None and dm >= 2
     d_lo = steps_of_delay(0.8 * dm * sc.step, sc.step)
     d_hi = steps_of_delay(1.2 * dm * sc.step, sc.step)
-    assert _nonlinear_growth(sc, d_lo, 6000) < 0.1
-    assert _nonlinear_growth(sc, d_hi, 6000) > 10.0
+    assert _nonlinear_growth(sc, d_lo, 4000) < 0.1
+    assert _nonlinear_growth(sc, d_hi, 4000) > 10.0
