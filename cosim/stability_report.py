@@ -7,8 +7,9 @@ from controller.errors import Se3SyncError
 
 # The delayed loop does not decouple by graph modes (agent i weighs its own fresh state by its
 # degree and its neighbours' delayed ones by the adjacency, and D and Adj do not commute), so
-# its augmented state has (d + 1)(12N + M) entries; above this N, `check` skips it.
-DELAY_MAX_AGENTS = 16
+# its augmented state has (d + 1)(12N + M) entries; above this N, `check` skips it (hil_6uav:
+# 6 s; a 10-agent tree: about a minute, as the eigenvalues cluster near the unit circle).
+DELAY_MAX_AGENTS = 8
 
 
 def check_extras(sc, st: dict, hybrid: bool, from_error=None) -> dict:

@@ -184,9 +184,23 @@ def _bisect_all(order, parent, deg, hi, tol, out):
         top += 1
 
 
+_LAP_CACHE: dict = {}
+
+
 def laplacian_eigenvalues(N, edges, rel_tol: float = 1e-13) -> np.ndarray:
-    """All N eigenvalues of the tree's Laplacian, ascending (the first is 0)."""
+    """All N eigenvalues of the tree's Laplacian, ascending (the first is 0). The last graph's
+    spectrum is kept: `check` linearises the same graph several times (step, rate, gains)."""
     edges = np.asarray(edges, dtype=np.int64)
+    key = (N, rel_tol, edges.tobytes())
+    if key in _LAP_CACHE:
+        return _LAP_CACHE[key].copy()
+    lam = _laplacian_eigenvalues(N, edges, rel_tol)
+    _LAP_CACHE.clear()
+    _LAP_CACHE[key] = lam
+    return lam.copy()
+
+
+def _laplacian_eigenvalues(N, edges, rel_tol):
     deg = np.bincount(edges.ravel(), minlength=N).astype(float)
     if N <= 400:   # LAPACK is exact and instant here
         L = np.diag(deg)
