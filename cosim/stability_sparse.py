@@ -102,14 +102,14 @@ def modal_blocks(J):
 # ---- Laplacian eigenvalues of a tree -----------------------------------------------------
 
 
-def _tree_order(N, edges):
-    """(order, parent): a BFS order from agent 0 and each agent's parent (−1 at the root)."""
+def _tree_order(N, edges, root=0):
+    """(order, parent): a BFS order from root and each agent's parent (−1 at the root)."""
     adj = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(N, N))
     adj = (adj + adj.T).tocsr()
     order = np.empty(N, dtype=np.int64)
     parent = np.full(N, -1, dtype=np.int64)
     seen = np.zeros(N, dtype=bool)
-    order[0], seen[0], head, tail = 0, True, 0, 1
+    order[0], seen[root], head, tail = root, True, 0, 1
     while head < tail:
         v = order[head]
         head += 1
@@ -206,6 +206,10 @@ def _laplacian_eigenvalues(N, edges, rel_tol):
         L = np.diag(deg)
         L[edges[:, 0], edges[:, 1]] = L[edges[:, 1], edges[:, 0]] = -1.0
         return np.linalg.eigvalsh(L)
+    if deg.max() <= 2:   # a path: tridiagonal in path order, LAPACK's stemr does it in O(N²)
+        import scipy.linalg
+        order, _ = _tree_order(N, edges, root=int(np.argmin(deg)))
+        return scipy.linalg.eigvalsh_tridiagonal(deg[order], -np.ones(N - 1))
     order, parent = _tree_order(N, edges)
     hi = 2.0 * deg.max() + 1.0          # Gershgorin
     out = np.empty(N)
