@@ -28,7 +28,7 @@ from .stability_sparse import Linearisation
 # (hil_6uav at d = 32: 1.5 s against 7 s, the same radius to 1e-14).
 DENSE_MAX = 600
 
-__all__ = ["delayed_loop", "augmented", "delay_radius", "delay_margin", "steps_of_delay"]
+__all__ = ["delayed_loop", "delayed_parts", "augmented", "delay_radius", "delay_margin", "steps_of_delay"]
 
 
 def steps_of_delay(D: float, h: float) -> int:
@@ -38,6 +38,13 @@ def steps_of_delay(D: float, h: float) -> int:
 
 def delayed_loop(lin: Linearisation, h: float):
     """(Φ₀, Φ_d), sparse CSR, each (12N + M)² (θ only if hybrid)."""
+    Phi0, Bf, Cd = delayed_parts(lin, h)
+    return Phi0, (Bf @ Cd).tocsr()
+
+
+def delayed_parts(lin: Linearisation, h: float):
+    """(Φ₀, B, C) with Φ_d = B C: the delayed data enter only through the wrench and θ's flow,
+    C = [K_d; G_d] ((6N + M) × n), B = blkdiag(B_d, h I)."""
     N, M, J, E = lin.N, lin.M, lin.J, lin.edges
     Mt = M if lin.hybrid else 0
     n6, n = 6 * N, 12 * N + Mt
@@ -70,9 +77,8 @@ def delayed_loop(lin: Linearisation, h: float):
     Ad = sp.identity(12 * N, format="csr") + sp.csr_matrix(
         (np.full(n6, h), (np.arange(n6), n6 + np.arange(n6))), shape=(12 * N, 12 * N))
     top0 = Bd @ Kx[True] + sp.hstack([Ad, sp.csr_matrix((12 * N, Mt))])
-    topd = Bd @ Kx[False]
     if not Mt:
-        return top0.tocsr(), topd.tocsr()
+        return top0.tocsr(), Bd, Kx[False]
     # θ_k(n+1) = θ_k(n) + h G(x_p(n), x_q(n−d), θ_k(n)): the owner's fresh δp, ξp, θ
     g = J[12]
     r = np.repeat(np.arange(M), 12)
@@ -81,45 +87,52 @@ def delayed_loop(lin: Linearisation, h: float):
     cd = np.concatenate([6 * q[:, None] + np.arange(6), n6 + 6 * q[:, None] + np.arange(6)],
                         axis=1).ravel()
     vf = np.tile(h * np.concatenate([g[0:6], g[12:18]]), M)
-    vd = np.tile(h * np.concatenate([g[6:12], g[18:24]]), M)
+    vd = np.tile(np.concatenate([g[6:12], g[18:24]]), M)
     th = 12 * N + np.arange(M)
     G0 = sp.csr_matrix((np.concatenate([vf, np.full(M, 1.0 + h * g[24])]),
                         (np.concatenate([r, np.arange(M)]), np.concatenate([cf, th]))),
                        shape=(M, n))
     Gd = sp.csr_matrix((vd, (r, cd)), shape=(M, n))
-    return sp.vstack([top0, G0]).tocsr(), sp.vstack([topd, Gd]).tocsr()
+    B = sp.block_diag([Bd, h * sp.identity(M)], format="csr")
+    C = sp.vstack([Kx[False], Gd]).tocsr()
+    return sp.vstack([top0, G0]).tocsr(), B, C
 
 
-def augmented(Phi0, Phid, d: int):
-    """The companion matrix of s(n+1) = Φ₀s(n) + Φ_d s(n−d) on z = (s(n), …, s(n−d))."""
+def augmented(Phi0, B, C, d: int):
+    """The loop on z = (s(n), w(n−1), …, w(n−d)) with w = C s the delayed data actually used:
+    s(n+1) = Φ₀s(n) + B w(n−d), w(n) = C s(n). Its nonzero eigenvalues are those of the
+    companion matrix on (s(n), …, s(n−d)), with (6N + M) instead of 12N + M states per step."""
     if d == 0:
-        return (Phi0 + Phid).tocsr()
-    n = Phi0.shape[0]
+        return (Phi0 + B @ C).tocsr()
+    m = C.shape[0]
     blocks = [[None] * (d + 1) for _ in range(d + 1)]
     blocks[0][0] = Phi0
-    blocks[0][d] = Phid
-    for k in range(1, d + 1):
-        blocks[k][k - 1] = sp.identity(n, format="csr")
+    blocks[0][d] = B
+    blocks[1][0] = C
+    for k in range(2, d + 1):
+        blocks[k][k - 1] = sp.identity(m, format="csr")
     for k in range(1, d + 1):                     # keep every block row's shape defined
         if blocks[k][k] is None:
-            blocks[k][k] = sp.csr_matrix((n, n))
+            blocks[k][k] = sp.csr_matrix((m, m))
     return sp.bmat(blocks, format="csr")
 
 
-def _rigid_basis_aug(N, n, d):
-    Q = np.zeros(((d + 1) * n, 6))
-    for c in range(d + 1):
-        for a in range(6):
-            Q[c * n + a:c * n + 6 * N:6, a] = 1.0
-    return Q / np.sqrt(N * (d + 1))
+def _rigid_basis_aug(N, C, d):
+    """Orthonormal basis of the rigid motion in z: s = common δ, every w slot = C s."""
+    n = C.shape[1]
+    S = np.zeros((n, 6))
+    for a in range(6):
+        S[a:6 * N:6, a] = 1.0
+    Z = np.vstack([S] + [C @ S] * d)
+    return np.linalg.qr(Z)[0]
 
 
 def delay_radius(lin: Linearisation, h: float, d: int, loop=None) -> float:
     """Spectral radius of the delayed loop without the rigid motion's six eigenvalues 1."""
     import scipy.sparse.linalg as sla
-    Phi0, Phid = loop if loop is not None else delayed_loop(lin, h)
-    A = augmented(Phi0, Phid, d)
-    Q = _rigid_basis_aug(lin.N, Phi0.shape[0], d)
+    Phi0, B, C = loop if loop is not None else delayed_parts(lin, h)
+    A = augmented(Phi0, B, C, d)
+    Q = _rigid_basis_aug(lin.N, C, d)
     if np.abs(A @ Q - Q).max() > 1e-9:
         raise RuntimeError("delayed linearisation: the rigid motion is not invariant")
     m = A.shape[0]
@@ -152,7 +165,7 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
     every d ≤ d_cap is stable."""
     h = float(scenario.step if h is None else h)
     lin = lin or Linearisation(scenario, hybrid, force_sparse=True)
-    loop = delayed_loop(lin, h)
+    loop = delayed_parts(lin, h)
     rho = {}
 
     def r(d):
@@ -160,7 +173,7 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
             rho[d] = delay_radius(lin, h, d, loop)
         return rho[d]
 
-    n = loop[0].shape[0]
+    n = (loop[0].shape[0], loop[2].shape[0])
     if r(0) >= 1.0:
         return {"delay_margin_steps": -1, "delay_margin_s": None, "rho_at_margin": None,
                 "rho_beyond": r(0), "delay_method": _method(n, 0)}
@@ -181,6 +194,7 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
 
 
 def _method(n, d):
-    how = "dense eigvals" if n * (d + 1) <= DENSE_MAX else "ARPACK (largest modulus)"
-    return (f"augmented state (d + 1 copies of the {n}-state loop), linearised at consensus, "
-            f"rigid motion projected out, {how}")
+    size = n[0] + d * n[1]
+    how = "dense eigvals" if size <= DENSE_MAX else "ARPACK (largest modulus)"
+    return (f"augmented state (the {n[0]}-state loop and d past copies of the {n[1]} delayed "
+            f"inputs), linearised at consensus, rigid motion projected out, {how}")

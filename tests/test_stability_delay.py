@@ -17,7 +17,8 @@ import pytest
 from controller import _kernels as K
 from controller import se3
 from cosim import stability as dense
-from cosim.delay_margin import delay_margin, delayed_loop, steps_of_delay
+from cosim.delay_margin import (augmented, delay_margin, delayed_loop, delayed_parts,
+                                steps_of_delay)
 from cosim.scenario import load_scenario
 from cosim.stability_sparse import Linearisation, sparse_loop
 
@@ -84,6 +85,22 @@ def test_zero_delay_is_the_undelayed_loop():
     lin = Linearisation(sc, True, force_sparse=True)
     P0, Pd = delayed_loop(lin, sc.step)
     assert abs((P0 + Pd) - sparse_loop(lin, sc.step)).max() < 1e-15
+    assert abs(augmented(*delayed_parts(lin, sc.step), 0) - sparse_loop(lin, sc.step)).max() < 1e-15
+
+
+def test_reduced_history_has_the_companion_spectrum():
+    """(s, w(n−1..n−d)) with w = C s against the plain companion matrix on (s(n), …, s(n−d))."""
+    sc = load_scenario(HIL)
+    lin = Linearisation(sc, True, force_sparse=True)
+    P0, Pd = (m.toarray() for m in delayed_loop(lin, sc.step))
+    n, d = P0.shape[0], 3
+    comp = np.zeros(((d + 1) * n, (d + 1) * n))
+    comp[:n, :n], comp[:n, d * n:] = P0, Pd
+    comp[n:, :-n] = np.eye(d * n)
+    big = np.sort(np.abs(np.linalg.eigvals(comp)))[::-1]
+    red = np.sort(np.abs(np.linalg.eigvals(augmented(*delayed_parts(lin, sc.step), d).toarray())))[::-1]
+    k = 50    # the dominant part of both spectra (the rest are zeros and tiny modes)
+    assert np.abs(big[:k] - red[:k]).max() < 1e-8
 
 
 def test_steps_of_delay():
