@@ -7,9 +7,9 @@ from controller.errors import Se3SyncError
 
 # The delayed loop does not decouple by graph modes (agent i weighs its own fresh state by its
 # degree and its neighbours' delayed ones by the adjacency, and D and Adj do not commute), so
-# its augmented state has (d + 1)(12N + M) entries; above this N, `check` skips it (hil_6uav:
-# 6 s; a 10-agent tree: about a minute, as the eigenvalues cluster near the unit circle).
-DELAY_MAX_AGENTS = 8
+# its augmented state has 12N + M + d(6N + M) entries; above this N, `check` skips it (under
+# load: hil_6uav 5 s, a 16-agent tree 21 s, as the eigenvalues cluster near the unit circle).
+DELAY_MAX_AGENTS = 16
 
 
 def check_extras(sc, st: dict, hybrid: bool, from_error=None) -> dict:
@@ -34,7 +34,8 @@ def check_lines(out: dict) -> list:
     h = out["step"]
     dm = out["delay_margin"]
     c = out["convergence"]
-    lines = [f"method          {out['method']} (see README: check)"]
+    lines = [f"1 - rho         {1.0 - out['spectral_radius']:.3e}",
+             f"method          {out['method']} (see README: check)"]
     if dm.get("delay_margin_steps") is None or dm["delay_margin_steps"] < 0:
         lines.append(f"delay_margin    {dm['delay_method']}")
     else:

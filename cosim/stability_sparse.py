@@ -371,7 +371,8 @@ def _sparse_radius(Phi, lin, k=6):
         lam = sla.eigs(op, k=k, which="LM", tol=1e-13, ncv=max(4 * k, 60), maxiter=20000,
                        return_eigenvectors=False)
     except sla.ArpackNoConvergence as exc:
-        raise RuntimeError(f"stability: ARPACK did not converge on the {n}-state loop of "
+        from controller.errors import Se3SyncError
+        raise Se3SyncError(f"stability: ARPACK did not converge on the {n}-state loop of "
                            f"heterogeneous agents ({exc})") from None
     return float(np.abs(lam).max())
 
