@@ -11,9 +11,10 @@ Linearised, with s = (δ, ξ, θ) and the edge Jacobian J of `stability_sparse.e
     s(n+1) = Φ₀ s(n) + Φ_d s(n−d),
 where Φ₀ holds the plant, the −k_ξξ term and each agent's fresh columns of J (the positive end:
 its δ, ξ and θ_k; the negative end: its δ, ξ) and Φ_d the delayed ones. With d = 0, Φ₀ + Φ_d
-is the loop of `stability`. The augmented state z(n) = (s(n), s(n−1), …, s(n−d)) evolves by the
-companion matrix; the rigid motion (all δ_i and all their past copies equal) spans an invariant
-subspace with eigenvalue 1, which is projected out before taking the spectral radius.
+is the loop of `stability`. The delayed data enter only through the wrench and θ's flow,
+Φ_d = B C with C = [K_d; G_d], so the augmented state is z(n) = (s(n), w(n−1), …, w(n−d)) with
+w = C s: 12N + M + d(6N + M) states instead of (d + 1)(12N + M). The rigid motion (all δ_i
+equal) spans an invariant subspace with eigenvalue 1, projected out before taking ρ.
 """
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ from .stability_sparse import Linearisation
 # (hil_6uav at d = 32: 1.5 s against 7 s, the same radius to 1e-14).
 DENSE_MAX = 600
 
-__all__ = ["delayed_loop", "delayed_parts", "augmented", "delay_radius", "delay_margin", "steps_of_delay"]
+__all__ = ["delayed_loop", "delayed_parts", "augmented", "delay_radius", "delay_margin",
+           "steps_of_delay"]
 
 
 def steps_of_delay(D: float, h: float) -> int:
