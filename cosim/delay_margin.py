@@ -151,8 +151,12 @@ def delay_radius(lin: Linearisation, h: float, d: int, loop=None) -> float:
         return y - Q @ (Q.T @ y)
 
     op = sla.LinearOperator((m, m), matvec=mv, dtype=float)
-    lam = sla.eigs(op, k=6, which="LM", tol=1e-12, ncv=60, maxiter=20000,
-                   return_eigenvectors=False)
+    try:
+        lam = sla.eigs(op, k=6, which="LM", tol=1e-12, ncv=60, maxiter=20000,
+                       return_eigenvectors=False)
+    except sla.ArpackNoConvergence as exc:
+        from controller.errors import Se3SyncError
+        raise Se3SyncError(f"delay margin: ARPACK did not converge at d = {d} ({exc})") from None
     return float(np.abs(lam).max())
 
 
@@ -166,6 +170,9 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
     "delay_method"}; steps = −1 when the loop is unstable even without delay, and None when
     every d ≤ d_cap is stable."""
     h = float(scenario.step if h is None else h)
+    if scenario.graph.M == 0:
+        return {"delay_margin_steps": None, "delay_margin_s": None, "rho_at_margin": None,
+                "rho_beyond": None, "delay_method": "no edges: no neighbour data to delay"}
     lin = lin or Linearisation(scenario, hybrid, force_sparse=True)
     loop = delayed_parts(lin, h)
     rho = {}
@@ -184,7 +191,9 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
         lo, hi = hi, 2 * hi
         if hi > d_cap:
             return {"delay_margin_steps": None, "delay_margin_s": None, "rho_at_margin": r(lo),
-                    "rho_beyond": None, "delay_method": _method(n, lo)}
+                    "rho_beyond": None,
+                    "delay_method": f"stable for every delay up to {lo} steps ({lo * h:g} s) "
+                                    f"tried; " + _method(n, lo)}
     while hi - lo > 1:
         mid = (lo + hi) // 2
         if r(mid) < 1.0:
