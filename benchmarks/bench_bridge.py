@@ -68,7 +68,7 @@ def proc_cpu(pid) -> float:
 
 
 def run_case(n, rate, duration, tmp):
-    from bridge.cli import run_hil
+    from bridge.hil import run_hil
     from bridge.plant import MavlinkPlant
     from cosim.scenario import load_scenario
 
@@ -84,7 +84,7 @@ def run_case(n, rate, duration, tmp):
     events = []
     # warm up the JIT-compiled controller and metrics outside the measurement
     from cosim.master import Master, make_controller
-    from cosim.plant import FmuPlant
+    from cosim.plants import FmuPlant
 
     ctrl = make_controller("hybrid", sc)
     warm = FmuPlant.from_scenario(sc)

@@ -3,7 +3,7 @@
     python benchmarks/bench_cosim.py [--seconds 20] [--naive-steps 10000] [--skip-fmpy]
 
 Measures, side by side in one process:
-  ours      `cosim.api.run_scenario`: fleet FMU + numba network controller, MCAP log at 100 Hz;
+  ours      `cosim.run.run_scenario`: fleet FMU + numba network controller, MCAP log at 100 Hz;
   naive     fmpy's high-level FMU2Slave API every step (setReal / doStep / getReal) and a
             controller looping over edges in plain numpy with controller.se3 functions
             (timed over --naive-steps and scaled to the full run; said so in the output);
@@ -85,7 +85,7 @@ def run_naive(sc, n_steps):
     from controller import se3
     from plant_fmu import layout
     from plant_fmu.build import fmu_path
-    from plant_fmu.fast import quat_from_R
+    from controller.se3 import rot_to_quat as quat_from_R
 
     N = sc.graph.n
     path = str(fmu_path(N))
@@ -125,7 +125,7 @@ def run_naive(sc, n_steps):
 def check_naive_agrees(sc, n_steps=200):
     """The naive version must compute the same closed loop (else the ratio means nothing)."""
     from cosim.master import Master
-    from cosim.plant import FmuPlant
+    from cosim.plants import FmuPlant
 
     sc2 = sc
     _, S_naive = run_naive(sc2, n_steps)
@@ -139,9 +139,9 @@ def check_naive_agrees(sc, n_steps=200):
 # ------------------------------------------------------------------ breakdown
 def breakdown(sc, n_steps):
     """Per-step µs: FMI calls alone, controller alone, the full loop with and without log."""
-    from cosim.api import run_scenario
+    from cosim.run import run_scenario
     from cosim.master import make_controller
-    from cosim.plant import FmuPlant
+    from cosim.plants import FmuPlant
 
     h = sc.step
     p = FmuPlant.from_scenario(sc)
@@ -181,7 +181,7 @@ def main():
     ap.add_argument("--skip-fmpy", action="store_true", help="skip fmpy.simulate_fmu")
     args = ap.parse_args()
 
-    from cosim.api import run_scenario
+    from cosim.run import run_scenario
     from cosim.scenario import load_scenario
     from plant_fmu.build import fmu_path
 

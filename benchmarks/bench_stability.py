@@ -22,7 +22,7 @@ sys.path.insert(0, ROOT)
 
 
 def check_cost(N, kind, tmp):
-    from cosim.stability_cases import tree_scenario_text
+    from cosim.analysis.stability_cases import tree_scenario_text
     path = os.path.join(tmp, f"{kind}_{N}.toml")
     with open(path, "w") as f:
         f.write(tree_scenario_text(N, kind, seed=3))
@@ -42,10 +42,10 @@ def check_cost(N, kind, tmp):
 def agreement(N):
     import numpy as np
 
-    from cosim import stability as dense
-    from cosim import stability_sparse as F
+    from cosim.analysis import stability as dense
+    from cosim.analysis import stability_sparse as F
     from cosim.scenario import parse_scenario
-    from cosim.stability_cases import tree_scenario_text
+    from cosim.analysis.stability_cases import tree_scenario_text
     out = []
     for hetero in (False, True):
         masses = np.random.default_rng(1).uniform(1, 4, N) if hetero else None

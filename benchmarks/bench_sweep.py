@@ -47,7 +47,7 @@ def main() -> None:
 
     from distributed import Client, LocalCluster, wait
 
-    from cosim.sweep import make_spec, run_sweep
+    from cosim.sweep.runner import make_spec, run_sweep
 
     spec, sc = make_spec(SMALL, seed=123, samples=args.samples)
     n_runs = 2 * (3 * sc.graph.M + 3 + args.samples)

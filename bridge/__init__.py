@@ -8,5 +8,5 @@ Public API (imported lazily by the command line; import the submodules directly)
 * ``bridge.transport.QuantizedPlant(scenario)`` -- the bit-faithful reference for lockstep HIL;
 * ``bridge.mapping.FleetMapping`` -- wrench <-> actuator controls (direct, allocation);
 * ``bridge.vehicle.VehicleServer`` -- the loopback vehicles;
-* ``bridge.cli.run_hil(scenario, plant, ...)`` -- cosim's Master over a connected MavlinkPlant.
+* ``bridge.hil.run_hil(scenario, plant, ...)`` -- cosim's Master over a connected MavlinkPlant.
 """

@@ -52,6 +52,17 @@ def register(sub) -> None:
     p.add_argument("--tlog", metavar="FILE", help="write all traffic to this tlog")
     p.add_argument("--stats", metavar="FILE", help="write the traffic counters (JSON) here on exit")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time")
+    p.add_argument("--sim-protocol", choices=("px4", "ardupilot"),
+                   help="instead of MAVLink to a bridge, be a flight stack's simulator (needs --scenario): "
+                        "px4 = PX4 SITL's simulator_mavlink interface (TCP 4560 + i, lockstep: "
+                        "HIL_ACTUATOR_CONTROLS in, HIL_SENSOR/HIL_GPS/HIL_STATE_QUATERNION out); "
+                        "ardupilot = ArduPilot SITL's JSON physics interface (UDP 9002 + 10 i)")
+    p.add_argument("--sim-port", type=int, metavar="PORT",
+                   help="first port of --sim-protocol (default 4560 for px4, 9002 for ardupilot)")
+    p.add_argument("--sim-step", type=float, default=0.004, metavar="S",
+                   help="px4: simulation step per HIL_SENSOR (default 0.004; ardupilot takes 1/frame_rate)")
+    p.add_argument("--sim-no-noise", action="store_true", help="ideal sensors (no white noise)")
+    p.add_argument("--sim-seed", type=int, default=0, help="sensor noise seed (default 0)")
     p.set_defaults(func=_cmd_vehicle)
 
     p = sub.add_parser(
@@ -61,7 +72,8 @@ def register(sub) -> None:
                     "master as `run`: same MCAP log and summary, plus link statistics. Endpoints come "
                     "from --vehicle or the scenario's [bridge] table. Exit codes: 0 ok, 2 bad input, "
                     f"{EXIT_NOT_CONNECTED} a vehicle never connected, {EXIT_LINK} a lockstep link failed, "
-                    "130 interrupted.")
+                    "130 interrupted by Ctrl-C, 143 by SIGTERM (log and summary finished, "
+                    "\"interrupted\": true).")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--vehicle", action="append", metavar="ENDPOINT",
                    help="the bridge-side endpoint of vehicle i (udpin:HOST:PORT | udpout:HOST:PORT), "
@@ -80,7 +92,25 @@ def register(sub) -> None:
     p.set_defaults(func=_cmd_connect)
 
 
+def _outputs(*pairs) -> None:
+    """Refuse unwritable outputs before waiting for any network peer."""
+    from cosim.files import check_output
+
+    for option, path, suffixes in pairs:
+        if path is not None:
+            check_output(option, path, suffixes)
+
+
 def _cmd_vehicle(args) -> int:
+    from controller.errors import Se3SyncError
+
+    if args.count is not None and args.count < 1:
+        raise Se3SyncError(f"--count: must be >= 1, got {args.count}")
+    _outputs(("--tlog", args.tlog, None), ("--stats", args.stats, None))
+    if getattr(args, "sim_protocol", None):
+        from .sim_cli import run_sim_cli
+
+        return run_sim_cli(args)
     from .vehicle import run_vehicle_cli
 
     return run_vehicle_cli(args)
@@ -93,14 +123,16 @@ def _cmd_connect(args) -> int:
     from .config import default_config
     from .plant import ConnectError, LinkError, MavlinkPlant
 
+    _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None),
+             ("--tlog", args.tlog, None))
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
     cfg = sc.bridge or default_config(sc.n_agents)
     if args.vehicle:
         cfg = cfg.with_endpoints(args.vehicle)
     if not args.force:
-        from cosim.stability import analyse
+        from cosim.analysis.stability import analyse
 
-        st = analyse(sc, hybrid=True, bisect=False)
+        st = analyse(sc, law="hybrid", bisect=False)
         if not st["stable"]:
             raise ScenarioError("simulation.step", f"h = {sc.step:g} s makes the sampled loop unstable "
                                 f"(spectral radius {st['spectral_radius']:.6f} >= 1); use --force to run anyway",
@@ -141,28 +173,12 @@ def _ms(x):
 
 
 def warm_up(scenario) -> None:
-    """Two co-simulation steps of the scenario (JIT compilation of the controller and metrics),
-    so that the first control steps over the links are on time."""
-    from cosim.master import Master
-    from cosim.plant import FmuPlant
+    from .hil import warm_up as _warm_up
 
-    p = FmuPlant.from_scenario(scenario)
-    try:
-        Master(scenario, p, "hybrid").run(2)
-    finally:
-        p.close()
+    _warm_up(scenario)
 
 
-def run_hil(scenario, plant, *, log_path=None, summary_path=None, progress=False,
-            controller="hybrid") -> dict:
-    """cosim's run over a connected MavlinkPlant; the MCAP log says the time base is the wall
-    clock (t = n·h, paced) or lockstep."""
-    from cosim.api import run_scenario
+def run_hil(scenario, plant, **kw) -> dict:
+    from .hil import run_hil as _run_hil
 
-    tb = "simulated (lockstep)" if plant.lockstep else "wall (paced: t = n·h from the start of the run)"
-    return run_scenario(
-        scenario, plant=plant, controller=controller, log_path=log_path,
-        summary_path=summary_path, progress=progress,
-        log_metadata={"plant": "mavlink", "time_base": tb,
-                      "endpoints": ",".join(v.sock.endpoint for v in plant.vehicles)},
-        summary_extra={"plant": "mavlink", "lockstep": bool(plant.lockstep)})
+    return _run_hil(scenario, plant, **kw)

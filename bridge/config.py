@@ -1,7 +1,8 @@
 """The scenario's ``[bridge]`` table: schema, defaults and validation (`parse_bridge`).
 
-Every problem raises ``cosim.scenario.ScenarioError("bridge.<key path>", reason)``; the scenario
-loader prefixes the file name. See bridge/README.md for the table with every key.
+Every problem raises ``controller.errors.ConfigError("bridge.<key path>", reason)``; the scenario
+loader prefixes the file name. The table is registered with the scenario loader as the entry point
+``se3sync.tables: bridge`` (pyproject.toml). See bridge/README.md for the table with every key.
 """
 from __future__ import annotations
 
@@ -10,19 +11,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from .frames import WORLD_FRAMES
-from .mapping import MAPPINGS, AllocationSpec, MappingSpec
+from .mapping import DIRECT, MAPPINGS, AllocationSpec, MappingSpec
+from .output import PROFILES, WRENCH_PROFILES
 
-try:
-    from cosim.scenario import ScenarioError
-except ImportError:  # pragma: no cover - cosim is part of the same project
-    from controller.errors import Se3SyncError
+from controller.errors import ConfigError as ScenarioError
+from controller.errors import Se3SyncError
 
-    class ScenarioError(Se3SyncError):  # type: ignore[no-redef]
-        def __init__(self, keypath, reason, file=None):
-            self.keypath, self.reason, self.file = keypath, reason, file
-            super().__init__(f"{keypath}: {reason}")
-
-OUTPUTS = ("actuator_control_target", "do_set_actuator")
+OUTPUTS = PROFILES
 ROUTINGS = ("per_vehicle", "shared")
 
 # key -> default (documented in README.md)
@@ -58,7 +53,7 @@ DEFAULTS = {
     "vehicle": None,
 }
 ALLOCATION_KEYS = {"arm_length", "tilt_deg", "max_thrust", "torque_coeff", "reversible"}
-VEHICLE_KEYS = {"id", "system_id", "endpoint", "mapping", "max_wrench", "allocation"}
+VEHICLE_KEYS = {"id", "system_id", "endpoint", "mapping", "max_wrench", "allocation", "output"}
 
 
 @dataclass
@@ -67,6 +62,7 @@ class VehicleLinkSpec:
     system_id: int
     endpoint: str              # the bridge's side, pymavlink syntax (udpin:HOST:PORT | udpout:HOST:PORT)
     mapping: MappingSpec
+    output: str = "actuator_control_target"   # the vehicle's output profile (bridge.output)
 
 
 @dataclass
@@ -255,6 +251,8 @@ def parse_bridge(table: dict, n_agents: int) -> BridgeConfig:
             raise ScenarioError("bridge.endpoints", f"must be an array of {N} endpoint strings, got {v!r}")
         eps = [check_endpoint(f"bridge.endpoints[{i + 1}]", e) for i, e in enumerate(v)]
     maps = [base_map] * N
+    outs = [cfg.output] * N
+    mw_given = ["max_wrench" in table] * N
 
     if t["vehicle"] is not None:
         vl = t["vehicle"]
@@ -273,6 +271,9 @@ def parse_bridge(table: dict, n_agents: int) -> BridgeConfig:
                 m = replace(m, kind=_choice(f"{kp}.mapping", vt["mapping"], MAPPINGS))
             if "max_wrench" in vt:
                 m = replace(m, max_wrench=_max_wrench(f"{kp}.max_wrench", vt["max_wrench"]))
+                mw_given[i] = True
+            if "output" in vt:
+                outs[i] = _choice(f"{kp}.output", vt["output"], OUTPUTS)
             if "allocation" in vt:
                 m = replace(m, allocation=_allocation(f"{kp}.allocation", vt["allocation"], m.allocation))
             maps[i] = m
@@ -289,9 +290,25 @@ def parse_bridge(table: dict, n_agents: int) -> BridgeConfig:
     if cfg.routing == "per_vehicle" and len(set(eps)) != N:
         raise ScenarioError("bridge.endpoints", "with routing = \"per_vehicle\" every vehicle needs its own "
                             f"endpoint, got {eps}")
-    cfg.vehicles = [VehicleLinkSpec(agent=i + 1, system_id=sids[i], endpoint=eps[i], mapping=maps[i])
-                    for i in range(N)]
+    _check_wrench_profiles(outs, maps, mw_given)
+    cfg.vehicles = [VehicleLinkSpec(agent=i + 1, system_id=sids[i], endpoint=eps[i], mapping=maps[i],
+                                    output=outs[i]) for i in range(N)]
     return cfg
+
+
+def _check_wrench_profiles(outs, maps, mw_given) -> None:
+    """The ArduSub and PX4 profiles carry the wrench normalised per axis: the flight stack allocates,
+    so the mapping must be direct and the limits (the wrench at ±1) must be the vehicle's own."""
+    for i, (o, m, given) in enumerate(zip(outs, maps, mw_given)):
+        if o not in WRENCH_PROFILES:
+            continue
+        if m.kind != DIRECT:
+            raise ScenarioError("bridge.mapping", f"vehicle {i + 1}: output {o!r} sends the normalised wrench "
+                                f"(the flight stack allocates), so the mapping must be \"direct\", got {m.kind!r}")
+        if not given:
+            raise ScenarioError("bridge.max_wrench", f"vehicle {i + 1}: output {o!r} needs the vehicle's wrench "
+                                "limits (τx, τy, τz in N·m, fx, fy, fz in N at ±1 per axis): set bridge.max_wrench "
+                                "or [[bridge.vehicle]] max_wrench")
 
 
 def default_config(n_agents: int) -> BridgeConfig:
@@ -300,9 +317,7 @@ def default_config(n_agents: int) -> BridgeConfig:
 
 def read_key_file(path) -> bytes:
     """A signing key file: exactly 32 raw bytes, or 64 hexadecimal characters (whitespace and a
-    trailing newline allowed). Raises ScenarioError on anything else."""
-    from controller.errors import Se3SyncError
-
+    trailing newline allowed). Raises Se3SyncError on anything else."""
     p = Path(path)
     try:
         data = p.read_bytes()

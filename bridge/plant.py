@@ -45,6 +45,18 @@ def _hist_pct(hist, q: float):
     return (min(i, HIST_N - 1) + 0.5) * HIST_BIN * 1e3
 
 
+def _output_profiles(cfg, scenario, lockstep: bool) -> list:
+    """Each vehicle's output profile (bridge.output); lockstep stamps must be exact."""
+    from .output import PX4_ATTITUDE_THRUST, profiles_for
+
+    profiles = profiles_for(cfg, scenario)
+    if lockstep and any(p.name == PX4_ATTITUDE_THRUST for p in profiles) \
+            and abs(round(scenario.step * 1e3) - scenario.step * 1e3) > 1e-9:
+        raise Se3SyncError(f"simulation.step: output \"px4_attitude_thrust\" in lockstep stamps steps with "
+                           f"time_boot_ms, so the step must be a whole number of milliseconds, got {scenario.step:g}")
+    return profiles
+
+
 class ConnectError(Se3SyncError):
     """A vehicle never connected (or never sent a state) within the connect timeout."""
 
@@ -146,6 +158,7 @@ class MavlinkPlant:
             raise Se3SyncError(f"bridge: cannot open {vs.endpoint}: {exc.strerror or exc}") from None
         self._fds = [s.fileno() for s in self.socks]
         self._next_hb = 0.0
+        self.profiles = _output_profiles(cfg, scenario, self.lockstep)
 
     # ------------------------------------------------------------------ events
     def _event(self, text: str) -> None:
@@ -294,19 +307,11 @@ class MavlinkPlant:
             self.t0 = now  # pacing starts with the first command (not at connect)
         oldest = min((v.tracker.t_arrival or now) for v in self.vehicles)
         _hist_add(self.age_hist, now - oldest)
-        t_us = self.k * self.h_us if self.lockstep else int(time.time() * 1e6)
-        cfg = self.cfg
         for v in self.vehicles:
             if v.addr is None:
                 continue
-            ci = c[v.i]
-            if cfg.output == "actuator_control_target":
-                msg = v.peer.mav.set_actuator_control_target_encode(
-                    t_us, cfg.group_mlx, v.sysid, 1, [ci[0], ci[1], ci[2], ci[3], ci[4], ci[5], 0.0, 0.0])
-            else:
-                msg = v.peer.mav.command_long_encode(
-                    v.sysid, 1, M.MAV_CMD_DO_SET_ACTUATOR, self.k & 0xFF if self.lockstep else 0,
-                    ci[0], ci[1], ci[2], ci[3], ci[4], ci[5], float(cfg.actuator_index_offset))
+            msg = self.profiles[v.i].message(v.peer.mav, c[v.i], target=v.sysid, k=self.k,
+                                             lockstep=self.lockstep, wire=self.wire[v.i])
             self._send(v, msg)
             v.last_buf = msg
             v.t_sent = now
@@ -361,7 +366,8 @@ class MavlinkPlant:
                 raise LinkError(f"lockstep: vehicle(s) {', '.join(str(v.i + 1) for v in waiting[:6])} did not "
                                 f"answer step {self.k} within {self.cfg.lockstep_timeout:g} s")
             for v in waiting:
-                if now - v.t_sent > self.cfg.lockstep_resend and v.last_buf is not None:
+                if now - v.t_sent > self.cfg.lockstep_resend and v.last_buf is not None \
+                        and self.profiles[v.i].resend_ok:
                     self._send(v, v.last_buf)  # re-packed: a new sequence number and signature
                     v.t_sent = now
                     self.lockstep_resends += 1

@@ -146,19 +146,30 @@ class QuantizedPlant:
         # the vehicle decodes with its own (identical) mapping, one vehicle at a time or not:
         self.vehicle_mapping = FleetMapping(cfg.mappings)
         self.fleet = VehicleFleet(scenario, cfg.world_frame, fmu_path=fmu_path)
-        self._S = wire_to_state(self.fleet.wire(), self.world)
+        self._wire = self.fleet.wire()
+        self._S = wire_to_state(self._wire, self.world)
         self._w = np.zeros((self.n, 6))
+        from .output import WRENCH_PROFILES, profiles_for
+
+        # each vehicle's output profile quantises its command its own way (bridge.output)
+        self.profiles = profiles_for(cfg, scenario)
+        self._per_profile = any(p.name in WRENCH_PROFILES for p in self.profiles)
 
     def read(self) -> np.ndarray:
         return self._S
 
     def apply(self, u) -> None:
         c = self.transport.controls(u, self._S)
-        self._w = self.vehicle_mapping.decode(f32(c))
+        if self._per_profile:
+            cq = np.stack([p.quantize(c[i], self._wire[i]) for i, p in enumerate(self.profiles)])
+        else:
+            cq = f32(c)
+        self._w = self.vehicle_mapping.decode(cq)
 
     def advance(self, h: float) -> None:
         self.fleet.step(self._w, h)
-        self._S = wire_to_state(self.fleet.wire(), self.world)
+        self._wire = self.fleet.wire()
+        self._S = wire_to_state(self._wire, self.world)
 
     def stats(self) -> dict:
         m = self.transport.mapping

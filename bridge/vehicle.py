@@ -14,7 +14,6 @@ retry over a lossy link).
 """
 from __future__ import annotations
 
-import json
 import math
 import select
 import signal
@@ -24,8 +23,12 @@ import time
 
 import numpy as np
 
+from cosim import signals
+from cosim.files import write_json_atomic
+
 from .link import Counters, Peer, TLog, UdpSocket, mavlink2
 from .mapping import FleetMapping, MappingSpec
+from .output import PX4_ATTITUDE_THRUST, profiles_for
 from .transport import state_to_wire
 
 M = mavlink2
@@ -34,6 +37,7 @@ ID_ODOMETRY = M.MAVLINK_MSG_ID_ODOMETRY
 ID_ATTQ = M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_LPOS = M.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 STREAMABLE = (ID_HEARTBEAT, ID_ODOMETRY, ID_ATTQ, ID_LPOS)
+WRENCH_MSGS = (M.MAVLINK_MSG_ID_MANUAL_CONTROL, M.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET)
 NAN21 = [float("nan")] + [0.0] * 20
 
 
@@ -78,6 +82,7 @@ class SimVehicle:
         self.due = {k: now for k in self.interval}
         self.wire = np.zeros(13)
         self.S = np.zeros(18)
+        self.profile = None             # OutputProfile for MANUAL_CONTROL / SET_ATTITUDE_TARGET (scenario)
         self._refresh()
 
     # ------------------------------------------------------------------ state
@@ -203,6 +208,9 @@ class SimVehicle:
         if mid == ID_HEARTBEAT:
             self.gcs_seen = now
             return
+        if mid in WRENCH_MSGS:
+            self.wrench_command(m, now)
+            return
         if mid == M.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET:
             if m.target_system not in (0, self.sysid):
                 srv.counters.reject("not_for_us")
@@ -229,6 +237,27 @@ class SimVehicle:
             return
         if mid == M.MAVLINK_MSG_ID_COMMAND_INT:
             self.ack(m.command, M.MAV_RESULT_UNSUPPORTED, m)
+
+    def wrench_command(self, m, now: float) -> None:
+        """MANUAL_CONTROL (ardusub_manual_control) or SET_ATTITUDE_TARGET (px4_attitude_thrust),
+        inverted with the profile's own decoder (bridge.output) against this vehicle's wire state."""
+        srv = self.server
+        prof = self.profile
+        target = m.target if m.get_msgId() == M.MAVLINK_MSG_ID_MANUAL_CONTROL else m.target_system
+        if target not in (0, self.sysid):
+            srv.counters.reject("not_for_us")
+            return
+        c = prof.decode(m, self.wire) if prof is not None else None
+        if c is None or not np.all(np.isfinite(c)):
+            srv.counters.reject("bad_command")   # not this vehicle's profile, or out of range
+            return
+        if not srv.lockstep:
+            self.set_controls(c, now)
+        elif prof.name == PX4_ATTITUDE_THRUST:
+            k_ms = prof.stamp(self.k)
+            self.lockstep_command(m.time_boot_ms == k_ms, m.time_boot_ms == prof.stamp(self.k - 1), c, now)
+        else:  # MANUAL_CONTROL has no time field: lockstep by sequence, one step per command
+            self.lockstep_command(True, False, c, now)
 
     def command_long(self, m, now: float) -> None:
         srv = self.server
@@ -361,6 +390,9 @@ class VehicleServer:
             self.close()
             raise
         self._by_fd = {v.sock.fileno(): v for v in self.vehicles}
+        if scenario is not None:  # the scenario's output profiles (the wrench ones need its limits and J)
+            for v, prof in zip(self.vehicles, profiles_for(cfg, scenario)):
+                v.profile = prof
 
     def default_interval(self, mid):
         return {ID_HEARTBEAT: 1.0, ID_ODOMETRY: self.odom_period, ID_ATTQ: self.aux_period,
@@ -398,7 +430,8 @@ class VehicleServer:
         in_main = threading.current_thread() is threading.main_thread()
         old = None
         if in_main:
-            old = signal.signal(signal.SIGTERM, lambda *a: self._stop.set())
+            old = signal.signal(signal.SIGTERM, lambda *a: (signals.note(signal.SIGTERM),
+                                                            self._stop.set()))
         t0 = time.monotonic()
         end = None if duration is None else t0 + duration
         tick = self.odom_period
@@ -480,8 +513,7 @@ def run_vehicle_cli(args) -> int:
     finally:
         srv.close()
     if args.stats:
-        with open(args.stats, "w") as f:
-            json.dump(st, f, indent=1)
+        write_json_atomic(args.stats, st)
     print(f"se3sync vehicle: stopped; sent {st['sent']}, received {st['received']}, malformed {st['malformed']}, "
           f"rejected {st['rejected']}, failsafe {st['failsafe']}", file=sys.stderr, flush=True)
-    return 0
+    return signals.exit_status() if signals.requested() else 0

@@ -7,15 +7,17 @@ __version__ = "0.1.0"
 from . import se3  # noqa: E402
 from .design import (DesignWarning, SynergyDesign, WeightingMatrix, design_synergy,  # noqa: E402
                      Delta, delta_min, detect_case)
-from .errors import DesignError, GraphError, Se3SyncError, WeightingError  # noqa: E402
+from .errors import ConfigError, DesignError, GraphError, Se3SyncError, WeightingError  # noqa: E402
 from .graph import Graph  # noqa: E402
 from .law import (AgentStepper, Gains, GradientController, HybridController,  # noqa: E402
                   JumpEvent, V_bar, jump_bound, pack_state)
-from . import potential  # noqa: E402
+from .params import LawParameters  # noqa: E402
+from . import layout, potential  # noqa: E402
 
 __all__ = [
     "se3", "potential", "WeightingMatrix", "SynergyDesign", "design_synergy", "DesignWarning",
     "Delta", "delta_min", "detect_case", "Graph", "Gains", "HybridController",
     "GradientController", "AgentStepper", "JumpEvent", "V_bar", "jump_bound", "pack_state",
-    "Se3SyncError", "WeightingError", "DesignError", "GraphError",
+    "Se3SyncError", "ConfigError", "WeightingError", "DesignError", "GraphError",
+    "LawParameters", "layout",
 ]

@@ -3,8 +3,7 @@
 This is the single implementation of U, μ_U, ψ̄_∇, ∇_θU, the jump map and the control law.
 The network view, the per-agent view and the public functions in `potential` all call it.
 
-State layout, one row per agent, matching the plant FMU's output block:
-    S[i] = [p (3), R row-major (9), ξ = [ω; v] (6)]            (N, 18)
+State layout: `controller.layout` (S[i] = [p, R row-major, ξ], the plant FMU's output block).
 Parameter vector P (see `pack`): the weighting matrix, the synergy design and the gains,
 with W R_a(θ_j)ᵀ precomputed for every θ_j ∈ Θ so that a candidate costs nine products.
 
@@ -39,10 +38,7 @@ P_C = 35       # c = b/d, 3 (so that no edge divides)
 P_M = 38       # m = |Θ|
 P_THETA = 39   # Θ (m), then K_j = W R_a(θ_j)ᵀ (9 m), then γθ_j²/2 (m)
 
-S_P = 0
-S_R = 3
-S_XI = 12
-S_WIDTH = 18
+from .layout import S_P, S_R, S_WIDTH, S_XI  # noqa: F401 (the kernels index S with these)
 
 
 def pack(A, b, d, u_c1, u_c2, gamma, delta, Theta, k_X, k_xi, k_e, k_theta):
@@ -375,3 +371,237 @@ def network_U(S, theta, edges, P, out):
         Rb, pb = rel_pose(S, edges[k, 0], edges[k, 1])
         Ra, Rg = prepare(Rb, theta[k], P)
         out[k] = U_core(Rb, pb, theta[k], P, Rg)
+
+
+@jit(inline=True)
+def quat_of(r00, r01, r02, r10, r11, r12, r20, r21, r22):
+    """Unit quaternion (w, x, y, z), w ≥ 0, of a rotation matrix by Shepperd's method: of the
+    four algebraically equal forms, the one with the largest pivot (ties to the first)."""
+    tr = r00 + r11 + r22
+    if tr >= r00 and tr >= r11 and tr >= r22:
+        w = 0.5 * math.sqrt(max(1.0 + tr, 0.0))
+        s = 0.25 / w
+        x = (r21 - r12) * s
+        y = (r02 - r20) * s
+        z = (r10 - r01) * s
+    elif r00 >= r11 and r00 >= r22:
+        x = 0.5 * math.sqrt(max(1.0 + r00 - r11 - r22, 0.0))
+        s = 0.25 / x
+        w = (r21 - r12) * s
+        y = (r01 + r10) * s
+        z = (r02 + r20) * s
+    elif r11 >= r22:
+        y = 0.5 * math.sqrt(max(1.0 - r00 + r11 - r22, 0.0))
+        s = 0.25 / y
+        w = (r02 - r20) * s
+        x = (r01 + r10) * s
+        z = (r12 + r21) * s
+    else:
+        z = 0.5 * math.sqrt(max(1.0 - r00 - r11 + r22, 0.0))
+        s = 0.25 / z
+        w = (r10 - r01) * s
+        x = (r02 + r20) * s
+        y = (r12 + r21) * s
+    if w < 0.0:
+        return -w, -x, -y, -z
+    return w, x, y, z
+
+
+@jit
+def rot_to_quat_rows(R9, out):
+    """out[n] = (w, x, y, z) of the row-major rotation matrix R9[n] (n, 9)."""
+    for n in range(R9.shape[0]):
+        q = quat_of(R9[n, 0], R9[n, 1], R9[n, 2], R9[n, 3], R9[n, 4], R9[n, 5],
+                    R9[n, 6], R9[n, 7], R9[n, 8])
+        for a in range(4):
+            out[n, a] = q[a]
+
+
+@jit
+def metrics(S, edges, U, kX, masses, J, rot_err, pos_err, quat):
+    """Fills rot_err, pos_err (M,) and quat (N, 4: x, y, z, w, Foxglove's order); returns
+    (V̄, max|ξ|) with V̄ = k_X ΣU + Σ ξᵀ𝕀ξ (`V_def`) from U (M,) computed by `network_U`."""
+    N = S.shape[0]
+    M = edges.shape[0]
+    usum = 0.0
+    for k in range(M):
+        Rb, pb = rel_pose(S, edges[k, 0], edges[k, 1])
+        acc = 0.0
+        for a in range(3):
+            for c in range(3):
+                x = (1.0 if a == c else 0.0) - Rb[3 * a + c]
+                acc += x * x
+        rot_err[k] = math.sqrt(acc)
+        pos_err[k] = math.sqrt(pb[0] * pb[0] + pb[1] * pb[1] + pb[2] * pb[2])
+        usum += U[k]
+    kin = 0.0
+    ximax = 0.0
+    for i in range(N):
+        for a in range(6):
+            v = abs(S[i, S_XI + a])
+            if v > ximax:
+                ximax = v
+        for a in range(3):
+            for c in range(3):
+                kin += S[i, S_XI + a] * J[i, a, c] * S[i, S_XI + c]
+        for a in range(3):
+            kin += masses[i] * S[i, S_XI + 3 + a] * S[i, S_XI + 3 + a]
+        w, x, y, z = quat_of(S[i, S_R], S[i, S_R + 1], S[i, S_R + 2], S[i, S_R + 3],
+                             S[i, S_R + 4], S[i, S_R + 5], S[i, S_R + 6], S[i, S_R + 7],
+                             S[i, S_R + 8])
+        quat[i, 0] = x
+        quat[i, 1] = y
+        quat[i, 2] = z
+        quat[i, 3] = w
+    return kX * usum + kin, ximax
+
+
+# ---- the per-agent view over delayed links (cosim.network): each agent uses its own state fresh
+# and the newest data received from each neighbour
+
+
+@jit(inline=True)
+def rel_pose_rows(A, i, B, j):
+    """X̄ = X_j⁻¹ X_i with X_i from row i of A and X_j from row j of B: `rel_pose` with the two
+    poses taken from different arrays (the same products, so equal data gives equal bits)."""
+    a0 = B[j, 3]
+    a1 = B[j, 4]
+    a2 = B[j, 5]
+    a3 = B[j, 6]
+    a4 = B[j, 7]
+    a5 = B[j, 8]
+    a6 = B[j, 9]
+    a7 = B[j, 10]
+    a8 = B[j, 11]
+    b0 = A[i, 3]
+    b1 = A[i, 4]
+    b2 = A[i, 5]
+    b3 = A[i, 6]
+    b4 = A[i, 7]
+    b5 = A[i, 8]
+    b6 = A[i, 9]
+    b7 = A[i, 10]
+    b8 = A[i, 11]
+    d0 = A[i, 0] - B[j, 0]
+    d1 = A[i, 1] - B[j, 1]
+    d2 = A[i, 2] - B[j, 2]
+    R = (a0 * b0 + a3 * b3 + a6 * b6, a0 * b1 + a3 * b4 + a6 * b7, a0 * b2 + a3 * b5 + a6 * b8,
+         a1 * b0 + a4 * b3 + a7 * b6, a1 * b1 + a4 * b4 + a7 * b7, a1 * b2 + a4 * b5 + a7 * b8,
+         a2 * b0 + a5 * b3 + a8 * b6, a2 * b1 + a5 * b4 + a8 * b7, a2 * b2 + a5 * b5 + a8 * b8)
+    p = (a0 * d0 + a3 * d1 + a6 * d2, a1 * d0 + a4 * d1 + a7 * d2, a2 * d0 + a5 * d1 + a8 * d2)
+    return R, p
+
+
+@jit
+def delayed_network_step(S, n, sched, r, ring_S, ring_theta, arrival, held, recv_S, recv_theta,
+                         term, max_age, hold, theta, edges, P, h, hybrid, u, mu, jumped,
+                         theta_prev, theta_jump, age_hist, counts, failsafe):
+    """`ex_controller` per agent at communication step n when neighbour data travels over
+    delayed, lossy links (the delay contract of `cosim.network`).
+
+    Links: 2k carries the positive end a's (X_a, ξ_a, θ_k after the jump stage) to the negative
+    end b of edge k; 2k + 1 carries (X_b, ξ_b) to a. sched[r, l] is the transit time in steps of
+    link l's message of sample n (−1: lost). ring_S (L, N, 18) / ring_theta (L, M) hold the
+    published samples n − L + 1 .. n at slot s mod L; arrival[l, a mod L] is the newest sample
+    arriving over link l at step a (−1: none); held (2M,) is the newest sample received on each link (−1: none yet, recv_* hold S0
+    and θ(0)), recv_S (2M, 18) / recv_theta (2M,) its data.
+
+    Each agent accumulates −k_ξ ξ_i, then its edges' terms in ascending edge order, with the
+    products of `network_step`: with every transit time 0 the two are bit-identical.
+
+    Age rule: on a link whose data is older than max_age steps the receiver's edge term is held
+    at its last value (term (2M, 6)) and an owned θ_k neither jumps nor flows; older than
+    max_age + hold the receiving agent fails safe (u_i = 0); failsafe (N, 4) holds per agent
+    the flag this step and the last, the steps and the entries in fail-safe. Fresh data
+    rejoins. Statistics: age_hist (2M, H) counts the used-data age (clipped to H − 1);
+    counts (2M, 2): messages sent, lost. Returns the number of jumps.
+    """
+    N = S.shape[0]
+    M = edges.shape[0]
+    L = ring_S.shape[0]
+    H = age_hist.shape[1]
+    kX = P[P_KX]
+    kxi = P[P_KXI]
+    ke = P[P_KE]
+    slot = n % L
+    for i in range(N):
+        for c in range(S.shape[1]):
+            ring_S[slot, i, c] = S[i, c]
+        failsafe[i, 1] = failsafe[i, 0]
+        failsafe[i, 0] = 0
+    # links: this step's message, then the newest arrived sample
+    for l in range(2 * M):
+        k = l // 2
+        src = edges[k, 0] if l % 2 == 0 else edges[k, 1]
+        dst = edges[k, 1] if l % 2 == 0 else edges[k, 0]
+        t = sched[r, l]
+        counts[l, 0] += 1
+        if t < 0:
+            counts[l, 1] += 1
+        else:  # transit t ≤ L − 1 steps: slots of arrival steps n .. n + L − 1 are distinct
+            a = (n + t) % L
+            if n > arrival[l, a]:
+                arrival[l, a] = n
+        s = arrival[l, slot]  # the newest sample arriving at step n (−1: none)
+        arrival[l, slot] = -1
+        if s > held[l]:
+            held[l] = s
+            for c in range(S.shape[1]):
+                recv_S[l, c] = ring_S[s % L, src, c]
+        age = n - held[l] if held[l] >= 0 else n
+        age_hist[l, min(max(age, 0), H - 1)] += 1
+        if age > max_age + hold:
+            failsafe[dst, 0] = 1
+    for i in range(N):
+        for a in range(6):
+            u[i, a] = -kxi * S[i, S_XI + a]
+    n_jumps = 0
+    for k in range(M):
+        i = edges[k, 0]
+        j = edges[k, 1]
+        lp = 2 * k      # i → j
+        ln = 2 * k + 1  # j → i
+        # positive end i (owner of θ_k): X̄_k = X_j(s)⁻¹ X_i(n)
+        theta_prev[k] = theta[k]
+        age_n = n - held[ln] if held[ln] >= 0 else n
+        if age_n > max_age:
+            mu[k] = 0.0
+            jumped[k] = False
+            theta_jump[k] = theta[k]
+        else:
+            Rb, pb = rel_pose_rows(S, i, recv_S, ln)
+            g, gn, th_next, th_jump, mu_k, jumped_k = edge_update(Rb, pb, theta[k], hybrid, P, h)
+            mu[k] = mu_k
+            jumped[k] = jumped_k
+            theta_jump[k] = th_jump
+            theta[k] = th_next
+            if jumped_k:
+                n_jumps += 1
+            for a in range(6):
+                dxi = S[i, S_XI + a] - recv_S[ln, S_XI + a]
+                term[ln, a] = -kX * g[a] - ke * dxi
+        ring_theta[slot, k] = theta_jump[k]
+        for a in range(6):
+            u[i, a] += term[ln, a]
+        # negative end j: X̄_k = X_j(n)⁻¹ X_i(s), θ_k(s) as published by i
+        if held[lp] >= 0 and held[lp] > n - L:  # its slot still holds that sample's θ_k
+            recv_theta[lp] = ring_theta[held[lp] % L, k]
+        age_p = n - held[lp] if held[lp] >= 0 else n
+        if age_p <= max_age:
+            Rb, pb = rel_pose_rows(recv_S, lp, S, j)
+            Ra, Rg = prepare(Rb, recv_theta[lp], P)
+            g, grad_theta = gradient_core(Rb, pb, recv_theta[lp], P, Ra, Rg)
+            gn = Ad_inv_T(Rb, pb, g)
+            for a in range(6):
+                dxi = recv_S[lp, S_XI + a] - S[j, S_XI + a]
+                term[lp, a] = kX * gn[a] + ke * dxi
+        for a in range(6):
+            u[j, a] += term[lp, a]
+    for i in range(N):
+        if failsafe[i, 0]:
+            failsafe[i, 2] += 1
+            if not failsafe[i, 1]:
+                failsafe[i, 3] += 1
+            for a in range(6):
+                u[i, a] = 0.0
+    return n_jumps

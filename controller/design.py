@@ -278,16 +278,16 @@ def design_synergy(weighting: WeightingMatrix, Theta=None, gamma=None, delta=Non
     W = weighting.W
     signs = np.asarray(alpha_signs, float).ravel()
     if signs.shape != (3,) or not np.all(np.abs(signs) == 1):
-        raise DesignError(f"alpha_signs must be three values of +1 or -1, got {_fmt(signs)}")
+        raise DesignError(f"alpha_signs must be three values of +1 or -1, got {_fmt(signs)}", "alpha_signs")
     if u_c1 is None:
         u, dstar = lemma2_u_c1(lam, V, case, signs)
     else:
         u = np.asarray(u_c1, float).ravel()
         if u.shape != (3,) or not np.all(np.isfinite(u)):
-            raise DesignError(f"u_c1 must be 3 finite numbers, got {_fmt(u)}")
+            raise DesignError(f"u_c1 must be 3 finite numbers, got {_fmt(u)}", "u_c1")
         n = np.linalg.norm(u)
         if n == 0:
-            raise DesignError("u_c1 must be a non-zero vector, got (0, 0, 0)")
+            raise DesignError("u_c1 must be a non-zero vector, got (0, 0, 0)", "u_c1")
         if abs(n - 1) > 1e-9:
             notes.append(f"u_c1 = {_fmt(u)} has norm {n:.6g}; normalised to {_fmt(u / n)}")
         u = u / n
@@ -300,7 +300,8 @@ def design_synergy(weighting: WeightingMatrix, Theta=None, gamma=None, delta=Non
         raise DesignError(
             f"Δ*_W = min over eigenvectors v of W of Δ(v, u_c1) = {min(dstar, dmin):.6g} is not "
             f"positive (eigenvalues of W {_fmt(lam)}, u_c1 {_fmt(u)}): no jump can leave every "
-            "undesired critical point; W needs three distinct eigenvalues or λ₁ = λ₂ < λ₃")
+            "undesired critical point; W needs three distinct eigenvalues or λ₁ = λ₂ < λ₃",
+            "W" if u_c1 is None else "u_c1")
     u_c2 = -np.cross(u, weighting.b) / weighting.d
     gamma_bound = 4 * dstar / math.pi ** 2
 
@@ -308,39 +309,39 @@ def design_synergy(weighting: WeightingMatrix, Theta=None, gamma=None, delta=Non
         gamma = 0.5 * gamma_bound
     gamma = float(gamma)
     if not (math.isfinite(gamma) and gamma > 0):
-        raise DesignError(f"gamma must be > 0, got {gamma:.6g}")
+        raise DesignError(f"gamma must be > 0, got {gamma:.6g}", "gamma")
     if gamma >= gamma_bound:
         raise DesignError(
             f"gamma = {gamma:.6g} is at or above its bound 4Δ*/π² = {gamma_bound:.6g} "
-            f"(Δ* = {dstar:.6g})")
+            f"(Δ* = {dstar:.6g})", "gamma")
 
     if Theta is None:
         t = _best_theta(dstar, gamma)
         Theta = (t, -t)
     Theta = tuple(float(x) for x in np.atleast_1d(np.asarray(Theta, float)).ravel())
     if len(Theta) == 0:
-        raise DesignError("Theta must hold at least one angle")
+        raise DesignError("Theta must hold at least one angle", "Theta")
     for x in Theta:
         if not (math.isfinite(x) and 0 < abs(x) <= math.pi + 1e-12):
-            raise DesignError(f"Theta must hold angles with 0 < |θ| ≤ π, got θ = {x:.6g}")
+            raise DesignError(f"Theta must hold angles with 0 < |θ| ≤ π, got θ = {x:.6g}", "Theta")
     theta_M = max(abs(x) for x in Theta)
     delta_bound = (gamma_bound - gamma) * theta_M ** 2 / 2
     exact_gap = _gap(Theta, dmin, gamma)
     if exact_gap <= 0:
         raise DesignError(
             f"the exact gap min_v max_θ'∈Θ [2 sin²(θ'/2)Δ(v, u_c1) − γθ'²/2] = {exact_gap:.6g} "
-            f"is not positive for Theta = {_fmt(Theta)}, gamma = {gamma:.6g}")
+            f"is not positive for Theta = {_fmt(Theta)}, gamma = {gamma:.6g}", "Theta")
 
     if delta is None:
         delta = 0.5 * delta_bound if delta_bound > 0 else 0.5 * exact_gap
     delta = float(delta)
     if not (math.isfinite(delta) and delta > 0):
-        raise DesignError(f"delta must be > 0, got {delta:.6g}")
+        raise DesignError(f"delta must be > 0, got {delta:.6g}", "delta")
     if delta >= exact_gap:
         raise DesignError(
             f"delta = {delta:.6g} is at or above the exact gap {exact_gap:.6g} "
             "(min over eigenvectors v of W of max over θ' ∈ Theta of "
-            "2 sin²(θ'/2)Δ(v, u_c1) − γθ'²/2)")
+            "2 sin²(θ'/2)Δ(v, u_c1) − γθ'²/2)", "delta")
     if delta >= delta_bound:
         notes.append(
             f"delta = {delta:.6g} is above Lemma 2's bound (4Δ*/π² − γ)θ_M²/2 = "

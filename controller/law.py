@@ -18,6 +18,8 @@ from . import _kernels as K
 from .design import SynergyDesign, WeightingMatrix
 from .errors import Se3SyncError
 from .graph import Graph
+from .layout import XI, pack_state
+from .params import LawParameters
 
 __all__ = ["Gains", "JumpEvent", "HybridController", "GradientController", "AgentStepper",
            "pack_state", "V_bar", "jump_bound"]
@@ -48,28 +50,6 @@ class JumpEvent(NamedTuple):
     mu: float
 
 
-def pack_state(X, xi) -> np.ndarray:
-    """S (N, 18) = [p, R row-major, ξ] from poses X (N, 4, 4) and velocities ξ (N, 6)."""
-    X = np.asarray(X, float)
-    xi = np.asarray(xi, float)
-    N = X.shape[0]
-    S = np.empty((N, K.S_WIDTH))
-    S[:, K.S_P:K.S_P + 3] = X[:, :3, 3]
-    S[:, K.S_R:K.S_R + 9] = X[:, :3, :3].reshape(N, 9)
-    S[:, K.S_XI:K.S_XI + 6] = xi
-    return S
-
-
-def _params(weighting: WeightingMatrix, design: SynergyDesign | None, gains: Gains):
-    if design is None:  # gradient baseline: θ ≡ 0, so u_c and Θ never enter
-        u1, u2, gamma, delta, Theta = np.zeros(3), np.zeros(3), 0.0, np.inf, (0.0,)
-    else:
-        u1, u2 = design.u_c1, design.u_c2
-        gamma, delta, Theta = design.gamma, design.delta, design.Theta
-    return K.pack(weighting.A, weighting.b, weighting.d, u1, u2, gamma, delta, Theta,
-                  gains.k_X, gains.k_xi, gains.k_e, gains.k_theta)
-
-
 class HybridController:
     """The network view: one call computes every agent's wrench at a communication point.
 
@@ -80,6 +60,7 @@ class HybridController:
     and `theta_jump` (θ after the jump stage, before the flow).
     """
 
+    name = "hybrid"
     hybrid = True
 
     def __init__(self, graph: Graph, weighting: WeightingMatrix, design: SynergyDesign | None,
@@ -90,7 +71,8 @@ class HybridController:
         self.weighting = weighting
         self.design = design
         self.gains = gains
-        self.P = _params(weighting, design, gains)
+        self.params = LawParameters.of(weighting, design, gains)
+        self.P = self.params.P
         self.edges = np.ascontiguousarray(graph.edges)
         M = graph.M
         self.theta = np.zeros(M)
@@ -142,16 +124,14 @@ class HybridController:
 
     def V_bar(self, S, inertia, theta=None) -> float:
         """V̄ = k_X Σ_k U(X̄_k, θ_k) + Σ_i ξ_iᵀ 𝕀_i ξ_i (`V_def`); inertia (N, 6, 6) or (6, 6)."""
-        S = np.asarray(S, float)
-        xi = S[:, K.S_XI:K.S_XI + 6]
-        I = np.broadcast_to(np.asarray(inertia, float), (self.graph.n, 6, 6))
-        return float(self.gains.k_X * self.U_edges(S, theta).sum()
-                     + np.einsum("ni,nij,nj->", xi, I, xi))
+        return _V_bar(self.params, self.edges, np.asarray(S, float),
+                      self.theta if theta is None else np.asarray(theta, float), inertia)
 
 
 class GradientController(HybridController):
     """The gradient-only baseline: θ ≡ 0 and no jumps (smooth, hence at best almost global)."""
 
+    name = "gradient"
     hybrid = False
 
     def __init__(self, graph: Graph, weighting: WeightingMatrix, gains: Gains,
@@ -161,19 +141,31 @@ class GradientController(HybridController):
         super().__init__(graph, weighting, None, gains)
 
 
+def _V_bar(params: LawParameters, edges, S, theta, inertia) -> float:
+    U = np.empty(edges.shape[0])
+    K.network_U(S, theta, edges, params.P, U)
+    xi = S[:, XI]
+    I = np.broadcast_to(np.asarray(inertia, float), (S.shape[0], 6, 6))
+    return float(params.k_X * U.sum() + np.einsum("ni,nij,nj->", xi, I, xi))
+
+
 def V_bar(graph: Graph, weighting: WeightingMatrix, design: SynergyDesign | None, gains: Gains,
           S, theta, inertia) -> float:
     """V̄ = k_X Σ_k U(X̄_k, θ_k) + Σ_i ξ_iᵀ 𝕀_i ξ_i (`V_def`); inertia (N, 6, 6) or (6, 6).
-
-    For repeated evaluation use `HybridController.V_bar`, which reuses its parameters."""
-    ctl = (HybridController(graph, weighting, design, gains) if design is not None
-           else GradientController(graph, weighting, gains))
-    return ctl.V_bar(S, inertia, None if design is None else theta)
+    With ``design=None`` (the gradient baseline) θ ≡ 0."""
+    S = np.asarray(S, float)
+    th = np.zeros(graph.M) if design is None else np.asarray(theta, float)
+    return _V_bar(LawParameters.of(weighting, design, gains),
+                  np.ascontiguousarray(graph.edges), S, th, inertia)
 
 
 def jump_bound(V0: float, k_X: float, delta: float) -> int:
     """⌈V̄(0)/(k_X δ)⌉, Theorem 1's bound on the number of jumps."""
-    return int(math.ceil(V0 / (k_X * delta)))
+    q = V0 / (k_X * delta)
+    if not math.isfinite(q):
+        raise Se3SyncError(f"the jump bound V̄(0)/(k_X δ) = {V0:.6g}/({k_X:.6g}·{delta:.6g}) is "
+                           "not finite: the initial state or the gains are out of range")
+    return int(math.ceil(q))
 
 
 class AgentStepper:
@@ -194,7 +186,8 @@ class AgentStepper:
             if self.agent not in (a, b):
                 raise Se3SyncError(f"agent {self.agent}: edge {k} = ({a}, {b}) is not one of its edges")
         self.owned = [k for k, (a, _) in self.local_edges.items() if a == self.agent]
-        self.P = _params(weighting, design, gains)
+        self.params = LawParameters.of(weighting, design, gains)
+        self.P = self.params.P
         self.theta = {k: float((theta0 or {}).get(k, 0.0)) if self.hybrid else 0.0 for k in self.owned}
         self._g = np.empty(6)
         self._gn = np.empty(6)

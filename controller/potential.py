@@ -9,14 +9,17 @@ import numpy as np
 from . import _kernels as K
 from . import se3
 from .design import SynergyDesign, WeightingMatrix
+from .law import Gains
+from .params import LawParameters
 
 __all__ = ["T_uc", "Gamma", "U", "mu_U", "grad_theta_U", "psi_bar_nabla", "jump_map", "params"]
 
 
 def params(weighting: WeightingMatrix, design: SynergyDesign, k_X=1.0, k_xi=1.0, k_e=1.0,
            k_theta=1.0) -> np.ndarray:
-    return K.pack(weighting.A, weighting.b, weighting.d, design.u_c1, design.u_c2, design.gamma,
-                  design.delta, design.Theta, k_X, k_xi, k_e, k_theta)
+    """The packed parameter vector of `LawParameters` for these gains (unit gains by default:
+    U, μ_U and the gradients do not depend on them)."""
+    return LawParameters.of(weighting, design, Gains(k_X, k_xi, k_e, k_theta)).P
 
 
 def T_uc(design: SynergyDesign, weighting: WeightingMatrix, theta):

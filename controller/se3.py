@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _kernels as K
+
 __all__ = [
     "skew", "unskew", "hat", "vee", "psi", "psi_bar", "Ad", "ad", "Ad_inv_T",
     "exp_so3", "log_so3", "exp_se3", "log_se3", "R_a", "T", "inverse", "split",
@@ -261,22 +263,12 @@ def quat_to_rot(q):
 
 
 def rot_to_quat(R):
-    """Unit quaternion (w, x, y, z), w ≥ 0, of a rotation matrix (Shepperd's method)."""
+    """Unit quaternion (w, x, y, z), w ≥ 0, of a rotation matrix (Shepperd's method).
+
+    One implementation for the whole project (`controller.kernels.rot_to_quat_rows`): the plant's
+    initial orientation, the logs and the MAVLink boundary all convert with it."""
     R = np.asarray(R, dtype=float)
-    tr = np.trace(R, axis1=-2, axis2=-1)
-    d = np.diagonal(R, axis1=-2, axis2=-1)
-    cand = np.stack([tr, d[..., 0], d[..., 1], d[..., 2]], axis=-1)
-    k = np.argmax(cand, axis=-1)
-    q = np.empty(R.shape[:-2] + (4,))
-    r = lambda i, j: R[..., i, j]  # noqa: E731
-    # Four algebraically equal forms; pick the one with the largest pivot for accuracy.
-    forms = [
-        np.stack([1 + tr, r(2, 1) - r(1, 2), r(0, 2) - r(2, 0), r(1, 0) - r(0, 1)], -1),
-        np.stack([r(2, 1) - r(1, 2), 1 + 2 * d[..., 0] - tr, r(0, 1) + r(1, 0), r(0, 2) + r(2, 0)], -1),
-        np.stack([r(0, 2) - r(2, 0), r(0, 1) + r(1, 0), 1 + 2 * d[..., 1] - tr, r(1, 2) + r(2, 1)], -1),
-        np.stack([r(1, 0) - r(0, 1), r(0, 2) + r(2, 0), r(1, 2) + r(2, 1), 1 + 2 * d[..., 2] - tr], -1),
-    ]
-    for i, f in enumerate(forms):
-        q = np.where((k == i)[..., None], f, q)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
+    flat = np.ascontiguousarray(R.reshape(-1, 9))
+    out = np.empty((flat.shape[0], 4))
+    K.rot_to_quat_rows(flat, out)
+    return out.reshape(R.shape[:-2] + (4,))

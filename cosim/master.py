@@ -2,65 +2,69 @@
 
 Per step n (the hot path, no allocation, no attribute lookups that can be hoisted):
     S = plant.read(); u, events = controller.step_state(S, h); plant.apply(u); plant.advance(h)
-The loop runs in blocks between "ticks" (log records at log_rate, summary samples every 1 s of
-simulated time, and at least every 1000 steps a check for Ctrl-C and the progress bar), so the
-inner loop has no logging test at all; jump events are handled the step they happen.
+The loop runs in blocks between "ticks" (log records at log_rate, summary samples every
+``sample_dt`` of simulated time, and at least every 1000 steps a check for Ctrl-C, the wall-clock
+budget and the progress bar), so the inner loop has no logging test at all; jump events are
+handled the step they happen.
+
+This is the only step loop in se3sync: `run`, `connect` and the sweeps all drive it.
 """
 from __future__ import annotations
 
-import signal
-import threading
 import time
 
 import numpy as np
+from tqdm import tqdm
 
-from controller import _kernels as K
+from controller import LawParameters, V_bar, jump_bound
+from controller.kernels import metrics, network_U
 
-__all__ = ["Master", "make_controller"]
+from . import signals
+from .controllers import law_name, make_controller
+
+__all__ = ["Master", "make_controller", "design_summary"]
 
 MAX_BLOCK = 1000  # steps between two checks for Ctrl-C / progress updates
 
+DESIGN_KEYS = ("case", "u_c1", "u_c2", "delta_star", "gamma", "delta", "gamma_bound",
+               "delta_bound", "exact_gap", "warnings", "Theta", "eigenvalues_W")
 
-def make_controller(kind, scenario):
-    from controller import GradientController, HybridController
-    from controller.errors import Se3SyncError
 
-    if kind == "hybrid":
-        return HybridController(scenario.graph, scenario.weighting, scenario.design,
-                                scenario.gains, theta0=scenario.theta0)
-    if kind == "gradient":
-        return GradientController(scenario.graph, scenario.weighting, scenario.gains)
-    raise Se3SyncError(f"controller must be \"hybrid\" or \"gradient\", got {kind!r}")
+def design_summary(scenario) -> dict:
+    """The synergy design as the summary, `check` and the log report it."""
+    d = scenario.design.as_dict()
+    return {k: d[k] for k in DESIGN_KEYS}
 
 
 class Master:
-    """``Master(scenario, plant, controller, logger=None)``: plant a Plant, controller a
-    HybridController/GradientController (or "hybrid"/"gradient"), logger an McapLogger or
-    None. ``run(n_steps, progress=False) -> dict`` (the summary, without file names)."""
+    """``Master(scenario, plant, controller, logger=None, sample_dt=1.0)``: plant a
+    `cosim.plants.Plant`, controller a `cosim.controllers.Controller` (or a registered law name),
+    logger an McapLogger or None. ``run(n_steps, progress=False, budget=None) -> dict`` (the
+    summary, without file names); ``budget`` is a wall-clock limit in seconds, counted from the
+    end of the first block (one-time set-up is not held against a run), after which the run stops
+    with ``"timed_out": true``. ``restart(S0)`` starts again from another initial state with a
+    plant that can ``reset`` (sweeps reuse one plant and master for many samples).
+    """
 
-    def __init__(self, scenario, plant, controller, logger=None):
-        from controller import V_bar, jump_bound
-
+    def __init__(self, scenario, plant, controller, logger=None, sample_dt: float = 1.0,
+                 S0=None):
         self.scenario = sc = scenario
         self.plant = plant
         if isinstance(controller, str):
-            self.controller_kind = controller
             controller = make_controller(controller, scenario)
-        else:
-            self.controller_kind = "hybrid" if getattr(controller, "hybrid", True) else "gradient"
         self.controller = controller
+        self.controller_kind = law_name(controller)
         buf = getattr(plant, "input_buffer", None)
         if buf is not None and hasattr(controller, "write_wrench_into"):
             controller.write_wrench_into(buf)
         self.logger = logger
         self.h = float(sc.step)
+        self.sample_dt = float(sample_dt)
         N, M = sc.graph.n, sc.graph.M
         self.N, self.M = N, M
         self.edges = np.ascontiguousarray(sc.graph.edges)
-        # parameter vector for U in the metrics (the hybrid design even for the gradient run)
-        self._P = K.pack(sc.weighting.A, sc.weighting.b, sc.weighting.d, sc.design.u_c1,
-                         sc.design.u_c2, sc.design.gamma, sc.design.delta, sc.design.Theta,
-                         sc.gains.k_X, sc.gains.k_xi, sc.gains.k_e, sc.gains.k_theta)
+        # U in the metrics and the log uses the scenario's hybrid design even for another law
+        self._P = LawParameters.of(sc.weighting, sc.design, sc.gains).P
         self._kX = float(sc.gains.k_X)
         self._masses = np.ascontiguousarray(sc.masses, float)
         self._J = np.ascontiguousarray(sc.inertias, float)
@@ -68,24 +72,31 @@ class Master:
         self._pos = np.zeros(M)
         self._U = np.zeros(M)
         self._quat = np.zeros((N, 4))
-        self._zeros_M = np.zeros(M)
-        self._false_M = np.zeros(M, dtype=np.bool_)
+        self._stop = False
+        self._start(sc.S0 if S0 is None else np.asarray(S0, float))
+
+    def _start(self, S0) -> None:
+        sc = self.scenario
         self.jumps = []
         self.samples = []
         self.link_samples = 0
-        self._stop = False
-        theta_init = (np.asarray(sc.theta0, float) if self.controller_kind == "hybrid"
-                      else np.zeros(M))
-        self.V0 = V_bar(sc.graph, sc.weighting, sc.design, sc.gains, sc.S0, theta_init,
+        self.u0 = None
+        self.n_done = 0
+        self.V0 = V_bar(sc.graph, sc.weighting, sc.design, sc.gains, S0, self.controller.theta,
                         sc.inertia6)
         self.jump_bound = jump_bound(self.V0, sc.gains.k_X, sc.design.delta)
-        self.n_done = 0
+
+    def restart(self, S0, theta0=None) -> None:
+        """Start again at t = 0 from S0 (and θ(0) = theta0, zeros if None); the plant must
+        implement ``reset(S0)``."""
+        self.plant.reset(S0)
+        self.controller.reset(theta0)
+        self._stop = False
+        self._start(np.asarray(S0, float))
 
     # -------------------------------------------------------------- slow path
     def _metrics(self, S, theta):
-        from ._metrics import metrics
-
-        K.network_U(S, theta, self.edges, self._P, self._U)
+        network_U(S, theta, self.edges, self._P, self._U)
         V, ximax = metrics(S, self.edges, self._U, self._kX, self._masses, self._J, self._rot,
                            self._pos, self._quat)
         return V, ximax
@@ -112,9 +123,10 @@ class Master:
 
     def _tick(self, n, S, u, do_log, do_sample):
         ctrl = self.controller
-        hybrid = self.controller_kind == "hybrid"
-        theta = ctrl.theta_jump if hybrid else self._zeros_M  # θ at t_n after the jump stage
+        theta = ctrl.theta_jump  # θ at t_n after the jump stage
         t = n * self.h
+        if n == 0:
+            self.u0 = np.array(u, copy=True)
         if do_sample:
             self._sample(t, S, theta)
             stats = getattr(self.plant, "stats", None)
@@ -123,18 +135,21 @@ class Master:
                 self.link_samples += 1
         if do_log and self.logger is not None:
             V, _ = self._metrics(S, theta)
-            kxu = float(self._P[K.P_KX] * self._U.sum())
-            self.logger.record(round(t * 1e9), S, u, theta, ctrl.mu if hybrid else self._zeros_M,
-                               ctrl.jumped if hybrid else self._false_M, self._rot, self._pos,
-                               self._U, self._quat, float(V), kxu)
+            kxu = float(self._kX * self._U.sum())
+            self.logger.record(round(t * 1e9), S, u, theta, ctrl.mu, ctrl.jumped, self._rot,
+                               self._pos, self._U, self._quat, float(V), kxu)
 
-    def _on_sigint(self, signum, frame):
-        if self._stop:  # a second Ctrl-C: stop right now
+    def request_stop(self) -> None:
+        """Stop the run at the next check (between two blocks), as Ctrl-C does."""
+        self._stop = True
+
+    def _on_signal(self):
+        if self._stop:  # a second Ctrl-C or SIGTERM: stop right now
             raise KeyboardInterrupt
         self._stop = True
 
     # -------------------------------------------------------------- the loop
-    def run(self, n_steps: int, progress: bool = False) -> dict:
+    def run(self, n_steps: int, progress: bool = False, budget: float | None = None) -> dict:
         n_steps = int(n_steps)
         h = self.h
         plant, ctrl = self.plant, self.controller
@@ -142,25 +157,22 @@ class Master:
         on_jumps = self._on_jumps
         logging = self.logger is not None
         dec = max(1, int(round(1.0 / (self.scenario.log_rate * h)))) if logging else 0
-        spl = max(1, int(round(1.0 / h)))  # summary sample every 1 s of simulated time
+        spl = self._sample_every()
         bar = None
         if progress:
-            from tqdm import tqdm
-
             bar = tqdm(total=n_steps, unit="step", unit_scale=True, mininterval=0.5,
                        desc=self.scenario.name)
-        old_handler = None
-        if threading.current_thread() is threading.main_thread():
-            try:
-                old_handler = signal.signal(signal.SIGINT, self._on_sigint)
-            except ValueError:  # pragma: no cover
-                old_handler = None
+        catcher = signals.catching(self._on_signal).__enter__()
+        if signals.pending():  # a signal arrived before the loop (and may have been swallowed)
+            self._stop = True
         interrupted = False
         broken = False
+        timed_out = False
+        deadline = None
         n = 0
         t0 = time.perf_counter()
         try:
-            while n < n_steps:
+            while n < n_steps and not self._stop:
                 # tick step: a full step with the slow-path work
                 S = read()
                 u, ev = step(S, h)
@@ -191,41 +203,46 @@ class Master:
                     apply(u)
                     advance(h)
                 n = nxt
+                if budget is not None:
+                    now = time.perf_counter()
+                    if deadline is None:
+                        deadline = now + float(budget)
+                    elif now > deadline and n < n_steps:
+                        timed_out = True
+                        break
         except KeyboardInterrupt:
             interrupted = True
             broken = True  # the plant may be mid-step: do not read it again
         finally:
-            if old_handler is not None:
-                signal.signal(signal.SIGINT, old_handler)
+            catcher.__exit__()
             if bar is not None:
                 bar.update(n - bar.n)
                 bar.close()
         wall = time.perf_counter() - t0
+        interrupted = interrupted or (self._stop and n < n_steps)
         self.n_done = n
-        return self._summary(n, wall, interrupted, broken)
+        return self._summary(n, wall, interrupted, broken, timed_out)
 
-    def _summary(self, n, wall, interrupted, broken=False) -> dict:
+    def _sample_every(self) -> int:
+        return max(1, int(round(self.sample_dt / self.h)))
+
+    def _summary(self, n, wall, interrupted, broken=False, timed_out=False) -> dict:
         sc = self.scenario
         h = self.h
         t_end = n * h
         S = self.plant.read() if not broken else None
-        theta_end = (self.controller.theta.copy() if self.controller_kind == "hybrid"
-                     else self._zeros_M)
+        theta_end = self.controller.theta.copy()
         final = None
         if S is not None:
             V, ximax = self._metrics(S, theta_end)
             final = {"t": t_end, "rot_err": float(self._rot.max()) if self.M else 0.0,
                      "pos_err": float(self._pos.max()) if self.M else 0.0,
                      "xi_max": float(ximax), "theta": theta_end.tolist(), "V": float(V)}
-            spl = max(1, int(round(1.0 / h)))
-            if n > 0 and n % spl == 0:
+            if n > 0 and n % self._sample_every() == 0:
                 self.samples.append(dict(final))
         elif self.samples:
             final = dict(self.samples[-1])
-        d = sc.design.as_dict()
-        design = {k: d[k] for k in ("case", "u_c1", "u_c2", "delta_star", "gamma", "delta",
-                                    "gamma_bound", "delta_bound", "exact_gap", "warnings",
-                                    "Theta", "eigenvalues_W")}
+        design = design_summary(sc)
         out = {
             "scenario": sc.name,
             "scenario_path": str(sc.path),
@@ -237,6 +254,7 @@ class Master:
             "realtime_factor": (t_end / wall) if wall > 0 else None,
             "us_per_step": (wall / n * 1e6) if n else None,
             "interrupted": bool(interrupted),
+            **({"timed_out": True} if timed_out else {}),
             "design": design,
             "V0": self.V0,
             "jump_bound": self.jump_bound,

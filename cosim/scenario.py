@@ -15,7 +15,11 @@ from typing import Any
 
 import numpy as np
 
-from controller.errors import Se3SyncError
+from controller import Gains, Graph, WeightingMatrix, design_synergy, layout, se3
+from controller.errors import ConfigError, DesignError, GraphError, Se3SyncError, WeightingError
+
+from . import plugins
+from .initial import paper_state, random_state
 
 try:  # Python 3.11+
     import tomllib as _toml
@@ -26,31 +30,23 @@ __all__ = ["ScenarioError", "Scenario", "load_scenario", "parse_scenario", "appl
            "parse_override", "SCHEMA", "DEFAULT_LOG_RATE", "MAX_DEFAULT_INTERNAL_STEP"]
 
 DEFAULT_LOG_RATE = 100.0
+# Ranges that keep every product of the law and the plant far from overflow and underflow; they
+# are generous for any physical swarm (metres, kilograms, seconds).
+MAX_MAGNITUDE = 1e6        # positions, velocities, gravity, box and ball sizes, θ(0)
+MAX_AGENTS = 100_000       # the plant FMU's limit (plant_fmu.layout.MAX_BODIES)
+MAX_GAIN = 1e9
+MASS_RANGE = (1e-9, 1e9)   # kg; inertias: principal moments in this range too (kg m²)
+WEIGHTING_RANGE = (1e-9, 1e9)
+MAX_STEPS = 10 ** 9        # communication steps of one run
+MAX_BODY_SUBSTEPS = 10 ** 6   # N · ⌈h / internal_step⌉ per step: the plant FMU's limit per doStep
+MIN_INTERNAL_STEP = 1e-9      # s, the plant FMU's floor
 # default internal step of the plant FMU: the communication step, but at most 1 ms
 MAX_DEFAULT_INTERNAL_STEP = 1e-3
 
 
-class ScenarioError(Se3SyncError):
-    """A scenario problem: ``ScenarioError(keypath, reason)``; the loader adds the file name.
-
-    ``str(err)`` is one line: ``FILE: KEYPATH: REASON`` (or ``KEYPATH: REASON`` without a file).
-    """
-
-    def __init__(self, keypath: str, reason: str, file: str | None = None):
-        self.keypath = "" if keypath is None else str(keypath)
-        self.reason = " ".join(str(reason).split())  # one line, always
-        self.file = None if file is None else str(file)
-        super().__init__(self._line())
-
-    def _line(self) -> str:
-        parts = [p for p in (self.file, self.keypath) if p]
-        return ": ".join(parts + [self.reason])
-
-    def __str__(self) -> str:
-        return self._line()
-
-    def with_file(self, file) -> "ScenarioError":
-        return ScenarioError(self.keypath, self.reason, str(file))
+# A scenario problem: ``ScenarioError(keypath, reason)``; the loader adds the file name. The class
+# lives in controller.errors so that packages owning a table raise it without importing cosim.
+ScenarioError = ConfigError
 
 
 # ----------------------------------------------------------------------------- schema
@@ -65,8 +61,8 @@ SCHEMA: dict[str, Any] = {
                 "agent", "theta0"},
     "simulation": {"duration", "step", "log_rate"},
     "plant": {"gravity", "internal_step", "mode"},
-    "bridge": None,
 }
+# Further tables ([bridge], ...) are owned by other packages: see cosim/plugins.py.
 AGENT_KEYS = {"axis_angle", "quaternion", "position", "velocity"}
 REQUIRED = ("agents", "graph", "weighting", "gains", "initial", "simulation")
 
@@ -84,7 +80,7 @@ def _is_num(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def _num(key, v, *, positive=False, nonneg=False, integer=False) -> float:
+def _num(key, v, *, positive=False, nonneg=False, integer=False, maximum=None) -> float:
     if integer:
         if isinstance(v, bool) or not isinstance(v, int):
             raise ScenarioError(key, f"must be an integer, got {_fmtv(v)}")
@@ -96,11 +92,13 @@ def _num(key, v, *, positive=False, nonneg=False, integer=False) -> float:
         raise ScenarioError(key, f"must be > 0, got {v}")
     if nonneg and not v >= 0:
         raise ScenarioError(key, f"must be >= 0, got {v}")
+    if maximum is not None and not v <= maximum:
+        raise ScenarioError(key, f"must be <= {maximum:g}, got {v:g}")
     return v if integer else float(v)
 
 
-def _array(key, v, shape) -> np.ndarray:
-    """A nested list of numbers with exactly this shape."""
+def _array(key, v, shape, maximum=MAX_MAGNITUDE) -> np.ndarray:
+    """A nested list of numbers with exactly this shape, each of magnitude <= maximum."""
     def shp(x):
         if isinstance(x, list):
             subs = [shp(e) for e in x]
@@ -124,6 +122,9 @@ def _array(key, v, shape) -> np.ndarray:
     a = np.asarray(v, dtype=float)
     if not np.all(np.isfinite(a)):
         raise ScenarioError(key, "must hold finite numbers only")
+    if maximum is not None and a.size and np.abs(a).max() > maximum:
+        raise ScenarioError(key, f"must hold numbers of magnitude <= {maximum:g}, got "
+                                 f"{float(np.abs(a).max()):g}")
     return a
 
 
@@ -179,9 +180,9 @@ def apply_overrides(data: dict, overrides) -> dict:
         parts, value = parse_override(item)
         path = ".".join(parts)
         sec = parts[0]
-        if sec not in SCHEMA:
+        if sec not in SCHEMA and sec not in plugins.table_names():
             raise ScenarioError(path, f"unknown key (from --set {item})")
-        allowed = SCHEMA[sec]
+        allowed = SCHEMA.get(sec)
         if allowed is not None:
             if len(parts) != 2 or parts[1] not in allowed or parts[1] == "agent":
                 raise ScenarioError(path, f"unknown key (from --set {item})")
@@ -210,7 +211,7 @@ class Scenario:
     gains: Any
     masses: np.ndarray           # (N,)
     inertias: np.ndarray         # (N, 3, 3)
-    S0: np.ndarray               # (N, 18) [p, R row-major, xi]
+    S0: np.ndarray               # (N, 18) rows as controller.layout
     theta0: np.ndarray           # (M,)
     duration: float
     step: float
@@ -218,8 +219,13 @@ class Scenario:
     gravity: np.ndarray          # (3,)
     internal_step: float
     plant_mode: str              # "fleet" | "per-body"
-    bridge: Any = None
+    tables: dict = field(default_factory=dict)   # parsed tables owned by other packages
     overrides: tuple = field(default=())
+
+    @property
+    def bridge(self):
+        """The parsed [bridge] table (bridge.config.BridgeConfig) or None."""
+        return self.tables.get("bridge")
 
     @property
     def n_agents(self) -> int:
@@ -240,6 +246,31 @@ class Scenario:
         return max(0, int(math.ceil(d / h - 1e-9)))
 
 
+def _check_inertia(J, agent: int) -> None:
+    """What the plant refuses, said here first: J symmetric, positive definite, principal moments
+    in MASS_RANGE and obeying the triangle inequality (λ₁ + λ₂ ≥ λ₃: a rigid body's mass cannot
+    lie further from an axis than the other two allow). Checks are relative to J's own scale."""
+    key = "agents.inertia"
+    scale = float(np.abs(J).max())
+    if scale == 0:
+        raise ScenarioError(key, f"is zero (agent {agent})")
+    Js = J / scale
+    if np.abs(Js - Js.T).max() > 1e-12:
+        raise ScenarioError(key, f"must be symmetric (agent {agent})")
+    lam = np.linalg.eigvalsh(0.5 * (Js + Js.T)) * scale
+    if lam[0] <= 1e-14 * lam[2]:
+        raise ScenarioError(key, f"must be positive definite (agent {agent}), principal moments "
+                                 f"{[float(f'{x:.6g}') for x in lam]}")
+    if not (MASS_RANGE[0] <= lam[0] and lam[2] <= MASS_RANGE[1]):
+        raise ScenarioError(key, f"principal moments must lie in [{MASS_RANGE[0]:g}, "
+                                 f"{MASS_RANGE[1]:g}] kg m², got {[float(f'{x:.6g}') for x in lam]} "
+                                 f"(agent {agent})")
+    if lam[0] + lam[1] < lam[2] * (1 - 1e-9):
+        raise ScenarioError(key, f"principal moments {[float(f'{x:.6g}') for x in lam]} break the "
+                                 f"triangle inequality J1 + J2 >= J3 (agent {agent}): no rigid body "
+                                 "has this inertia")
+
+
 # ----------------------------------------------------------------------------- loading
 def load_scenario(path, overrides=(), *, duration=None, step=None) -> Scenario:
     """Reads, overrides (--set), validates and designs. Raises ScenarioError (one line)."""
@@ -248,6 +279,8 @@ def load_scenario(path, overrides=(), *, duration=None, step=None) -> Scenario:
         text = p.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ScenarioError(None, "no such file", str(path)) from None
+    except IsADirectoryError:
+        raise ScenarioError(None, "is a directory, not a scenario file", str(path)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ScenarioError(None, f"cannot read: {getattr(exc, 'strerror', None) or exc}",
                             str(path)) from None
@@ -261,62 +294,63 @@ def parse_scenario(text: str, name: str = "scenario", path: str = "<string>", ov
         data = _toml.loads(text)
     except _toml.TOMLDecodeError as exc:
         raise ScenarioError(None, f"invalid TOML: {exc}", path) from None
+    except RecursionError:
+        raise ScenarioError(None, "invalid TOML: nested too deeply", path) from None
     try:
         data = apply_overrides(data, overrides)
-        if duration is not None:
-            data.setdefault("simulation", {})["duration"] = duration
-        if step is not None:
-            data.setdefault("simulation", {})["step"] = step
+        for key, value in (("duration", duration), ("step", step)):
+            if value is not None:
+                _table("simulation", data.setdefault("simulation", {}))[key] = value
         return _validate(data, text, name, path, tuple(overrides or ()))
     except ScenarioError as exc:
         raise exc.with_file(path) from None
+    except (ArithmeticError, np.linalg.LinAlgError, RecursionError, MemoryError) as exc:
+        # a combination of in-range values the mathematics still cannot evaluate
+        raise ScenarioError(None, f"cannot be evaluated: {type(exc).__name__}: "
+                                  f"{' '.join(str(exc).split())[:200]}", path) from None
 
 
 def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> Scenario:
-    from controller import Gains, Graph, WeightingMatrix, design_synergy
-    from controller.errors import DesignError, GraphError, WeightingError
-
-    _check_keys("", data, SCHEMA)
+    plugin_tables = plugins.table_names()
+    _check_keys("", data, set(SCHEMA) | plugin_tables)
     for sec in REQUIRED:
         if sec not in data:
             raise ScenarioError(sec, "missing required table")
     for sec, allowed in SCHEMA.items():
         if sec in data:
             _table(sec, data[sec])
-            if allowed is not None:
-                _check_keys(sec, data[sec], allowed)
+            _check_keys(sec, data[sec], allowed)
 
     # [agents]
     ag = data["agents"]
     N = _num("agents.count", _require("agents", ag, "count"), integer=True)
-    if N < 1:
-        raise ScenarioError("agents.count", f"must be >= 1, got {N}")
+    if not 1 <= N <= MAX_AGENTS:
+        raise ScenarioError("agents.count", f"must be in 1..{MAX_AGENTS}, got {N}")
     mass = _require("agents", ag, "mass")
     if isinstance(mass, list):
-        masses = _array("agents.mass", mass, (N,))
+        masses = _array("agents.mass", mass, (N,), None)
     else:
         masses = np.full(N, _num("agents.mass", mass))
     for i, m in enumerate(masses):
         if not m > 0:
             raise ScenarioError("agents.mass", f"must be > 0, got {m:g} (agent {i + 1})")
+        if not MASS_RANGE[0] <= m <= MASS_RANGE[1]:
+            raise ScenarioError("agents.mass", f"must be in [{MASS_RANGE[0]:g}, {MASS_RANGE[1]:g}] "
+                                               f"kg, got {m:g} (agent {i + 1})")
     inert = _require("agents", ag, "inertia")
     if isinstance(inert, list) and len(inert) == 3 and all(_is_num(x) for x in inert):
-        inertias = np.tile(np.diag(_array("agents.inertia", inert, (3,))), (N, 1, 1))
+        inertias = np.tile(np.diag(_array("agents.inertia", inert, (3,), None)), (N, 1, 1))
     elif isinstance(inert, list) and len(inert) == 3 and all(
             isinstance(r, list) and len(r) == 3 and all(_is_num(x) for x in r) for r in inert):
-        inertias = np.tile(_array("agents.inertia", inert, (3, 3)), (N, 1, 1))
+        inertias = np.tile(_array("agents.inertia", inert, (3, 3), None), (N, 1, 1))
     elif isinstance(inert, list) and len(inert) == N and all(isinstance(r, list) for r in inert):
-        inertias = _array("agents.inertia", inert, (N, 3, 3))
+        inertias = _array("agents.inertia", inert, (N, 3, 3), None)
     else:
         raise ScenarioError("agents.inertia",
                             f"must be a 3-vector (diagonal), a 3×3 matrix or a list of {N} 3×3 "
                             f"matrices, got {_fmtv(inert)}")
     for i, J in enumerate(inertias):
-        if np.abs(J - J.T).max() > 1e-12 * max(1.0, np.abs(J).max()):
-            raise ScenarioError("agents.inertia", f"must be symmetric (agent {i + 1})")
-        if np.linalg.eigvalsh(J)[0] <= 0:
-            raise ScenarioError("agents.inertia", f"must be positive definite (agent {i + 1}), "
-                                f"eigenvalues {np.round(np.linalg.eigvalsh(J), 6).tolist()}")
+        _check_inertia(J, i + 1)
 
     # [graph]
     gr = data["graph"]
@@ -333,9 +367,15 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
 
     # [weighting]
     wt = data["weighting"]
-    A = _array("weighting.A", _require("weighting", wt, "A"), (3, 3))
-    b = _array("weighting.b", _require("weighting", wt, "b"), (3,))
+    A = _array("weighting.A", _require("weighting", wt, "A"), (3, 3), None)
+    b = _array("weighting.b", _require("weighting", wt, "b"), (3,), None)
     d = _num("weighting.d", _require("weighting", wt, "d"))
+    for key, x in (("weighting.A", A), ("weighting.b", b)):
+        if x.size and np.abs(x).max() > WEIGHTING_RANGE[1]:
+            raise ScenarioError(key, f"must hold numbers of magnitude <= {WEIGHTING_RANGE[1]:g}")
+    if d > 0 and not WEIGHTING_RANGE[0] <= d <= WEIGHTING_RANGE[1]:
+        raise ScenarioError("weighting.d", f"must be in [{WEIGHTING_RANGE[0]:g}, "
+                                           f"{WEIGHTING_RANGE[1]:g}], got {d:g}")
     try:
         weighting = WeightingMatrix.from_blocks(A, b, d)
     except WeightingError as exc:
@@ -371,23 +411,18 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
             design = design_synergy(weighting, Theta=Theta, gamma=gamma, delta=delta, u_c1=u_c1,
                                     alpha_signs=signs)
     except DesignError as exc:
-        msg = str(exc)
-        key = "synergy"
-        for prefix, k in (("gamma", "synergy.gamma"), ("delta", "synergy.delta"),
-                          ("Theta", theta_key), ("u_c1", "synergy.u_c1"),
-                          ("alpha_signs", "synergy.alpha_signs"), ("the exact gap", theta_key),
-                          ("Δ*_W", "synergy.u_c1" if u_c1 is not None else "weighting")):
-            if msg.startswith(prefix):
-                key = k
-                break
-        raise ScenarioError(key, msg) from None
+        key = {"gamma": "synergy.gamma", "delta": "synergy.delta", "Theta": theta_key,
+               "u_c1": "synergy.u_c1", "alpha_signs": "synergy.alpha_signs",
+               "W": "weighting"}.get(exc.param, "synergy")
+        raise ScenarioError(key, str(exc)) from None
 
     # [gains]
     gn = data["gains"]
     vals = {}
     for k in ("k_X", "k_xi", "k_e"):
-        vals[k] = _num(f"gains.{k}", _require("gains", gn, k), positive=True)
-    vals["k_theta"] = _num("gains.k_theta", gn.get("k_theta", 1.0), positive=True)
+        vals[k] = _num(f"gains.{k}", _require("gains", gn, k), positive=True, maximum=MAX_GAIN)
+    vals["k_theta"] = _num("gains.k_theta", gn.get("k_theta", 1.0), positive=True,
+                           maximum=MAX_GAIN)
     try:
         gains = Gains(**vals)
     except Se3SyncError as exc:  # pragma: no cover - checked above already
@@ -400,13 +435,26 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
     if step > duration:
         raise ScenarioError("simulation.step", f"must be <= simulation.duration = {duration:g}, got {step:g}")
     log_rate = _num("simulation.log_rate", sim.get("log_rate", DEFAULT_LOG_RATE), positive=True)
+    n_steps = math.ceil(duration / step - 1e-9)
+    if n_steps > MAX_STEPS:
+        raise ScenarioError("simulation.step", f"h = {step:g} s gives {n_steps:.3g} steps for "
+                                               f"{duration:g} s (at most {MAX_STEPS:.0e})")
 
     # [plant]
     pl = data.get("plant", {})
     gravity = _array("plant.gravity", pl.get("gravity", [0.0, 0.0, 0.0]), (3,))
     internal = min(step, MAX_DEFAULT_INTERNAL_STEP)
+    key = "simulation.step"
     if "internal_step" in pl:
+        key = "plant.internal_step"
         internal = _num("plant.internal_step", pl["internal_step"], positive=True)
+        if internal < MIN_INTERNAL_STEP:
+            raise ScenarioError(key, f"must be >= {MIN_INTERNAL_STEP:g} s, got {internal:g}")
+    sub = math.ceil(step / internal - 1e-9)
+    if N * sub > MAX_BODY_SUBSTEPS:
+        raise ScenarioError(key, f"h = {step:g} s with internal step {internal:g} s gives {N} × "
+                                 f"{sub:.3g} body-substeps per step, above the plant's "
+                                 f"{MAX_BODY_SUBSTEPS:.0e}")
     mode = pl.get("mode", "fleet")
     if mode not in ("fleet", "per-body"):
         raise ScenarioError("plant.mode", f"must be \"fleet\" or \"per-body\", got {_fmtv(mode)}")
@@ -414,40 +462,30 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
     # [initial]
     S0, theta0 = _initial(data["initial"], N, graph, weighting)
 
-    # [bridge]
-    bridge = data.get("bridge")
-    if bridge is not None:
+    # tables owned by other packages ([bridge], ...)
+    tables = {}
+    for sec in sorted(plugin_tables & set(data)):
         try:
-            from bridge.config import parse_bridge  # noqa: F401
-        except ImportError:
-            parse_bridge = None
-        if parse_bridge is not None:
-            try:
-                bridge = parse_bridge(bridge, N)
-            except ScenarioError as exc:
-                kp = exc.keypath or "bridge"
-                if not kp.startswith("bridge"):
-                    kp = f"bridge.{kp}"
-                raise ScenarioError(kp, exc.reason) from None
+            tables[sec] = plugins.table_parser(sec)(_table(sec, data[sec]), N)
+        except ConfigError as exc:
+            raise exc.under(sec) from None
 
     return Scenario(name=name, path=path, text=text, values=data, graph=graph,
                     weighting=weighting, design=design, gains=gains, masses=masses,
                     inertias=inertias, S0=S0, theta0=theta0, duration=duration, step=step,
                     log_rate=log_rate, gravity=gravity, internal_step=internal,
-                    plant_mode=mode, bridge=bridge, overrides=overrides)
+                    plant_mode=mode, tables=tables, overrides=overrides)
 
 
 def _initial(ini: dict, N: int, graph, weighting):
-    from controller import se3
-
-    S0 = np.zeros((N, 18))
+    S0 = np.zeros((N, layout.S_WIDTH))
     gen = ini.get("generator")
     M = graph.M
     if "theta0" in ini:
         v = ini["theta0"]
         if _is_num(v):
             v = [v] * M
-        theta0 = _array("initial.theta0", v, (M,))
+        theta0 = _array("initial.theta0", v, (M,), maximum=1e3)
     else:
         theta0 = np.zeros(M)
     used = {"generator", "theta0"}
@@ -486,9 +524,9 @@ def _initial(ini: dict, N: int, graph, weighting):
                 R = se3.quat_to_rot(q)
             p = _array(f"{kp}.position", a.get("position", [0.0, 0.0, 0.0]), (3,))
             xi = _array(f"{kp}.velocity", a.get("velocity", [0.0] * 6), (6,))
-            S0[i, 0:3] = p
-            S0[i, 3:12] = R.ravel()
-            S0[i, 12:18] = xi
+            S0[i, layout.P] = p
+            S0[i, layout.R] = R.ravel()
+            S0[i, layout.XI] = xi
         return S0, theta0
     if gen == "paper":
         only({"axis", "eigenvector"}, "generator = \"paper\"")
@@ -504,28 +542,15 @@ def _initial(ini: dict, N: int, graph, weighting):
             if e not in (1, 2, 3):
                 raise ScenarioError("initial.eigenvector", f"must be 1, 2 or 3, got {e}")
             v = weighting.eig()[1][:, e - 1]
-        c = weighting.b / weighting.d
-        for i in range(N):
-            ang = -math.pi / 2 if (i + 1) % 2 == 1 else math.pi / 2
-            R = se3.R_a(ang, v)
-            S0[i, 0:3] = c - R @ c
-            S0[i, 3:12] = R.ravel()
-        return S0, theta0
+        return paper_state(N, v, weighting), theta0
     if gen == "random":
         only({"seed", "position_box", "velocity_ball"}, "generator = \"random\"")
         seed = _num("initial.seed", ini.get("seed", 0), integer=True)
         if seed < 0:
             raise ScenarioError("initial.seed", f"must be >= 0, got {seed}")
-        box = _num("initial.position_box", ini.get("position_box", 1.0), nonneg=True)
-        ball = _num("initial.velocity_ball", ini.get("velocity_ball", 0.0), nonneg=True)
-        rng = np.random.default_rng(seed)
-        R = se3.random_rotation(rng, N)
-        p = rng.uniform(-box, box, size=(N, 3))
-        dirs = rng.standard_normal((N, 6))
-        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-        rad = ball * rng.uniform(0, 1, size=(N, 1)) ** (1 / 6)
-        S0[:, 0:3] = p
-        S0[:, 3:12] = R.reshape(N, 9)
-        S0[:, 12:18] = dirs * rad
-        return S0, theta0
+        box = _num("initial.position_box", ini.get("position_box", 1.0), nonneg=True,
+                   maximum=MAX_MAGNITUDE)
+        ball = _num("initial.velocity_ball", ini.get("velocity_ball", 0.0), nonneg=True,
+                    maximum=MAX_MAGNITUDE)
+        return random_state(np.random.default_rng(seed), N, box, ball), theta0
     raise ScenarioError("initial.generator", f"must be \"paper\" or \"random\", got {_fmtv(gen)}")

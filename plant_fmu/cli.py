@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 
 def _cmd_build(args: argparse.Namespace) -> int:
@@ -13,6 +14,11 @@ def _cmd_build(args: argparse.Namespace) -> int:
     if not 1 <= n <= layout.MAX_BODIES:
         raise Se3SyncError(f"--bodies must be in 1..{layout.MAX_BODIES}, got {n}")
     v = args.fmi
+    o = Path(args.output)
+    if o.is_dir():
+        raise Se3SyncError(f"--output: {args.output!r} is a directory")
+    if not (o.parent if str(o.parent) else Path(".")).is_dir():
+        raise Se3SyncError(f"--output: {args.output!r}: directory {str(o.parent)!r} does not exist")
     out = build.build_fmu(n, args.output, fmi_version=v)
     token = "GUID" if v == 2 else "instantiationToken"
     print(f"wrote {out} ({n} bod{'y' if n == 1 else 'ies'}, FMI {v}.0 Co-Simulation, "

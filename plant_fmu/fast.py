@@ -14,10 +14,14 @@ from ctypes import c_double, c_int, c_size_t, c_void_p
 from pathlib import Path
 
 import numpy as np
+from fmpy import extract, read_model_description
+from fmpy.fmi2 import FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
 
+from controller import layout as state_layout
 from controller.errors import Se3SyncError
+from controller.se3 import rot_to_quat
 
-from . import layout
+from . import build, layout
 
 fmi2OK, fmi2Warning, fmi2Discard, fmi2Error, fmi2Fatal = 0, 1, 2, 3, 4
 _STATUS = {0: "OK", 1: "Warning", 2: "Discard", 3: "Error", 4: "Fatal", 5: "Pending"}
@@ -42,8 +46,28 @@ class FMUError(Se3SyncError):
         self.function = function
         self.status = status
         self.messages = list(messages)
-        detail = "; ".join(messages) if messages else "no message logged"
-        super().__init__(f"{function} returned fmi2{_STATUS.get(status, status)}: {detail}")
+        super().__init__(f"{function} returned fmi2{_STATUS.get(status, status)}: {_one_line(self.messages)}")
+
+
+_DETAIL_MAX = 400  # characters of FMU messages in an FMUError (all of them stay in .messages)
+
+
+def _one_line(messages: list[str]) -> str:
+    """The logged messages joined into one line of at most about _DETAIL_MAX characters, whole
+    messages first to last, then "(+k more)"; a single overlong message is cut with "..."."""
+    parts = [" ".join(m.split()) for m in messages]
+    parts = [m for m in parts if m]
+    if not parts:
+        return "no message logged"
+    detail, used = "", 0
+    for m in parts:
+        if detail and len(detail) + 2 + len(m) > _DETAIL_MAX:
+            break
+        detail = f"{detail}; {m}" if detail else (m if len(m) <= _DETAIL_MAX else m[:_DETAIL_MAX - 3] + "...")
+        used += 1
+    if used < len(parts):
+        detail += f" (+{len(parts) - used} more)"
+    return detail
 
 
 def _as_array(x, shape, name) -> np.ndarray:
@@ -52,31 +76,6 @@ def _as_array(x, shape, name) -> np.ndarray:
         return np.broadcast_to(a, shape).astype(np.float64, copy=True)
     except ValueError:
         raise Se3SyncError(f"{name} must have shape {shape}, got {a.shape}") from None
-
-
-def quat_from_R(R: np.ndarray) -> np.ndarray:
-    """(n,3,3) rotation matrices -> (n,4) unit quaternions (w first, w >= 0), Shepperd's method."""
-    R = np.asarray(R, dtype=np.float64).reshape(-1, 3, 3)
-    q = np.empty((R.shape[0], 4))
-    for i, M in enumerate(R):
-        tr = M[0, 0] + M[1, 1] + M[2, 2]
-        k = int(np.argmax([tr, M[0, 0], M[1, 1], M[2, 2]]))
-        if k == 0:
-            w = 0.5 * np.sqrt(1 + tr); s = 0.25 / w
-            v = (w, (M[2, 1] - M[1, 2]) * s, (M[0, 2] - M[2, 0]) * s, (M[1, 0] - M[0, 1]) * s)
-        elif k == 1:
-            x = 0.5 * np.sqrt(1 + M[0, 0] - M[1, 1] - M[2, 2]); s = 0.25 / x
-            v = ((M[2, 1] - M[1, 2]) * s, x, (M[0, 1] + M[1, 0]) * s, (M[0, 2] + M[2, 0]) * s)
-        elif k == 2:
-            y = 0.5 * np.sqrt(1 - M[0, 0] + M[1, 1] - M[2, 2]); s = 0.25 / y
-            v = ((M[0, 2] - M[2, 0]) * s, (M[0, 1] + M[1, 0]) * s, y, (M[1, 2] + M[2, 1]) * s)
-        else:
-            z = 0.5 * np.sqrt(1 - M[0, 0] - M[1, 1] + M[2, 2]); s = 0.25 / z
-            v = ((M[1, 0] - M[0, 1]) * s, (M[0, 2] + M[2, 0]) * s, (M[1, 2] + M[2, 1]) * s, z)
-        q[i] = v
-        if q[i, 0] < 0:
-            q[i] = -q[i]
-    return q
 
 
 class FleetFMU:
@@ -94,14 +93,9 @@ class FleetFMU:
     """
 
     def __init__(self, n_bodies: int, fmu_path=None, instance_name: str = "plant", logger=None):
-        from fmpy import extract, read_model_description
-        from fmpy.fmi2 import FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
-
         self.n = n = int(n_bodies)
         if fmu_path is None:
-            from .build import fmu_path as _fmu_path
-
-            fmu_path = _fmu_path(n)
+            fmu_path = build.fmu_path(n)
         self.fmu_path = Path(fmu_path)
         self.messages: list[tuple[str, int, str]] = []
         self._user_logger = logger
@@ -244,7 +238,7 @@ class FleetFMU:
                 i = int(bad[0])
                 raise Se3SyncError(f"R0 of body {i + 1} is not a rotation matrix (|R^T R - I| = {err[i]:.3g}, "
                                    f"det = {det[i]:.6g})")
-            q0 = quat_from_R(R)
+            q0 = rot_to_quat(R)
         if q0 is not None:
             vrs.append(layout.vr_q0(n)); vals.append(_as_array(q0, (n, 4), "q0").reshape(-1))
         if xi0 is not None:
@@ -255,6 +249,13 @@ class FleetFMU:
             vrs.append(np.array([layout.VR_H_INTERNAL], dtype=np.uint32)); vals.append(np.array([float(h_internal)]))
         if vrs:
             self.set_real(np.concatenate(vrs), np.concatenate(vals))
+
+    def set_initial_state(self, S0, **parameters) -> None:
+        """Sets the initial state from rows S0 (n, 18) laid out as `controller.layout` (p, R,
+        ξ), plus any other parameters of `set_parameters` (mass, J, gravity, h_internal)."""
+        S0 = _as_array(S0, (self.n, state_layout.S_WIDTH), "S0")
+        self.set_parameters(p0=state_layout.positions(S0), R0=state_layout.rotations(S0),
+                            xi0=state_layout.velocities(S0), **parameters)
 
     def initialize(self, t0: float = 0.0) -> None:
         """setupExperiment(t0) + enter/exit initialization mode (parameters are validated here)."""

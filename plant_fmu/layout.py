@@ -24,12 +24,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from controller.layout import S_P, S_R, S_WIDTH, S_XI
+
 BODY_BASE = 1000
 BODY_STRIDE = 100
 MAX_BODIES = 100_000
 
-OFF_P, OFF_R, OFF_XI, OFF_Q = 0, 3, 12, 18
-N_STATE = 18  # p, R, xi: the block the controller consumes
+# p, R, xi: the block the controller consumes, laid out as controller.layout defines it
+OFF_P, OFF_R, OFF_XI, N_STATE = S_P, S_R, S_XI, S_WIDTH
+OFF_Q = 18
 OFF_U = 30
 OFF_M, OFF_J, OFF_P0, OFF_Q0, OFF_XI0 = 40, 41, 50, 53, 57
 

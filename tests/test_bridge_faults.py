@@ -15,7 +15,7 @@ def _run(tmp_path, duration, loss=0.0, jitter=0.0, cut=None):
     """6 vehicles (a process) <-> relay (a thread) <-> bridge (this thread, cosim's Master)."""
     import threading
 
-    from bridge.cli import run_hil
+    from bridge.hil import run_hil
     from bridge.plant import MavlinkPlant
 
     port = free_base_port(6)

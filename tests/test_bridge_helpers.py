@@ -62,6 +62,14 @@ class VehicleProcess:
         self.proc = subprocess.Popen(self.cmd, stdout=subprocess.DEVNULL, stderr=self._err, cwd=str(ROOT))
         return self
 
+    def wait_ready(self, timeout=60.0) -> None:
+        """Until the vehicles are up (their start-up line is on stderr)."""
+        t = time.monotonic()
+        while "vehicle(s)" not in self.stderr:
+            if self.proc.poll() is not None or time.monotonic() - t > timeout:
+                raise RuntimeError(f"vehicle did not start: {self.stderr}")
+            time.sleep(0.05)
+
     def stop(self, timeout=10.0) -> dict:
         if self.proc.poll() is None:
             self.proc.terminate()  # SIGTERM: a clean stop

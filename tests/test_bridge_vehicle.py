@@ -129,7 +129,9 @@ def test_shared_port_routing_lockstep():
 def test_sigterm_stops_cleanly(tmp_path):
     port = free_base_port(6)
     with VehicleProcess(["--scenario", HIL, "--set", f"bridge.base_port={port}"], tmp_path) as veh:
-        time.sleep(2.0)
+        veh.wait_ready()
+        time.sleep(1.0)
         st = veh.stop()
-        assert veh.proc.returncode == 0, veh.stderr
+        # SIGTERM stops it cleanly (stats written) with the documented status 143 (issue 13)
+        assert veh.proc.returncode == 143, veh.stderr
     assert st["sent"] > 0 and "stopped" in veh.stderr

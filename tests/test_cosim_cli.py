@@ -91,7 +91,7 @@ def test_missing_file(tmp_path, capsys):
 
 def test_check_stability_of_the_paper_gains(capsys):
     from cosim.scenario import load_scenario
-    from cosim.stability import analyse, spectral_radius
+    from cosim.analysis.stability import analyse, spectral_radius
 
     sc = load_scenario(PAPER)
     assert spectral_radius(sc, 2e-4) > 1.0
@@ -106,7 +106,7 @@ def test_check_stability_of_the_paper_gains(capsys):
               "delta_bound", "exact_gap", "warnings"):
         assert k in out["design"]
     assert out["stable"] and out["spectral_radius"] < 1 and out["step"] == 1e-4
-    assert main(["check", str(PAPER), "--json", "--step", "2e-4"]) == 0
+    assert main(["check", str(PAPER), "--json", "--step", "2e-4"]) == 3  # unstable: exit 3
     out = json.loads(capsys.readouterr().out)
     assert not out["stable"] and out["spectral_radius"] > 1
     assert main(["check", str(PAPER)]) == 0

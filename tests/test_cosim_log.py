@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cosim.api import run_scenario
+from cosim.run import run_scenario
 from cosim.master import Master
-from cosim.mcaplog import McapLogger, read_log
-from cosim.plant import FmuPlant
+from cosim.log.mcap import McapLogger, read_log
+from cosim.plants import FmuPlant
 from cosim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

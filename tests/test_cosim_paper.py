@@ -3,7 +3,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cosim.api import run_scenario
+from cosim.run import run_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "scenarios" / "paper_6uav.toml"

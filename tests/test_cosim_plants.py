@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 
 from cosim.master import Master
-from cosim.plant import FmuPlant, PerBodyFmuPlant
+from cosim.plants import FmuPlant, PerBodyFmuPlant
 from cosim.scenario import load_scenario, parse_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -13,7 +13,7 @@ import pytest
 
 from controller import potential, se3
 from cosim.master import Master
-from cosim.plant import FmuPlant
+from cosim.plants import FmuPlant
 from cosim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

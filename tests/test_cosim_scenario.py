@@ -108,9 +108,9 @@ def test_bridge_table_is_passed_on():
 
 
 def test_link_stats_are_logged_and_summarised(tmp_path):
-    from cosim.api import run_scenario
-    from cosim.mcaplog import read_log
-    from cosim.plant import FmuPlant
+    from cosim.run import run_scenario
+    from cosim.log.mcap import read_log
+    from cosim.plants import FmuPlant
 
     sc = load_scenario(PAPER, ["simulation.duration=2.0"])
 

@@ -14,13 +14,13 @@ import math
 import numpy as np
 import pytest
 
-from controller import _kernels as K
-from controller import se3
-from cosim import stability as dense
-from cosim.delay_margin import (augmented, delay_margin, delayed_loop, delayed_parts,
+from controller import LawParameters, se3
+from controller.kernels import network_step
+from cosim.analysis import stability as dense
+from cosim.analysis.delay_margin import (augmented, delay_margin, delayed_loop, delayed_parts,
                                 steps_of_delay)
 from cosim.scenario import load_scenario
-from cosim.stability_sparse import Linearisation, sparse_loop
+from cosim.analysis.stability_sparse import Linearisation, sparse_loop
 
 HIL = "scenarios/hil_6uav.toml"
 
@@ -149,10 +149,7 @@ def _nonlinear_growth(sc, d, steps, seed=1):
     N, M = sc.graph.n, sc.graph.M
     E = np.asarray(sc.graph.edges)
     h = sc.step
-    g = sc.gains
-    P = K.pack(sc.weighting.A, sc.weighting.b, sc.weighting.d, sc.design.u_c1, sc.design.u_c2,
-               sc.design.gamma, sc.design.delta, sc.design.Theta, g.k_X, g.k_xi, g.k_e,
-               g.k_theta)
+    P = LawParameters.of(sc.weighting, sc.design, sc.gains).P
     rng = np.random.default_rng(seed)
     X = se3.exp_se3(1e-4 * rng.standard_normal((N, 6)))
     S = np.zeros((N, 18))
@@ -190,7 +187,7 @@ def _nonlinear_growth(sc, d, steps, seed=1):
             m_ = len(inc[i])
             u_loc = np.zeros((len(rows), 6))
             jumped = np.zeros(m_, dtype=np.bool_)
-            K.network_step(S_loc, th_loc, e_loc, P, h, True, u_loc, np.zeros(m_), jumped,
+            network_step(S_loc, th_loc, e_loc, P, h, True, u_loc, np.zeros(m_), jumped,
                            np.zeros(m_), np.zeros(m_))
             assert not jumped.any()
             u[i] = u_loc[0]

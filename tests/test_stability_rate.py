@@ -3,10 +3,10 @@ import math
 
 import numpy as np
 
-from cosim.api import run_scenario
-from cosim.convergence_rate import convergence, initial_error
+from cosim.run import run_scenario
+from cosim.analysis.convergence_rate import convergence, initial_error
 from cosim.scenario import parse_scenario
-from cosim.stability_cases import HIL
+from cosim.analysis.stability_cases import HIL
 
 
 def _near_consensus(seed=0, size=1e-3, duration=40.0):

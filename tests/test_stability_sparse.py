@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from cosim import stability as dense
-from cosim import stability_sparse as F
+from cosim.analysis import stability as dense
+from cosim.analysis import stability_sparse as F
 from cosim.scenario import load_scenario, parse_scenario
-from cosim.stability_cases import tree_edges, tree_scenario_text
+from cosim.analysis.stability_cases import tree_edges, tree_scenario_text
 
 
 def _tree(N, kind="random", seed=0, masses=None):
@@ -76,7 +76,7 @@ def test_laplacian_eigenvalues_by_inertia_counts(kind):
 
 def test_edge_jacobian_has_the_incidence_structure_on_the_paper_design():
     sc = load_scenario("scenarios/paper_6uav.toml")
-    J = F.edge_jacobian(F.params_of(sc), True)
+    J = F.edge_jacobian(F.params_of(sc), sc.gains.k_xi, True)
     assert F.modal_blocks(J) is not None
     # and K_δ is symmetric positive semidefinite-ish: −k_X times the Hessian of U at consensus
     Kd = F.modal_blocks(J)[0]

@@ -19,14 +19,15 @@ SMALL = str(ROOT / "scenarios" / "sweep_small.toml")
 
 
 def test_commands_registered_without_heavy_imports():
-    code = ("import argparse, sys; import cosim.sweep as s; p = argparse.ArgumentParser(); "
+    code = ("import argparse, sys; import cosim.cli.sweep as s; p = argparse.ArgumentParser(); "
             "s.register(p.add_subparsers()); "
             "print([m for m in ('dask', 'distributed', 'pyarrow', 'matplotlib') if m in sys.modules])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
-    from cosim.cli import _COMMAND_MODULES, build_parser
+    from cosim.cli import build_parser
+    from cosim.plugins import command_modules
 
-    assert "cosim.sweep" in _COMMAND_MODULES
+    assert "cosim.cli.sweep" in command_modules()
     help_text = build_parser().format_help()
     assert "sweep-report" in help_text and " sweep " in help_text.replace("\n", " ")
 

@@ -12,8 +12,8 @@ import pytest
 pytest.importorskip("distributed")
 pytest.importorskip("pyarrow")
 
-from cosim.sweep import SweepError, make_spec, read_results, run_sweep  # noqa: E402
-from cosim.sweep_worker import COLUMNS, NONDETERMINISTIC, with_faults  # noqa: E402
+from cosim.sweep.runner import SweepError, make_spec, read_results, run_sweep  # noqa: E402
+from cosim.sweep.spec import COLUMNS, NONDETERMINISTIC, with_faults  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "scenarios" / "sweep_small.toml"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from controller import GradientController, se3
-from cosim import sweep_worker as sw
+from cosim.sweep import spec as sw
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "scenarios" / "sweep_small.toml"
@@ -111,11 +111,36 @@ def test_adversarial_gradient_stuck_hybrid_converges(spec, sc):
         assert h["rot_err0"] == pytest.approx(2 * math.sqrt(2), rel=1e-9)
 
 
-def test_loop_matches_the_cosim_master(spec, sc):
-    """Same step semantics as cosim.master.Master (and the reused, reset FMU gives the same
-    trajectory as a fresh instance)."""
+def test_row_comes_from_one_master_run(spec, monkeypatch):
+    """The sweep has no step loop of its own: a row is read off one `Master.run`."""
     from cosim.master import Master
-    from cosim.plant import FmuPlant
+
+    runs = []
+    real = Master.run
+
+    def spy(self, n_steps, **kw):
+        out = real(self, n_steps, **kw)
+        runs.append(out)
+        return out
+
+    monkeypatch.setattr(Master, "run", spy)
+    for i, ctrl in ((13, "hybrid"), (2, "gradient")):
+        runs.clear()
+        row = sw.run_sample(spec, i, ctrl)
+        assert len(runs) == 1
+        summ = runs[0]
+        assert row["status"] == "ok" and row["steps"] == summ["steps"]
+        assert row["rot_err"] == summ["final"]["rot_err"]
+        assert row["pos_err"] == summ["final"]["pos_err"]
+        assert row["n_jumps"] == summ["n_jumps"] == len(summ["jumps"])
+        assert row["V0"] == summ["V0"] and row["jump_bound"] == summ["jump_bound"]
+
+
+def test_reused_master_matches_a_fresh_one(spec, sc):
+    """A sample run on the per-process Master (plant reset, FMU reused) equals a fresh Master
+    with a fresh FMU on the same initial state."""
+    from cosim.master import Master
+    from cosim.plants import FmuPlant
 
     sw.run_sample(spec, 3, "hybrid")  # leaves a used FMU in the per-process cache
     for i, ctrl in ((13, "hybrid"), (2, "hybrid"), (14, "gradient")):

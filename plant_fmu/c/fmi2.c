@@ -38,7 +38,7 @@ static void emit2(FmuInstance *fc, FmuStatus status, const char *category, char 
     if (!c->logger) return;
     for (char *p = message; *p; p++)
         if (*p == '%') *p = '#'; /* the logger treats the message as a format string */
-    c->logger(c->env, fc->name, status2(status), category, message);
+    c->logger(c->env, fc->name ? fc->name : "", status2(status), category, message);
 }
 
 static const FmuLayer LAYER2 = {
@@ -105,7 +105,7 @@ fmi2Component fmi2Instantiate(fmi2String instanceName, fmi2Type fmuType, fmi2Str
     return c;
 }
 
-void fmi2FreeInstance(fmi2Component comp) { fmu_free((FmuInstance *)comp); }
+void fmi2FreeInstance(fmi2Component comp) { fmu_free((FmuInstance *)comp, "fmi2FreeInstance"); }
 
 fmi2Status fmi2SetupExperiment(fmi2Component comp, fmi2Boolean toleranceDefined, fmi2Real tolerance,
                                fmi2Real startTime, fmi2Boolean stopTimeDefined, fmi2Real stopTime)
@@ -263,7 +263,7 @@ fmi2Status fmi2DoStep(fmi2Component comp, fmi2Real currentCommunicationPoint, fm
 fmi2Status fmi2CancelStep(fmi2Component comp)
 {
     FmuInstance *c = (FmuInstance *)comp;
-    if (!c) return fmi2Error;
+    if (!fmu_live(c, "fmi2CancelStep")) return fmi2Error;
     FMU_LOG_ERROR(c, "fmi2CancelStep: no asynchronous step in progress (fmi2DoStep never returns fmi2Pending)");
     return fmi2Error;
 }
@@ -278,7 +278,7 @@ fmi2Status fmi2GetStatus(fmi2Component comp, const fmi2StatusKind s, fmi2Status 
 {
     FmuInstance *c = (FmuInstance *)comp;
     (void)value;
-    if (!c) return fmi2Error;
+    if (!fmu_live(c, "fmi2GetStatus")) return fmi2Error;
     fmu_log(c, FMU_DISCARD, "logStatusDiscard",
             "fmi2GetStatus: status kind %d is only defined after fmi2DoStep returned fmi2Pending", (int)s);
     return fmi2Discard;
@@ -287,7 +287,7 @@ fmi2Status fmi2GetStatus(fmi2Component comp, const fmi2StatusKind s, fmi2Status 
 fmi2Status fmi2GetRealStatus(fmi2Component comp, const fmi2StatusKind s, fmi2Real *value)
 {
     FmuInstance *c = (FmuInstance *)comp;
-    if (!c) return fmi2Error;
+    if (!fmu_live(c, "fmi2GetRealStatus")) return fmi2Error;
     if (s == fmi2LastSuccessfulTime && value) {
         *value = c->s.data.time;
         return fmi2OK;
@@ -298,13 +298,13 @@ fmi2Status fmi2GetRealStatus(fmi2Component comp, const fmi2StatusKind s, fmi2Rea
 fmi2Status fmi2GetIntegerStatus(fmi2Component comp, const fmi2StatusKind s, fmi2Integer *value)
 {
     (void)value;
-    if (!comp) return fmi2Error;
+    if (!fmu_live((FmuInstance *)comp, "fmi2GetIntegerStatus")) return fmi2Error;
     return status_discard((FmuInstance *)comp, "fmi2GetIntegerStatus", s);
 }
 
 fmi2Status fmi2GetBooleanStatus(fmi2Component comp, const fmi2StatusKind s, fmi2Boolean *value)
 {
-    if (!comp) return fmi2Error;
+    if (!fmu_live((FmuInstance *)comp, "fmi2GetBooleanStatus")) return fmi2Error;
     if (s == fmi2Terminated && value) {
         *value = fmi2False; /* the slave never asks to terminate */
         return fmi2OK;
@@ -315,7 +315,7 @@ fmi2Status fmi2GetBooleanStatus(fmi2Component comp, const fmi2StatusKind s, fmi2
 fmi2Status fmi2GetStringStatus(fmi2Component comp, const fmi2StatusKind s, fmi2String *value)
 {
     (void)value;
-    if (!comp) return fmi2Error;
+    if (!fmu_live((FmuInstance *)comp, "fmi2GetStringStatus")) return fmi2Error;
     return status_discard((FmuInstance *)comp, "fmi2GetStringStatus", s);
 }
 

@@ -158,7 +158,7 @@ fmi3Instance fmi3InstantiateScheduledExecution(fmi3String instanceName, fmi3Stri
     return NULL;
 }
 
-void fmi3FreeInstance(fmi3Instance instance) { fmu_free((FmuInstance *)instance); }
+void fmi3FreeInstance(fmi3Instance instance) { fmu_free((FmuInstance *)instance, "fmi3FreeInstance"); }
 
 fmi3Status fmi3EnterInitializationMode(fmi3Instance instance, fmi3Boolean toleranceDefined, fmi3Float64 tolerance,
                                        fmi3Float64 startTime, fmi3Boolean stopTimeDefined, fmi3Float64 stopTime)

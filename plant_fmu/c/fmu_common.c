@@ -21,14 +21,20 @@ static const struct {
 };
 #define N_CATEGORIES (sizeof CATEGORIES / sizeof CATEGORIES[0])
 
-/* header of a serialized state; the version tells the FMI 2.0 and 3.0 layers' states apart */
-#define SERIAL_MAGIC "SE3SYNC\x01"
+/* Header of a serialized state (all fields native-endian, like the payload).  The version tells
+ * the FMI 2.0 and 3.0 layers' states apart; format is the layout of header + payload; checksum
+ * is FNV-1a (64 bit) of the whole serialized state with the checksum field set to 0. */
+#define SERIAL_MAGIC "SE3SYNC\x02"
+#define SERIAL_FORMAT 2u
 
 typedef struct {
     char magic[8];
     uint32_t version;
+    uint32_t format;
     uint32_t n_bodies;
-    uint64_t payload;
+    uint32_t header_size;
+    uint64_t size;     /* of header + payload */
+    uint64_t checksum;
 } SerialHeader;
 
 #define SERIAL_SIZE (sizeof(SerialHeader) + sizeof(FmuSnapshot))
@@ -45,7 +51,7 @@ static unsigned int fmu_category_flag(const char *category)
 static void fmu_vlog(FmuInstance *c, FmuStatus status, const char *category, const char *fmt, va_list ap)
 {
     char buf[1024];
-    if (!c) return;
+    if (!c || (c->magic != FMU_MAGIC_LIVE && c->magic != FMU_MAGIC_FREED)) return;
     /* warnings and errors are always reported; other messages only when enabled */
     if (status < FMU_WARNING && !(c->logging_on && (c->categories & fmu_category_flag(category)))) return;
     vsnprintf(buf, sizeof buf, fmt, ap);
@@ -98,6 +104,7 @@ static FmuInstance *fmu_alloc(size_t size, const char *name, const FmuLayer *lay
         return NULL;
     }
     strcpy(c->name, name);
+    c->magic = FMU_MAGIC_LIVE;
     c->layer = layer;
     c->logging_on = loggingOn;
     c->categories = CAT_ALL;
@@ -106,10 +113,22 @@ static FmuInstance *fmu_alloc(size_t size, const char *name, const FmuLayer *lay
     return c;
 }
 
-static void fmu_free(FmuInstance *c)
+static int fmu_live(FmuInstance *c, const char *fn)
 {
-    if (!c) return;
+    if (!c) return 0;
+    if (c->magic == FMU_MAGIC_LIVE) return 1;
+    if (c->magic == FMU_MAGIC_FREED) /* the layer's logger and env are still in the (freed) block */
+        fmu_log(c, FMU_ERROR, "logStatusError", "%s: called with an instance that was already freed (ignored)", fn);
+    return 0;
+}
+
+static void fmu_free(FmuInstance *c, const char *fn)
+{
+    if (!fmu_live(c, fn)) return;
+    /* volatile: the compiler would otherwise drop these stores as dead (the block is freed next) */
+    *(volatile uint64_t *)&c->magic = FMU_MAGIC_FREED;
     free(c->name);
+    *(char *volatile *)&c->name = NULL; /* emit2/emit3 print "" for a NULL name */
     free(c);
 }
 
@@ -127,7 +146,7 @@ static const char *fmu_mode_name(const FmuInstance *c)
 
 static int fmu_allowed(FmuInstance *c, const char *fn, unsigned int modes)
 {
-    if (!c) return 0;
+    if (!fmu_live(c, fn)) return 0;
     if (c->mode & modes) return 1;
     FMU_LOG_ERROR(c, "%s: illegal call in state '%s'", fn, fmu_mode_name(c));
     return 0;
@@ -135,7 +154,7 @@ static int fmu_allowed(FmuInstance *c, const char *fn, unsigned int modes)
 
 static FmuStatus fmu_unsupported(FmuInstance *c, const char *fn, const char *why)
 {
-    if (!c) return FMU_ERROR;
+    if (!fmu_live(c, fn)) return FMU_ERROR;
     FMU_LOG_ERROR(c, "%s: not supported (%s)", fn, why);
     return FMU_ERROR;
 }
@@ -199,6 +218,11 @@ static FmuStatus fmu_do_step(FmuInstance *c, const char *fn, double currentCommu
     }
     if (!isfinite(currentCommunicationPoint)) {
         FMU_LOG_ERROR(c, "%s: currentCommunicationPoint = %g is not finite", fn, currentCommunicationPoint);
+        return FMU_ERROR;
+    }
+    /* over the work budget: refused before any work, the instance stays usable */
+    if (model_check_step(&c->s.data, communicationStepSize, fmu_model_logger, c) != MODEL_OK) {
+        FMU_LOG_ERROR(c, "%s: step from t = %g refused (nothing was done)", fn, currentCommunicationPoint);
         return FMU_ERROR;
     }
     if (model_do_step(&c->s.data, communicationStepSize, fmu_model_logger, c) != MODEL_OK) {
@@ -355,6 +379,27 @@ static FmuStatus fmu_serialized_state_size(FmuInstance *c, const char *fn, void 
     return FMU_OK;
 }
 
+/* FNV-1a, 64 bit (Fowler, Noll, Vo): a few lines, no dependency; it detects corruption, it is
+ * not a protection against a deliberate forgery (the semantic checks below are) */
+static uint64_t fnv1a64(uint64_t h, const unsigned char *p, size_t n)
+{
+    for (size_t k = 0; k < n; k++) {
+        h ^= p[k];
+        h *= 0x100000001b3ULL;
+    }
+    return h;
+}
+
+#define FNV1A64_INIT 0xcbf29ce484222325ULL
+
+static uint64_t serial_checksum(const SerialHeader *h, const void *payload)
+{
+    SerialHeader z = *h;
+    z.checksum = 0;
+    return fnv1a64(fnv1a64(FNV1A64_INIT, (const unsigned char *)&z, sizeof z), (const unsigned char *)payload,
+                   sizeof(FmuSnapshot));
+}
+
 static FmuStatus fmu_serialize_state(FmuInstance *c, const char *fn, void *state, void *buffer, size_t size)
 {
     SerialHeader h;
@@ -371,11 +416,20 @@ static FmuStatus fmu_serialize_state(FmuInstance *c, const char *fn, void *state
     memset(&h, 0, sizeof h);
     memcpy(h.magic, SERIAL_MAGIC, 8);
     h.version = c->layer->serial_version;
+    h.format = SERIAL_FORMAT;
     h.n_bodies = (uint32_t)N_BODIES;
-    h.payload = (uint64_t)sizeof(FmuSnapshot);
+    h.header_size = (uint32_t)sizeof h;
+    h.size = (uint64_t)SERIAL_SIZE;
+    h.checksum = serial_checksum(&h, state);
     memcpy(buffer, &h, sizeof h);
     memcpy((unsigned char *)buffer + sizeof h, state, sizeof(FmuSnapshot));
     return FMU_OK;
+}
+
+/* exactly one of the modes */
+static int valid_mode(FmuMode m)
+{
+    return m == M_INSTANTIATED || m == M_INIT || m == M_STEP_COMPLETE || m == M_STEP_FAILED || m == M_TERMINATED;
 }
 
 static FmuStatus fmu_deserialize_state(FmuInstance *c, const char *fn, const void *buffer, size_t size,
@@ -383,6 +437,7 @@ static FmuStatus fmu_deserialize_state(FmuInstance *c, const char *fn, const voi
 {
     SerialHeader h;
     FmuSnapshot *s;
+    int initialized;
     if (!fmu_allowed(c, fn, M_ANY)) return FMU_ERROR;
     if (!buffer || !state) {
         FMU_LOG_ERROR(c, "%s: NULL argument", fn);
@@ -393,27 +448,45 @@ static FmuStatus fmu_deserialize_state(FmuInstance *c, const char *fn, const voi
         return FMU_ERROR;
     }
     memcpy(&h, buffer, sizeof h);
-    if (memcmp(h.magic, SERIAL_MAGIC, 8) != 0 || h.version != c->layer->serial_version) {
-        FMU_LOG_ERROR(c, "%s: not a serialized %s state (bad magic or version)", fn, c->layer->state_description);
+    if (memcmp(h.magic, SERIAL_MAGIC, 8) != 0 || h.version != c->layer->serial_version
+        || h.format != SERIAL_FORMAT || h.header_size != (uint32_t)sizeof h) {
+        FMU_LOG_ERROR(c, "%s: not a serialized %s state (bad magic, version or format)", fn,
+                      c->layer->state_description);
         return FMU_ERROR;
     }
-    if (h.n_bodies != (uint32_t)N_BODIES || h.payload != (uint64_t)sizeof(FmuSnapshot)) {
+    if (h.n_bodies != (uint32_t)N_BODIES) {
         FMU_LOG_ERROR(c, "%s: state of a %u-body FMU, this FMU has %d bodies", fn, (unsigned)h.n_bodies, N_BODIES);
         return FMU_ERROR;
     }
-    if (size != SERIAL_SIZE) {
+    if (size != SERIAL_SIZE || h.size != (uint64_t)SERIAL_SIZE) {
         FMU_LOG_ERROR(c, "%s: size %lu does not match the expected %lu bytes (truncated?)", fn, (unsigned long)size,
                       (unsigned long)SERIAL_SIZE);
         return FMU_ERROR;
     }
-    s = snapshot_for(c, fn, *state);
-    if (!s) return FMU_ERROR;
-    memcpy(s, (const unsigned char *)buffer + sizeof h, sizeof *s);
-    if (!(s->mode & STATE_MODES)) {
-        FMU_LOG_ERROR(c, "%s: corrupt state (mode %d)", fn, (int)s->mode);
-        if (!*state) free(s);
+    if (serial_checksum(&h, (const unsigned char *)buffer + sizeof h) != h.checksum) {
+        FMU_LOG_ERROR(c, "%s: checksum mismatch (corrupt serialized state)", fn);
         return FMU_ERROR;
     }
-    *state = s;
+    /* decode into a new snapshot: a refused state leaves *state untouched */
+    s = snapshot_for(c, fn, NULL);
+    if (!s) return FMU_ERROR;
+    memcpy(s, (const unsigned char *)buffer + sizeof h, sizeof *s);
+    if (!valid_mode(s->mode)) {
+        FMU_LOG_ERROR(c, "%s: corrupt state (mode %d)", fn, (int)s->mode);
+        free(s);
+        return FMU_ERROR;
+    }
+    initialized = !(s->mode & (M_INSTANTIATED | M_INIT));
+    if (model_validate_state(&s->data, initialized, s->mode == M_STEP_FAILED, fmu_model_logger, c) != MODEL_OK) {
+        FMU_LOG_ERROR(c, "%s: invalid state (see the message above)", fn);
+        free(s);
+        return FMU_ERROR;
+    }
+    if (*state) {
+        memcpy(*state, s, sizeof *s);
+        free(s);
+    } else {
+        *state = s;
+    }
     return FMU_OK;
 }

@@ -63,8 +63,12 @@ typedef struct {
 
 /* The version-independent part of an instance; each layer's instance struct starts with it. */
 struct FmuInstance {
+    /* unused: malloc implementations keep their free-list links in the first bytes of a freed
+     * block (glibc: up to 32), so the fields read to detect and log a double free come after */
+    unsigned char reserved_[32];
     const FmuLayer *layer;
     char *name;
+    uint64_t magic; /* FMU_MAGIC_LIVE from instantiate to free, then FMU_MAGIC_FREED */
     int logging_on;
     unsigned int categories;
     FmuMode mode;
@@ -73,6 +77,16 @@ struct FmuInstance {
 };
 
 #define FMU_VR_TIME 0u
+
+/* Instance markers.  A call with an instance whose magic is not FMU_MAGIC_LIVE returns an error
+ * without touching it; FMU_MAGIC_FREED (a freed instance whose memory has not been reused yet)
+ * is also logged.  This is a best-effort guard: reading a freed or garbage pointer is undefined
+ * behaviour in C (see plant_fmu/README.md, "Limits"). */
+#define FMU_MAGIC_LIVE  0x5345335359e1c0deULL
+#define FMU_MAGIC_FREED 0x5345335346524545ULL
+
+/* the instance is live (logs and returns 0 for a freed one, returns 0 for NULL or garbage) */
+static int fmu_live(FmuInstance *c, const char *fn);
 
 /* ---- logging */
 static void fmu_log(FmuInstance *c, FmuStatus status, const char *category, const char *fmt, ...);
@@ -86,7 +100,8 @@ static FmuStatus fmu_set_debug_logging(FmuInstance *c, const char *fn, int loggi
 /* allocates a zeroed instance of `size` bytes (>= sizeof(FmuInstance)) with a copy of name;
  * NULL if out of memory */
 static FmuInstance *fmu_alloc(size_t size, const char *name, const FmuLayer *layer, int loggingOn);
-static void fmu_free(FmuInstance *c);
+/* frees a live instance; a freed one is logged and ignored (best effort, see fmu_live) */
+static void fmu_free(FmuInstance *c, const char *fn);
 /* NULL-instance guard and call-sequence check (logs the illegal call) */
 static int fmu_allowed(FmuInstance *c, const char *fn, unsigned int modes);
 static FmuStatus fmu_unsupported(FmuInstance *c, const char *fn, const char *why);

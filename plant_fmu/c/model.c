@@ -247,22 +247,34 @@ static void sym3_eigenvalues(const double A[9], double ev[3])
     }
 }
 
-static void sym3_inverse(const double A[9], double Ai[9])
+/* inverse of a symmetric 3x3 matrix by cofactors, computed on A / 2^e with 2^e ~ max|A| so that
+ * the cofactors and the determinant (products of 2 and 3 entries) neither underflow nor overflow
+ * for any accepted scale; scaling by a power of two is exact, so the result is bit for bit the
+ * unscaled formula's wherever that one does not underflow/overflow */
+static void sym3_inverse(const double A0[9], double Ai[9])
 {
-    const double c00 = A[4] * A[8] - A[5] * A[7];
-    const double c01 = A[5] * A[6] - A[3] * A[8];
-    const double c02 = A[3] * A[7] - A[4] * A[6];
-    const double det = A[0] * c00 + A[1] * c01 + A[2] * c02;
-    const double id = 1.0 / det;
-    Ai[0] = c00 * id;
-    Ai[1] = (A[2] * A[7] - A[1] * A[8]) * id;
-    Ai[2] = (A[1] * A[5] - A[2] * A[4]) * id;
-    Ai[3] = c01 * id;
-    Ai[4] = (A[0] * A[8] - A[2] * A[6]) * id;
-    Ai[5] = (A[2] * A[3] - A[0] * A[5]) * id;
-    Ai[6] = c02 * id;
-    Ai[7] = (A[1] * A[6] - A[0] * A[7]) * id;
-    Ai[8] = (A[0] * A[4] - A[1] * A[3]) * id;
+    double A[9], s = 0.0;
+    int e = 0;
+    for (int k = 0; k < 9; k++) s = fmax(s, fabs(A0[k]));
+    (void)frexp(s, &e);
+    for (int k = 0; k < 9; k++) A[k] = ldexp(A0[k], -e);
+    {
+        const double c00 = A[4] * A[8] - A[5] * A[7];
+        const double c01 = A[5] * A[6] - A[3] * A[8];
+        const double c02 = A[3] * A[7] - A[4] * A[6];
+        const double det = A[0] * c00 + A[1] * c01 + A[2] * c02;
+        const double id = 1.0 / det;
+        Ai[0] = c00 * id;
+        Ai[1] = (A[2] * A[7] - A[1] * A[8]) * id;
+        Ai[2] = (A[1] * A[5] - A[2] * A[4]) * id;
+        Ai[3] = c01 * id;
+        Ai[4] = (A[0] * A[8] - A[2] * A[6]) * id;
+        Ai[5] = (A[2] * A[3] - A[0] * A[5]) * id;
+        Ai[6] = c02 * id;
+        Ai[7] = (A[1] * A[6] - A[0] * A[7]) * id;
+        Ai[8] = (A[0] * A[4] - A[1] * A[3]) * id;
+    }
+    for (int k = 0; k < 9; k++) Ai[k] = ldexp(Ai[k], -e);
 }
 
 #define LOGF(status, cat, ...)                                    \
@@ -300,38 +312,55 @@ static int validate_body(const ModelData *d, int b, ModelLogger log, void *env, 
     if (!(par[PAR_M] > 0.0)) {
         LOGF(MODEL_ERROR, "logStatusError", "body[%d].m = %g must be > 0", i, par[PAR_M]);
         ok = 0;
+    } else if (!(par[PAR_M] >= MAG_MIN && par[PAR_M] <= MAG_MAX)) {
+        LOGF(MODEL_ERROR, "logStatusError", "body[%d].m = %g is outside the accepted range [%g, %g]", i, par[PAR_M],
+             MAG_MIN, MAG_MAX);
+        ok = 0;
     }
     {
+        /* shape tests on Jn = J / 2^e with 2^e ~ max|J| (exact scaling): they do not depend on the
+         * scale of J, and nothing in them can underflow or overflow */
         const double *J = par + PAR_J;
-        double scale = 0.0, asym = 0.0, ev[3], tr;
+        double scale = 0.0, asym = 0.0, Jn[9], Jns[9], ev[3], lo, hi;
+        int e = 0;
         for (int k = 0; k < 9; k++) scale = fmax(scale, fabs(J[k]));
-        for (int r = 0; r < 3; r++)
-            for (int c = 0; c < 3; c++) asym = fmax(asym, fabs(J[3 * r + c] - J[3 * c + r]));
         if (scale == 0.0) {
             LOGF(MODEL_ERROR, "logStatusError", "body[%d].J is zero (not positive definite)", i);
             return 0;
         }
-        if (asym > J_SYM_TOL * scale) {
+        (void)frexp(scale, &e);
+        for (int k = 0; k < 9; k++) Jn[k] = ldexp(J[k], -e);
+        for (int r = 0; r < 3; r++)
+            for (int c = 0; c < 3; c++) asym = fmax(asym, fabs(Jn[3 * r + c] - Jn[3 * c + r]));
+        if (asym > J_SYM_TOL) {
             LOGF(MODEL_ERROR, "logStatusError",
-                 "body[%d].J is not symmetric (max |J[r,c]-J[c,r]| = %g > %g * max|J|)", i, asym, J_SYM_TOL);
+                 "body[%d].J is not symmetric (max |J[r,c]-J[c,r]| = %.3g > %g * max|J|)", i, ldexp(asym, e),
+                 J_SYM_TOL);
             return 0;
         }
         for (int r = 0; r < 3; r++)
-            for (int c = 0; c < 3; c++) Jsym[3 * r + c] = 0.5 * (J[3 * r + c] + J[3 * c + r]);
-        sym3_eigenvalues(Jsym, ev);
-        if (!(ev[0] > J_PD_TOL * fabs(ev[2])) || !(ev[2] > 0.0)) {
-            LOGF(MODEL_ERROR, "logStatusError",
-                 "body[%d].J is not positive definite (eigenvalues %.17g, %.17g, %.17g)", i, ev[0], ev[1], ev[2]);
-            ok = 0;
-        } else {
-            tr = ev[0] + ev[1] + ev[2];
-            /* ev ascending: only the largest can break the triangle inequality */
-            if (ev[2] > ev[0] + ev[1] + J_TRI_TOL * tr) {
-                LOGF(MODEL_ERROR, "logStatusError",
-                     "body[%d].J: principal moments %.17g, %.17g, %.17g break the triangle inequality "
-                     "(%.17g > %.17g + %.17g)", i, ev[0], ev[1], ev[2], ev[2], ev[0], ev[1]);
-                ok = 0;
+            for (int c = 0; c < 3; c++) {
+                Jns[3 * r + c] = 0.5 * (Jn[3 * r + c] + Jn[3 * c + r]);
+                Jsym[3 * r + c] = 0.5 * J[3 * r + c] + 0.5 * J[3 * c + r]; /* no overflow near DBL_MAX */
             }
+        sym3_eigenvalues(Jns, ev);
+        lo = ldexp(ev[0], e); /* principal moments of J (for messages and the range check) */
+        hi = ldexp(ev[2], e);
+        if (!(ev[0] > J_PD_TOL * fabs(ev[2])) || !(ev[2] > 0.0)) {
+            LOGF(MODEL_ERROR, "logStatusError", "body[%d].J is not positive definite (eigenvalues %.6g, %.6g, %.6g)",
+                 i, lo, ldexp(ev[1], e), hi);
+            ok = 0;
+        } else if (ev[2] > ev[0] + ev[1] + J_TRI_TOL * (ev[0] + ev[1] + ev[2])) {
+            /* ev ascending: only the largest can break the triangle inequality */
+            LOGF(MODEL_ERROR, "logStatusError",
+                 "body[%d].J: violates the triangle inequality (J1 + J2 >= J3): principal moments %.6g, %.6g, %.6g",
+                 i, lo, ldexp(ev[1], e), hi);
+            ok = 0;
+        } else if (!(lo >= MAG_MIN && hi <= MAG_MAX)) {
+            LOGF(MODEL_ERROR, "logStatusError",
+                 "body[%d].J: principal moments %.3g..%.3g outside the accepted range [%g, %g]", i, lo, hi, MAG_MIN,
+                 MAG_MAX);
+            ok = 0;
         }
     }
     {
@@ -369,8 +398,9 @@ int model_initialize(ModelData *d, ModelLogger log, void *env)
             ok = 0;
         }
     }
-    if (!is_finite(d->h_internal) || !(d->h_internal > 0.0)) {
-        LOGF(MODEL_ERROR, "logStatusError", "h_internal = %g must be finite and > 0", d->h_internal);
+    if (!is_finite(d->h_internal) || !(d->h_internal >= H_INTERNAL_MIN)) {
+        LOGF(MODEL_ERROR, "logStatusError", "h_internal = %g must be finite and >= %g", d->h_internal,
+             H_INTERNAL_MIN);
         ok = 0;
     }
     for (int b = 0; b < N_BODIES; b++) {
@@ -606,6 +636,21 @@ static void rkmk4_step(Body *Bd, const double *gw, double h)
     memcpy(xi, xs, sizeof xs);
 }
 
+int model_check_step(const ModelData *d, double h, ModelLogger log, void *env)
+{
+    const double ratio = h / d->h_internal;
+    const long long max_n = MAX_BODY_SUBSTEPS / N_BODIES;
+    /* ceil(ratio - 1e-9) <= max_n; also refuses ratio = inf / NaN */
+    if (!(ratio - 1e-9 <= (double)max_n)) {
+        LOGF(MODEL_ERROR, "logStatusError",
+             "communication step %g needs %.3g internal steps of h_internal = %g for each of %d bodies: over the "
+             "limit of %lld body-steps per call (%lld per body); use a shorter step or a larger h_internal",
+             h, ceil(ratio - 1e-9), d->h_internal, N_BODIES, MAX_BODY_SUBSTEPS, max_n);
+        return MODEL_ERROR;
+    }
+    return MODEL_OK;
+}
+
 int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
 {
     const double ratio = h / d->h_internal;
@@ -613,11 +658,7 @@ int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
     long long n;
     int ok = 1;
     const double *gw = (d->g[0] != 0.0 || d->g[1] != 0.0 || d->g[2] != 0.0) ? d->g : NULL;
-    if (!(ratio < 1e15)) {
-        LOGF(MODEL_ERROR, "logStatusError", "communication step %g needs too many internal steps of %g", h,
-             d->h_internal);
-        return MODEL_ERROR;
-    }
+    if (model_check_step(d, h, log, env) != MODEL_OK) return MODEL_ERROR;
     n_d = ceil(ratio - 1e-9);
     n = n_d < 1.0 ? 1 : (long long)n_d;
     hs = h / (double)n;
@@ -636,5 +677,77 @@ int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
     d->q_valid = 0; /* quaternions are computed on demand (model_update_quaternions) */
     if (!ok) return MODEL_ERROR;
     d->time += h;
+    return MODEL_OK;
+}
+
+/* ------------------------------------------------------------------ restored states */
+
+static int all_finite(const double *x, int n)
+{
+    for (int k = 0; k < n; k++)
+        if (!is_finite(x[k])) return 0;
+    return 1;
+}
+
+int model_validate_state(const ModelData *d, int initialized, int may_be_non_finite, ModelLogger log, void *env)
+{
+    if (!all_finite(d->g, 3) || !is_finite(d->time)) {
+        LOGF(MODEL_ERROR, "logStatusError", "g or time is not finite");
+        return MODEL_ERROR;
+    }
+    if (!is_finite(d->h_internal) || (initialized && !(d->h_internal >= H_INTERNAL_MIN))) {
+        LOGF(MODEL_ERROR, "logStatusError", "h_internal = %g must be finite and >= %g", d->h_internal,
+             H_INTERNAL_MIN);
+        return MODEL_ERROR;
+    }
+    if (d->q_valid != 0 && d->q_valid != 1) {
+        LOGF(MODEL_ERROR, "logStatusError", "q_valid = %d is not 0 or 1", d->q_valid);
+        return MODEL_ERROR;
+    }
+    for (int b = 0; b < N_BODIES; b++) {
+        const Body *B = &d->body[b];
+        const int i = b + 1;
+        if (!all_finite(B->u, N_U) || !all_finite(B->par, N_PAR) || !all_finite(B->J, 9)
+            || !all_finite(B->Jinv, 9) || !is_finite(B->minv)) {
+            LOGF(MODEL_ERROR, "logStatusError", "body[%d]: an input or a parameter is not finite", i);
+            return MODEL_ERROR;
+        }
+        if (!initialized) continue; /* parameters are checked at exitInitializationMode */
+        {
+            double Jsym[9], Jinv[9], q0n[4], minv;
+            int normalised;
+            if (!validate_body(d, b, log, env, Jsym, q0n, &normalised)) return MODEL_ERROR;
+            sym3_inverse(Jsym, Jinv);
+            minv = 1.0 / B->par[PAR_M];
+            if (memcmp(Jsym, B->J, sizeof Jsym) != 0 || memcmp(Jinv, B->Jinv, sizeof Jinv) != 0
+                || memcmp(&minv, &B->minv, sizeof minv) != 0) {
+                LOGF(MODEL_ERROR, "logStatusError", "body[%d]: stored J, J^-1 or 1/m does not match body[%d].J, .m", i,
+                     i);
+                return MODEL_ERROR;
+            }
+        }
+        if (may_be_non_finite) continue;
+        if (!all_finite(B->out, N_OUT)) {
+            LOGF(MODEL_ERROR, "logStatusError", "body[%d]: state is not finite", i);
+            return MODEL_ERROR;
+        }
+        {
+            const double *R = B->out + OFF_R;
+            double err = 0.0, det;
+            for (int r = 0; r < 3; r++)
+                for (int c = 0; c < 3; c++) {
+                    const double rtr = R[r] * R[c] + R[3 + r] * R[3 + c] + R[6 + r] * R[6 + c];
+                    err = fmax(err, fabs(rtr - (r == c ? 1.0 : 0.0)));
+                }
+            det = R[0] * (R[4] * R[8] - R[5] * R[7]) - R[1] * (R[3] * R[8] - R[5] * R[6])
+                  + R[2] * (R[3] * R[7] - R[4] * R[6]);
+            if (!(err <= R_ORTHO_TOL) || !(det > 0.0)) {
+                LOGF(MODEL_ERROR, "logStatusError",
+                     "body[%d].R is not a rotation (max |R^T R - I| = %.3g, tolerance %g; det %.6g)", i, err,
+                     R_ORTHO_TOL, det);
+                return MODEL_ERROR;
+            }
+        }
+    }
     return MODEL_OK;
 }

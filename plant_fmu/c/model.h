@@ -48,6 +48,20 @@
 #define PAR_Q0   13
 #define PAR_XI0  17
 
+/* ---- accepted ranges (see plant_fmu/README.md, "Limits") ---- */
+/* h_internal below this is refused (at exitInitializationMode and in a deserialized state) */
+#define H_INTERNAL_MIN 1e-9
+/* work budget of one doStep: N_BODIES x substeps <= this, else the call is refused before any
+ * work is done.  One body-substep costs about 0.15-0.3 us, so the worst accepted call takes
+ * 0.15-0.3 s whatever N_BODIES is. */
+#define MAX_BODY_SUBSTEPS 1000000LL
+/* the principal moments of J and the mass m must lie in [MAG_MIN, MAG_MAX]: then J, J^-1, m and
+ * 1/m are finite and normal with a margin of 1e58 for the products J w x w, J^-1 tau and f / m */
+#define MAG_MIN 1e-250
+#define MAG_MAX 1e250
+/* |R^T R - I| (max entry) allowed in a deserialized state */
+#define R_ORTHO_TOL 1e-6
+
 /* status codes of the model layer (numerically equal to fmi2OK / fmi2Warning / fmi2Error) */
 #define MODEL_OK      0
 #define MODEL_WARNING 1
@@ -94,13 +108,24 @@ void model_variable_name(unsigned int vr, char *buf, size_t n);
  * MODEL_ERROR (nothing changed); each problem is reported through log. */
 int model_initialize(ModelData *d, ModelLogger log, void *env);
 
+/* Checks a state restored from outside (a deserialized FMU state): everything finite, h_internal
+ * within bounds; if `initialized`, also every parameter as model_initialize does, the derived
+ * J, J^-1, 1/m equal to what model_initialize computes from them (bit for bit) and R orthonormal
+ * within R_ORTHO_TOL with det R > 0; if `may_be_non_finite` (a state after a failed step), the
+ * outputs are not checked.  Returns MODEL_OK or MODEL_ERROR (each problem logged). */
+int model_validate_state(const ModelData *d, int initialized, int may_be_non_finite, ModelLogger log, void *env);
+
 /* State and outputs computed from the current parameters without validation
  * (used to answer fmi2GetReal during initialization mode). */
 void model_preview(ModelData *d);
 
+/* MODEL_OK if a step of h is within the work budget (N_BODIES * substeps <= MAX_BODY_SUBSTEPS),
+ * else MODEL_ERROR with a logged message naming the limit. */
+int model_check_step(const ModelData *d, double h, ModelLogger log, void *env);
+
 /* Advances all bodies by h (h > 0 checked by the caller) in n = ceil(h/h_internal - 1e-9)
- * equal substeps.  Returns MODEL_ERROR (and leaves the state unchanged) if the result is
- * not finite. */
+ * equal substeps.  Returns MODEL_ERROR without doing anything if N_BODIES * n exceeds
+ * MAX_BODY_SUBSTEPS, and MODEL_ERROR (state not finite, unusable) if the result is not finite. */
 int model_do_step(ModelData *d, double h, ModelLogger log, void *env);
 
 /* brings the quaternion outputs up to date (they are computed on demand) */

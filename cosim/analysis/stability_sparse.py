@@ -6,7 +6,7 @@ assembled without ever forming a dense (12N + M)² matrix:
 * Controller: at first order each edge k = (i, j) contributes a function of
   (δ_i, δ_j, ξ_i, ξ_j, θ_k) only, and at consensus every edge sits at the same point
   (X̄_k = I, θ_k = 0) with the same parameters. So one 13 × 25 edge Jacobian, from central
-  finite differences of `controller._kernels.network_step` on a two-agent graph, gives every
+  finite differences of `controller.kernels.network_step` on a two-agent graph, gives every
   block of K and G; the −k_ξ ξ_i term is linear and exact.
 * Plant: δ̇_i = ξ_i, 𝕀_i ξ̇_i = u_i is nilpotent, so its zero-order hold is closed form per agent:
   A_d = [[I, hI], [0, I]], B_d = [[h²/2 𝕀_i⁻¹], [h 𝕀_i⁻¹]].
@@ -29,7 +29,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from controller import _kernels as K
+from controller import LawParameters
+from controller.kernels import network_step
+# the (private) numba-or-Python decorator, so that the inertia counts compile like the kernels
 from controller._jit import jit
 
 __all__ = ["edge_jacobian", "modal_blocks", "laplacian_eigenvalues", "sparse_loop",
@@ -40,14 +42,13 @@ STRUCT_TOL = 1e-7         # relative tolerance of the incidence-structure check
 
 
 def params_of(scenario, gains=None):
+    """P of the law with δ = ∞ (no jump may fire while linearising), as `stability.linearise`."""
     sc = scenario
-    d = sc.design
-    g = sc.gains if gains is None else gains
-    return K.pack(sc.weighting.A, sc.weighting.b, sc.weighting.d, d.u_c1, d.u_c2, d.gamma,
-                  np.inf, d.Theta, g.k_X, g.k_xi, g.k_e, g.k_theta)
+    return LawParameters.of(sc.weighting, sc.design, sc.gains if gains is None else gains,
+                            delta=np.inf).P
 
 
-def edge_jacobian(P, hybrid: bool = True, eps: float = 1e-6) -> np.ndarray:
+def edge_jacobian(P, k_xi: float, hybrid: bool = True, eps: float = 1e-6) -> np.ndarray:
     """J (13 × 25): rows u_pos (6), u_neg (6), θ̇ = −k_θ∇_θU (1); columns δ_pos, δ_neg, ξ_pos,
     ξ_neg (6 each), θ. The edge's part only: the agents' own −k_ξ ξ is not in it."""
     from controller import se3
@@ -65,7 +66,7 @@ def edge_jacobian(P, hybrid: bool = True, eps: float = 1e-6) -> np.ndarray:
         S[:, 3:12] = X[:, :3, :3].reshape(2, 9)
         S[:, 12:18] = x[12:24].reshape(2, 6)
         th = np.array([x[24]])
-        K.network_step(S, th, edges, P, 1.0, hybrid, u, mu, jumped, tp, tj)
+        network_step(S, th, edges, P, 1.0, hybrid, u, mu, jumped, tp, tj)
         return np.concatenate([u.ravel(), th - x[24:25]])
 
     J = np.zeros((13, 25))
@@ -73,9 +74,8 @@ def edge_jacobian(P, hybrid: bool = True, eps: float = 1e-6) -> np.ndarray:
         e = np.zeros(25)
         e[c] = eps
         J[:, c] = (f(e) - f(-e)) / (2 * eps)
-    kxi = P[K.P_KXI]
-    J[0:6, 12:18] += kxi * np.eye(6)
-    J[6:12, 18:24] += kxi * np.eye(6)
+    J[0:6, 12:18] += k_xi * np.eye(6)
+    J[6:12, 18:24] += k_xi * np.eye(6)
     if not hybrid:
         J[12, :] = 0.0
     return J
@@ -265,8 +265,8 @@ class Linearisation:
         self.N, self.M = sc.graph.n, sc.graph.M
         self.edges = np.ascontiguousarray(sc.graph.edges, dtype=np.int64)
         self.P = params_of(sc, gains)
-        self.k_xi = float(self.P[K.P_KXI])
-        self.J = edge_jacobian(self.P, hybrid)
+        self.k_xi = float((sc.gains if gains is None else gains).k_xi)
+        self.J = edge_jacobian(self.P, self.k_xi, hybrid)
         I6 = sc.inertia6
         self.I6inv = np.linalg.inv(I6)
         same = bool(np.all(np.abs(I6 - I6[0]) <= 1e-12 * np.abs(I6[0]).max()))

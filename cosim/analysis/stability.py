@@ -4,7 +4,7 @@ State x = [δ_1..δ_N (6 each), ξ_1..ξ_N (6 each), θ_1..θ_M], X_i = exp(δ_i
 Plant (the ad term is quadratic and drops): δ̇ = ξ, 𝕀 ξ̇ = u, discretised exactly under ZOH
 with scipy.linalg.expm of [[A, B], [0, 0]]·h. Controller at a communication point: u_n = K x_n
 and θ_{n+1} = θ_n + h·G x_n, where K and G (the linearised −k_θ∇_θU) come from central finite
-differences of the very kernel the co-simulation runs (`controller._kernels.network_step`).
+differences of the very kernel the co-simulation runs (`controller.kernels.network_step`).
 The rigid motion of the whole group leaves exactly six eigenvalues at 1; they are removed
 (checked to lie within 1e-6 of 1) and the spectral radius of the rest decides stability.
 """
@@ -13,8 +13,10 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from controller import _kernels as K
-from controller import se3
+from controller import LawParameters, se3
+from controller.kernels import network_step
+
+from ..controllers import make_controller
 
 __all__ = ["linearise", "closed_loop", "spectral_radius", "max_stable_step", "analyse"]
 
@@ -36,10 +38,8 @@ def linearise(scenario, hybrid: bool = True, eps: float = 1e-6):
     """(K (6N × n_x), G (M × n_x)) with n_x = 12N + M (θ included only if hybrid)."""
     sc = scenario
     N, M = sc.graph.n, sc.graph.M
-    d = sc.design
-    P = K.pack(sc.weighting.A, sc.weighting.b, sc.weighting.d, d.u_c1, d.u_c2, d.gamma,
-               np.inf, d.Theta, sc.gains.k_X, sc.gains.k_xi, sc.gains.k_e, sc.gains.k_theta)
     # δ = ∞: no jump may fire while linearising (at consensus μ_U < 0 < δ anyway)
+    P = LawParameters.of(sc.weighting, sc.design, sc.gains, delta=np.inf).P
     edges = np.ascontiguousarray(sc.graph.edges)
     Mt = M if hybrid else 0
     nx = 12 * N + Mt
@@ -54,7 +54,7 @@ def linearise(scenario, hybrid: bool = True, eps: float = 1e-6):
         th = np.zeros(M)
         if hybrid:
             th[:] = x[12 * N:]
-        K.network_step(S, th, edges, P, 1.0, hybrid, u, mu, jumped, tp, tj)
+        network_step(S, th, edges, P, 1.0, hybrid, u, mu, jumped, tp, tj)
         # with h = 1 the flow gives θ⁺ − θ = −k_θ∇_θU
         return np.concatenate([u.ravel(), (th - x[12 * N:]) if hybrid else np.zeros(0)])
 
@@ -148,10 +148,14 @@ def max_stable_step(scenario, Kx=None, G=None, hybrid: bool = True, rel_tol: flo
     return float(lo)
 
 
-def analyse(scenario, h: float | None = None, hybrid: bool = True, bisect: bool = True) -> dict:
+def analyse(scenario, h: float | None = None, hybrid: bool = True, bisect: bool = True,
+            law: str | None = None) -> dict:
     """{"step", "spectral_radius", "stable", "max_stable_step", "method"} for the scenario's h
-    (or h). Computed without dense matrices by `stability_sparse` (exact modal decoupling when
-    the agents are identical, else a sparse eigensolver); the dense functions above are the
-    reference it is tested against."""
+    (or h). ``law``: a registered law name (`cosim.controllers.LAWS`); it decides ``hybrid``
+    (whether θ is a state of the loop). Computed without dense matrices by `stability_sparse`
+    (exact modal decoupling when the agents are identical, else a sparse eigensolver); the
+    dense functions above are the reference it is tested against."""
     from .stability_sparse import analyse_fast
+    if law is not None:
+        hybrid = make_controller(law, scenario).hybrid
     return analyse_fast(scenario, h, hybrid, bisect)

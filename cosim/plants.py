@@ -1,8 +1,9 @@
-"""Plants the master can drive: the protocol and the two FMU-backed implementations.
+"""Plants the master can drive: the protocol, the registry the command line's ``--plant`` choices
+read, and the two FMU-backed implementations.
 
 A plant holds N rigid bodies. Per communication step the master calls, in this order,
 ``read()`` (the state at t_n), ``apply(u)`` (held constant over the step: zero-order hold) and
-``advance(h)`` (t_n → t_n + h).
+``advance(h)`` (t_n → t_n + h). Plants are registered in `cosim.registry.PLANTS`.
 """
 from __future__ import annotations
 
@@ -10,6 +11,11 @@ import zipfile
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+
+from controller.errors import Se3SyncError
+from plant_fmu.fast import FleetFMU
+
+from .registry import PLANTS, resolve
 
 __all__ = ["Plant", "FmuPlant", "PerBodyFmuPlant", "make_plant"]
 
@@ -20,7 +26,9 @@ class Plant(Protocol):
     apply(u (N, 6)): the wrench held over the next step; advance(h); close().
 
     Optional: ``stats() -> dict`` (link statistics; logged on /link/stats at 1 Hz and put in
-    the summary under "link") and ``model_description() -> str | None`` (attached to the log).
+    the summary under "link"), ``model_description() -> str | None`` (attached to the log),
+    ``input_buffer`` (an (N, 6) array the controller may write its wrench into) and
+    ``reset(S0)`` (start again from S0 at t = 0, so that one plant serves many runs).
     """
 
     n: int
@@ -50,16 +58,14 @@ class FmuPlant:
     """
 
     def __init__(self, masses, inertias, S0, gravity=(0.0, 0.0, 0.0), internal_step=1e-4,
-                 fmu_path=None):
-        from plant_fmu.fast import FleetFMU
-
+                 fmu_path=None, instance_name="plant"):
         S0 = np.asarray(S0, float)
         self.n = n = S0.shape[0]
-        self._fmu = fmu = FleetFMU(n, fmu_path=fmu_path, instance_name="plant")
+        self._fixed = dict(mass=np.asarray(masses, float), J=np.asarray(inertias, float),
+                           gravity=np.asarray(gravity, float), h_internal=float(internal_step))
+        self._fmu = fmu = FleetFMU(n, fmu_path=fmu_path, instance_name=instance_name)
         try:
-            fmu.set_parameters(mass=np.asarray(masses, float), J=np.asarray(inertias, float),
-                               p0=S0[:, 0:3], R0=S0[:, 3:12].reshape(n, 3, 3), xi0=S0[:, 12:18],
-                               gravity=np.asarray(gravity, float), h_internal=float(internal_step))
+            fmu.set_initial_state(S0, **self._fixed)
             fmu.initialize(0.0)
         except BaseException:
             fmu.close()
@@ -82,6 +88,18 @@ class FmuPlant:
         self._do_step(k * h, h)
         self._k = k + 1
 
+    def reset(self, S0) -> None:
+        """fmi2Reset, the same parameters with the initial state S0, initialise at t = 0."""
+        fmu = self._fmu
+        try:
+            fmu.terminate()
+        except Se3SyncError:
+            pass  # already terminated, or the last run ended in an error: reset clears both
+        fmu.reset()
+        fmu.set_initial_state(np.asarray(S0, float), **self._fixed)
+        fmu.initialize(0.0)
+        self._k = 0
+
     def model_description(self) -> str | None:
         return _md_text(self._fmu.fmu_path)
 
@@ -103,8 +121,6 @@ class PerBodyFmuPlant:
 
     def __init__(self, masses, inertias, S0, gravity=(0.0, 0.0, 0.0), internal_step=1e-4,
                  fmu_path=None):
-        from plant_fmu.fast import FleetFMU
-
         S0 = np.asarray(S0, float)
         self.n = n = S0.shape[0]
         masses = np.broadcast_to(np.asarray(masses, float), (n,))
@@ -114,9 +130,9 @@ class PerBodyFmuPlant:
             for i in range(n):
                 f = FleetFMU(1, fmu_path=fmu_path, instance_name=f"body{i + 1}")
                 self._fmus.append(f)
-                f.set_parameters(mass=masses[i:i + 1], J=inertias[i:i + 1], p0=S0[i:i + 1, 0:3],
-                                 R0=S0[i:i + 1, 3:12].reshape(1, 3, 3), xi0=S0[i:i + 1, 12:18],
-                                 gravity=np.asarray(gravity, float), h_internal=float(internal_step))
+                f.set_initial_state(S0[i:i + 1], mass=masses[i:i + 1], J=inertias[i:i + 1],
+                                    gravity=np.asarray(gravity, float),
+                                    h_internal=float(internal_step))
                 f.initialize(0.0)
         except BaseException:
             self.close()
@@ -166,11 +182,5 @@ class PerBodyFmuPlant:
 
 
 def make_plant(kind: str, scenario, fmu_path=None):
-    """"fleet" -> FmuPlant, "per-body" -> PerBodyFmuPlant."""
-    from controller.errors import Se3SyncError
-
-    if kind == "fleet":
-        return FmuPlant.from_scenario(scenario, fmu_path)
-    if kind == "per-body":
-        return PerBodyFmuPlant.from_scenario(scenario, fmu_path)
-    raise Se3SyncError(f"plant must be \"fleet\" or \"per-body\", got {kind!r}")
+    """The plant registered as ``kind`` (`cosim.registry.PLANTS`), built from the scenario."""
+    return resolve(PLANTS, kind, "plant").from_scenario(scenario, fmu_path)

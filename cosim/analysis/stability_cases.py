@@ -11,7 +11,7 @@ import re
 
 import numpy as np
 
-HIL = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+HIL = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
                    "scenarios", "hil_6uav.toml")
 
 

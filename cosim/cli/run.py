@@ -4,7 +4,15 @@ from __future__ import annotations
 import json
 import sys
 
-__all__ = ["register"]
+from controller.errors import Se3SyncError
+
+from ..files import check_output
+from ..registry import LAWS, PLANTS
+
+__all__ = ["register", "EXIT_UNSTABLE"]
+
+EXIT_UNSTABLE = 3   # `check`: the sampled loop is unstable at the step checked
+PLOT_FORMATS = (".png", ".pdf", ".svg", ".eps", ".ps")
 
 
 def _add_set(p):
@@ -20,8 +28,9 @@ def register(sub) -> None:
                     "step h under zero-order hold, the controller's network view evaluated at "
                     "every step. Refuses a step h for which the linearised sampled loop is "
                     "unstable (see `se3sync check`) unless --force. Exit codes: 0 ok, 2 bad "
-                    "input, 130 interrupted (Ctrl-C: the log is finished and the summary has "
-                    "\"interrupted\": true).")
+                    "input, 130 interrupted by Ctrl-C, 143 by SIGTERM (either way the log is "
+                    "finished and the summary has \"interrupted\": true). A run that fails "
+                    "leaves no log.")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--log", metavar="OUT.mcap",
                    help="write an MCAP log (streamed; simulated-time stamps) to this path")
@@ -32,11 +41,11 @@ def register(sub) -> None:
     p.add_argument("--step", type=float, metavar="H",
                    help="communication step h in s (overrides simulation.step)")
     _add_set(p)
-    p.add_argument("--plant", choices=("fleet", "per-body"), default=None,
-                   help="one N-body FMU instance (fleet, the default) or N single-body "
-                        "instances (per-body); default: the scenario's plant.mode")
-    p.add_argument("--controller", choices=("hybrid", "gradient"), default="hybrid",
-                   help="the paper's hybrid feedback (default) or the gradient-only baseline")
+    p.add_argument("--plant", choices=tuple(PLANTS), default=None,
+                   help="; ".join(f"{k}: {v[1]}" for k, v in PLANTS.items())
+                   + " (default: the scenario's plant.mode)")
+    p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
+                   help="; ".join(f"{k}: {v[1]}" for k, v in LAWS.items()) + " (default hybrid)")
     p.add_argument("--force", action="store_true",
                    help="run even if the sampled loop is unstable at this step")
     p.set_defaults(func=_cmd_run)
@@ -45,12 +54,14 @@ def register(sub) -> None:
         "check", help="validate a scenario, print its synergy design and sampled-data stability",
         description="Validate a scenario and print the synergy design (Lemma 2) and the "
                     "stability of the zero-order-hold loop at the scenario's step h, linearised "
-                    "at consensus: spectral_radius (< 1 is stable) and max_stable_step.")
+                    "at consensus: spectral_radius (< 1 is stable) and max_stable_step. Exit "
+                    f"codes: 0 stable, 2 bad input, {EXIT_UNSTABLE} unstable at this step (the "
+                    "report is printed either way), so that check can gate a CI job.")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.add_argument("--step", type=float, metavar="H", help="check this step instead")
-    p.add_argument("--controller", choices=("hybrid", "gradient"), default="hybrid",
-                   help="which loop to linearise (default hybrid)")
+    p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
+                   help="which law's loop to linearise (default hybrid)")
     p.add_argument("--from-error", type=float, metavar="E", dest="from_error",
                    help="error to converge from (default: the scenario's initial error)")
     _add_set(p)
@@ -60,49 +71,50 @@ def register(sub) -> None:
         "plot", help="plot a run log like the paper's Fig. 2",
         description="Plot ‖I − R̄_k‖, ‖p̄_k‖, ‖ω_i‖, ‖v_i‖ and θ_k against simulated time from an "
                     "se3sync MCAP log (matplotlib, Agg backend).")
-    p.add_argument("log", help="an MCAP log written by `se3sync run --log`")
+    p.add_argument("log", nargs="+", help="MCAP log(s) written by `se3sync run --log`; "
+                   "several are overlaid")
     p.add_argument("-o", "--output", required=True, metavar="FIG.png",
-                   help="output image (format from the suffix: png, pdf, svg)")
+                   help="output image (format from the suffix: png, pdf, svg, eps, ps)")
+    p.add_argument("--labels", metavar="A,B,...",
+                   help="comma-separated names of the overlaid runs (default: file names)")
+    p.add_argument("--linear", action="store_true",
+                   help="linear y axes (default: log axes for errors, speeds and V̄)")
+    p.add_argument("--tmin", type=float, metavar="S", help="start of the time axis (s)")
+    p.add_argument("--tmax", type=float, metavar="S", help="end of the time axis (s)")
+    p.add_argument("--dpi", type=int, default=150, help="raster resolution (default 150)")
     p.set_defaults(func=_cmd_plot)
 
-
-def _design(sc) -> dict:
-    d = sc.design.as_dict()
-    return {k: d[k] for k in ("case", "u_c1", "u_c2", "delta_star", "gamma", "delta",
-                              "gamma_bound", "delta_bound", "exact_gap", "warnings", "Theta",
-                              "eigenvalues_W")}
-
-
-def _check_outputs(*paths):
-    """Refuse unwritable output locations before anything runs."""
-    import os
-    from pathlib import Path
-
-    from controller.errors import Se3SyncError
-
-    for p in paths:
-        if p is None:
-            continue
-        d = Path(p).parent if str(Path(p).parent) else Path(".")
-        if not d.is_dir():
-            raise Se3SyncError(f"{p}: directory {d} does not exist")
-        if not os.access(d, os.W_OK):
-            raise Se3SyncError(f"{p}: directory {d} is not writable")
+    p = sub.add_parser(
+        "animate", help="render a 3D animation (MP4 or GIF) of a run log",
+        description="Render the bodies (boxes of their inertia, with axes) and the graph edges "
+                    "(coloured by ‖I − R̄_k‖_F, green to red on a log scale) of an se3sync MCAP "
+                    "log, with the simulated time and the max edge error. MP4 needs ffmpeg; GIF "
+                    "uses Pillow.")
+    p.add_argument("log", help="an MCAP log written by `se3sync run --log`")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.mp4|OUT.gif",
+                   help="output animation (.mp4 via ffmpeg, .gif via Pillow)")
+    p.add_argument("--duration", type=float, default=10.0, metavar="S",
+                   help="length of the animation in s of playback (default 10)")
+    p.add_argument("--fps", type=float, default=20.0, help="frames per second (default 20)")
+    p.add_argument("--tmin", type=float, metavar="S", help="first simulated time shown")
+    p.add_argument("--tmax", type=float, metavar="S", help="last simulated time shown")
+    p.add_argument("--dpi", type=int, default=100, help="resolution (default 100)")
+    p.set_defaults(func=_cmd_animate)
 
 
 def _cmd_run(args) -> int:
-    from controller.errors import Se3SyncError
+    from ..analysis.stability import analyse
+    from ..run import run_scenario
+    from ..scenario import ScenarioError, load_scenario
 
-    from .api import run_scenario
-    from .scenario import ScenarioError, load_scenario
-    from .stability import analyse
-
+    for opt, path, sfx in (("--log", args.log, (".mcap",)), ("--summary", args.summary, None)):
+        if path is not None:
+            check_output(opt, path, sfx)
     sc = load_scenario(args.scenario, args.overrides, duration=args.duration, step=args.step)
-    _check_outputs(args.log, args.summary)
     if not args.force:
-        st = analyse(sc, hybrid=args.controller == "hybrid", bisect=False)
+        st = analyse(sc, law=args.controller, bisect=False)
         if not st["stable"]:
-            st = analyse(sc, hybrid=args.controller == "hybrid", bisect=True)
+            st = analyse(sc, law=args.controller, bisect=True)
             raise ScenarioError(
                 "simulation.step",
                 f"h = {sc.step:g} s makes the sampled loop unstable (spectral radius "
@@ -112,8 +124,9 @@ def _cmd_run(args) -> int:
     try:
         summary = run_scenario(sc, plant=args.plant or sc.plant_mode, controller=args.controller,
                                log_path=args.log, summary_path=args.summary, progress=progress)
-    except OSError as exc:
-        raise Se3SyncError(f"{exc.filename or ''}: {exc.strerror or exc}") from None
+    except OSError as exc:  # the streamed log is the file being written when the disk fills up
+        raise Se3SyncError(f"{exc.filename or args.log or args.summary}: "
+                           f"{exc.strerror or exc}") from None
     f = summary.get("final") or {}
     msg = (f"{sc.name}: {summary['steps']} steps, {summary['sim_time_s']:.4g} s simulated in "
            f"{summary['wall_time_s']:.3g} s ({summary['realtime_factor'] or 0:.3g}× real time); "
@@ -128,20 +141,22 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_check(args) -> int:
-    from .scenario import load_scenario
-    from .stability import analyse
+    from ..analysis.stability import analyse
+    from ..master import design_summary
+    from ..scenario import load_scenario
 
-    from .stability_report import check_extras, check_lines
+    from ..analysis.stability_report import check_extras, check_lines
 
     sc = load_scenario(args.scenario, args.overrides, step=args.step)
-    st = analyse(sc, hybrid=args.controller == "hybrid")
-    out = {"scenario": sc.name, "design": _design(sc), "step": sc.step,
+    st = analyse(sc, law=args.controller)
+    out = {"scenario": sc.name, "design": design_summary(sc), "step": sc.step,
            "spectral_radius": st["spectral_radius"], "stable": st["stable"],
            "max_stable_step": st["max_stable_step"]}
-    out.update(check_extras(sc, st, args.controller == "hybrid", args.from_error))
+    out.update(check_extras(sc, st, args.controller, args.from_error))
+    rc = 0 if st["stable"] else EXIT_UNSTABLE
     if args.json:
         print(json.dumps(out, indent=1))
-        return 0
+        return rc
     d = out["design"]
     fmt = lambda v: "[" + ", ".join(f"{x:.4f}" for x in v) + "]"  # noqa: E731
     lines = [
@@ -163,13 +178,33 @@ def _cmd_check(args) -> int:
     ]
     lines += check_lines(out)
     print("\n".join(lines))
-    return 0
+    return rc
 
 
 def _cmd_plot(args) -> int:
-    from .plot import plot_log
+    from ..log.plot import plot_logs
 
-    _check_outputs(args.output)
-    out = plot_log(args.log, args.output)
+    labels = None
+    if args.labels is not None:
+        labels = [x.strip() for x in args.labels.split(",")]
+        if len(labels) != len(args.log):
+            raise Se3SyncError(f"--labels: {len(labels)} labels for {len(args.log)} logs")
+    if not 1 <= args.dpi <= 2400:
+        raise Se3SyncError(f"--dpi: must be in 1..2400, got {args.dpi}")
+    check_output("--output", args.output, PLOT_FORMATS)
+    out = plot_logs(args.log, args.output, labels, linear=args.linear, tmin=args.tmin,
+                    tmax=args.tmax, dpi=args.dpi)
     print(f"wrote {out}", file=sys.stderr)
+    return 0
+
+
+def _cmd_animate(args) -> int:
+    from ..log.animate import animate_log
+
+    if not 1 <= args.dpi <= 1200:
+        raise Se3SyncError(f"--dpi: must be in 1..1200, got {args.dpi}")
+    check_output("--output", args.output, (".gif", ".mp4"))
+    n = animate_log(args.log, args.output, duration=args.duration, fps=args.fps,
+                    tmin=args.tmin, tmax=args.tmax, dpi=args.dpi, progress=sys.stderr.isatty())
+    print(f"wrote {args.output} ({n} frames)", file=sys.stderr)
     return 0

@@ -10,6 +10,9 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from ..files import write_json_atomic
+from .runner import read_results
+
 __all__ = ["wilson", "summarise", "report", "GROUP_KINDS"]
 
 GROUP_KINDS = ("random", "adversarial", "all")
@@ -97,8 +100,6 @@ def report(results, output, json_path=None) -> dict:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from .api import write_json_atomic
-    from .sweep import read_results
 
     rows, meta = read_results(results, option="results")
     s = summarise(rows)

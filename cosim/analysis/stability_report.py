@@ -12,9 +12,13 @@ from controller.errors import Se3SyncError
 DELAY_MAX_AGENTS = 16
 
 
-def check_extras(sc, st: dict, hybrid: bool, from_error=None) -> dict:
+def check_extras(sc, st: dict, law, from_error=None) -> dict:
+    """law: a registered law name (decides whether θ is a state of the loop) or a bool."""
+    from ..controllers import make_controller
     from .convergence_rate import convergence
     from .delay_margin import delay_margin
+
+    hybrid = make_controller(law, sc).hybrid if isinstance(law, str) else bool(law)
 
     if from_error is not None and not (math.isfinite(from_error) and from_error > 0):
         raise Se3SyncError(f"--from-error: must be a finite number > 0, got {from_error:g}")

@@ -1,11 +1,18 @@
-"""Library entry points for other packages (sweeps, the MAVLink bridge): run a scenario."""
+"""`run_scenario`: one run of a scenario, from its file to its log and summary — the library entry
+point that `se3sync run`, `se3sync connect` and other packages call."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 
-from ._files import atomic_path
+from . import signals
+from .controllers import law_name, make_controller
+from .files import write_json_atomic
+from .log.mcap import McapLogger
+from .master import Master
+from .network import networked
+from .plants import make_plant
+from .scenario import MAX_DEFAULT_INTERNAL_STEP, Scenario, ScenarioError, load_scenario
 
 __all__ = ["run_scenario", "with_timing", "write_json_atomic"]
 
@@ -13,8 +20,6 @@ __all__ = ["run_scenario", "with_timing", "write_json_atomic"]
 def with_timing(scenario, duration=None, step=None):
     """A copy of the scenario with another duration and/or communication step (the internal
     step follows h unless the scenario sets plant.internal_step)."""
-    from .scenario import MAX_DEFAULT_INTERNAL_STEP, ScenarioError
-
     if duration is None and step is None:
         return scenario
     changes = {}
@@ -33,13 +38,6 @@ def with_timing(scenario, duration=None, step=None):
     return dataclasses.replace(scenario, **changes)
 
 
-def write_json_atomic(path, obj) -> None:
-    """Writes JSON to a temporary file in the same directory, then renames it into place."""
-    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
-        json.dump(obj, f, indent=1, allow_nan=True)
-        f.write("\n")
-
-
 def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                  summary_path=None, duration=None, step=None, progress=False,
                  fmu_path=None, log_metadata=None, summary_extra=None) -> dict:
@@ -48,41 +46,52 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
     plant: "fleet" | "per-body" | a Plant instance (closed by the caller);
     controller: "hybrid" | "gradient" | a controller instance. log_path: MCAP written
     (streamed) there; summary_path: summary JSON written atomically. log_metadata adds to (or
-    overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C the run stops
-    cleanly, the log is finished and the summary has "interrupted": true.
+    overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C or SIGTERM the
+    run stops cleanly, the log is finished and the summary has "interrupted": true. A run that
+    fails (an exception) removes its log: no output is better than one that looks whole.
     """
-    from .master import Master, make_controller
-    from .mcaplog import McapLogger
-    from .plant import make_plant
-    from .scenario import Scenario, load_scenario
-
     if not isinstance(scenario, Scenario):
         scenario = load_scenario(scenario)
     scenario = with_timing(scenario, duration, step)
     own_plant = isinstance(plant, str)
     plant_kind = plant if own_plant else type(plant).__name__
     ctrl = make_controller(controller, scenario) if isinstance(controller, str) else controller
-    ctrl_kind = controller if isinstance(controller, str) else (
-        "hybrid" if getattr(controller, "hybrid", True) else "gradient")
+    ctrl = networked(scenario, ctrl)  # the law per agent over the [network] links, if any
+    ctrl_kind = law_name(ctrl)
     p = make_plant(plant, scenario, fmu_path) if own_plant else plant
     logger = None
+    failed = False
     try:
-        if log_path is not None:
-            md = getattr(p, "model_description", None)
-            logger = McapLogger(log_path, scenario, controller=ctrl_kind,
-                                model_description=md() if md is not None else None,
-                                extra_metadata={"plant": plant_kind, **(log_metadata or {})})
-        master = Master(scenario, p, ctrl, logger)
-        master.controller_kind = ctrl_kind
+        # A signal while the log and the master are set up stops the run at its first step
+        # (with a finished log and a summary), rather than somewhere inside the set-up.
+        requested = []
+        with signals.catching(lambda: requested.append(True)):
+            if log_path is not None:
+                md = getattr(p, "model_description", None)
+                logger = McapLogger(log_path, scenario, controller=ctrl_kind,
+                                    model_description=md() if md is not None else None,
+                                    extra_metadata={"plant": plant_kind, **(log_metadata or {})})
+            master = Master(scenario, p, ctrl, logger)
+        if requested:
+            master.request_stop()
         summary = master.run(scenario.n_steps(), progress=progress)
+    except Exception:
+        failed = True
+        raise
     finally:
         try:
             if logger is not None:
-                logger.close()
+                logger.close(discard=failed)
+        except OSError:
+            if not failed:
+                raise
         finally:
             if own_plant:
                 p.close()
     summary["plant"] = plant_kind
+    net_stats = getattr(ctrl, "network_stats", None)
+    if net_stats is not None:
+        summary["network"] = net_stats()
     summary.update(summary_extra or {})
     if log_path is not None:
         summary["log"] = str(log_path)

@@ -16,21 +16,30 @@ options. Samples are numbered 0, 1, 2, …:
   Sample i draws from ``numpy.random.default_rng(SeedSequence(seed, spawn_key=(i,)))``, so it
   does not depend on the executor, the chunking or the number of samples.
 
-One sample runs the cosim master's step semantics in a small loop of its own (t = n·h; per
-step S = read; u, ev = controller.step_state(S, h); apply u; do_step), because the sweep needs
-two things `cosim.master.Master` has not: a cooperative wall-clock timeout, and one loaded FMU
-reused across samples (fmi2Reset + parameters + initialise instead of a new instance: ≈ 5 ms
-saved per sample). `tests/test_sweep_worker.py` checks the loop against `Master`.
+One sample is one run of `cosim.master.Master` (the only step loop), with its wall-clock budget
+as the timeout and one loaded FMU per process reused across samples through ``Master.restart``
+(fmi2Reset + parameters + initialise instead of a new instance: ≈ 5 ms saved per sample); this
+module keeps only the sample generator and the row a run records.
 """
 from __future__ import annotations
 
 import dataclasses
 import hashlib
 import json
+import os
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from controller import layout
+
+from ..controllers import make_controller
+from ..initial import critical_pose as _critical_pose
+from ..initial import poses_from_relative, random_state
+from ..master import Master
+from ..plants import FmuPlant
+from ..scenario import parse_scenario
 
 __all__ = ["SweepSpec", "COLUMNS", "KINDS", "n_adversarial", "describe_sample",
            "initial_state", "critical_pose", "run_sample", "run_chunk", "error_row",
@@ -115,8 +124,6 @@ def load_spec_scenario(spec: SweepSpec):
     k = (spec.scenario_text, spec.scenario_name, spec.scenario_path, tuple(spec.overrides))
     sc = _SCENARIOS.get(k)
     if sc is None:
-        from .scenario import parse_scenario
-
         sc = parse_scenario(spec.scenario_text, name=spec.scenario_name, path=spec.scenario_path,
                             overrides=spec.overrides)
         if len(_SCENARIOS) > 8:
@@ -144,110 +151,70 @@ def describe_sample(scenario, index: int) -> tuple[str, int, int]:
 
 def critical_pose(scenario, eigvec: int) -> np.ndarray:
     """X̄ = 𝒯(R_a(π, v), (I − R_a(π, v)) b/d), v the unit eigenvector ``eigvec`` (1..3) of W."""
-    from controller import se3
-
-    w = scenario.weighting
-    v = w.eig()[1][:, eigvec - 1]
-    # R_a(π, v) = I + sin(π) v^× + 2 (v^×)² = 2vvᵀ − I, written without the rounding of sin(π)
-    # ≈ 1.2e-16 (which the unstable critical point amplifies); se3.R_a(π, v) agrees to 1e-15.
-    R = 2.0 * np.outer(v, v) - np.eye(3)
-    return se3.T(R, (np.eye(3) - R) @ (w.b / w.d))
-
-
-def _poses_from_relative(graph, Xbar) -> np.ndarray:
-    """Absolute poses (N,4,4) with X_1 = I and X̄_k = X_j⁻¹ X_i on every edge k = (i, j),
-    walking the tree from agent 1."""
-    from controller import se3
-
-    N = graph.n
-    X = [None] * N
-    X[0] = np.eye(4)
-    adj = {a: [] for a in range(N)}
-    for k, (i, j) in enumerate(graph.edges):
-        adj[int(i)].append((int(j), k, True))    # i known -> X_j = X_i X̄_k⁻¹
-        adj[int(j)].append((int(i), k, False))   # j known -> X_i = X_j X̄_k
-    stack = [0]
-    while stack:
-        a = stack.pop()
-        for b, k, a_is_pos in adj[a]:
-            if X[b] is None:
-                X[b] = X[a] @ se3.inverse(Xbar[k]) if a_is_pos else X[a] @ Xbar[k]
-                stack.append(b)
-    return np.stack(X)
+    return _critical_pose(scenario.weighting, eigvec)
 
 
 def initial_state(scenario, spec: SweepSpec, index: int) -> np.ndarray:
     """S0 (N, 18) [p, R row-major, ξ] of sample ``index``."""
-    from controller import se3
-
     N, M = scenario.graph.n, scenario.graph.M
     kind, edge, e = describe_sample(scenario, index)
-    S0 = np.zeros((N, 18))
     if kind == "random":
         rng = np.random.default_rng(np.random.SeedSequence(int(spec.seed), spawn_key=(int(index),)))
-        R = se3.random_rotation(rng, N)
-        p = rng.uniform(-spec.position_box, spec.position_box, size=(N, 3))
-        d = rng.standard_normal((N, 6))
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        r = spec.velocity_ball * rng.uniform(0.0, 1.0, size=(N, 1)) ** (1.0 / 6.0)
-        S0[:, 0:3] = p
-        S0[:, 3:12] = R.reshape(N, 9)
-        S0[:, 12:18] = d * r
-        return S0
+        return random_state(rng, N, spec.position_box, spec.velocity_ball)
     Xc = critical_pose(scenario, e)
     Xbar = np.tile(np.eye(4), (M, 1, 1))
     if kind == "adversarial-edge":
         Xbar[edge - 1] = Xc
     else:
         Xbar[:] = Xc
-    X = _poses_from_relative(scenario.graph, Xbar)
-    S0[:, 0:3] = X[:, :3, 3]
-    S0[:, 3:12] = X[:, :3, :3].reshape(N, 9)
-    return S0
+    return layout.pack_state(poses_from_relative(scenario.graph, Xbar))
 
 
-# ----------------------------------------------------------------------------- FMU reuse
-_FMUS: dict = {}
+# ----------------------------------------------------------------------------- plant reuse
+_MASTERS: dict = {}
 
 
-def _plant(scenario, S0):
-    """A FleetFMU(N) initialised at S0: one per process and N, reset between samples."""
-    from plant_fmu.fast import FleetFMU
-
-    n = scenario.graph.n
-    fmu = _FMUS.get(n)
-    if fmu is None:
-        fmu = FleetFMU(n, instance_name="sweep")
-    else:
-        fmu.reset()
-    _FMUS.pop(n, None)  # not cached while in use: a failure below leaves no broken instance
-    try:
-        fmu.set_parameters(mass=scenario.masses, J=scenario.inertias, p0=S0[:, 0:3],
-                           R0=S0[:, 3:12].reshape(n, 3, 3), xi0=S0[:, 12:18],
-                           gravity=scenario.gravity, h_internal=float(scenario.internal_step))
-        fmu.initialize(0.0)
-    except BaseException:
-        fmu.close()
-        raise
-    return fmu
-
-
-def _release(scenario, fmu, ok: bool) -> None:
-    if ok:
+def _master(spec: SweepSpec, scenario, controller: str, S0) -> Master:
+    """A Master over a reusable FMU plant, one per process, scenario and law, restarted at S0
+    with θ(0) = 0; not cached while in use, so a failure leaves no broken instance behind."""
+    key = (id(scenario), controller, spec.sample_dt)
+    m = _MASTERS.pop(key, None)
+    if m is not None:
         try:
-            fmu.terminate()
-            _FMUS[scenario.graph.n] = fmu
-            return
-        except Exception:
-            pass
-    fmu.close()
+            m.restart(S0)
+            return m
+        except BaseException:
+            m.plant.close()
+            raise
+    if len(_MASTERS) > 8:
+        for old in _MASTERS.values():
+            old.plant.close()
+        _MASTERS.clear()
+    plant = FmuPlant(scenario.masses, scenario.inertias, S0, scenario.gravity,
+                     scenario.internal_step, instance_name="sweep")
+    try:
+        ctrl = make_controller(controller, scenario)
+        ctrl.reset(None)
+        return Master(scenario, plant, ctrl, sample_dt=spec.sample_dt, S0=S0)
+    except BaseException:
+        plant.close()
+        raise
+
+
+class _Hanging:
+    """Test-only fault: the plant of a hanging sample sleeps at every step."""
+
+    def __init__(self, plant):
+        self._plant = plant
+        self.n = plant.n
+        self.read, self.apply = plant.read, plant.apply
+
+    def advance(self, h):
+        time.sleep(0.002)
+        self._plant.advance(h)
 
 
 # ----------------------------------------------------------------------------- one sample
-class _Timeout(Exception):
-    pass
-
-
 def error_row(spec: SweepSpec, scenario, index: int, controller: str, status: str,
               message: str, wall: float = float("nan")) -> dict:
     if scenario is not None:
@@ -271,9 +238,6 @@ def run_sample(spec: SweepSpec, index: int, controller: str) -> dict:
     try:
         sc = load_spec_scenario(spec)
         return _run(spec, sc, index, controller, t_wall)
-    except _Timeout as exc:  # pragma: no cover - _run records timeouts itself
-        return error_row(spec, sc, index, controller, "timeout", str(exc),
-                         time.perf_counter() - t_wall)
     except Exception as exc:
         return error_row(spec, sc, index, controller, "error", f"{type(exc).__name__}: {exc}",
                          time.perf_counter() - t_wall)
@@ -287,126 +251,65 @@ def _fault(spec, index, controller):
 
 
 def _run(spec: SweepSpec, sc, index: int, controller: str, t_wall: float) -> dict:
-    from controller import GradientController, HybridController, V_bar, jump_bound
-
-    from ._metrics import metrics
-
     kind, edge, e = describe_sample(sc, index)
     fault = _fault(spec, index, controller)
     if fault == "raise":
         raise RuntimeError(f"injected fault in sample {index}")
     if fault == "exit":  # kills the worker process (tests the executor's isolation)
-        import os
-
         os._exit(3)
-    S0 = initial_state(sc, spec, index)
-    N, M = sc.graph.n, sc.graph.M
-    if controller == "hybrid":
-        ctrl = HybridController(sc.graph, sc.weighting, sc.design, sc.gains, theta0=np.zeros(M))
-    elif controller == "gradient":
-        ctrl = GradientController(sc.graph, sc.weighting, sc.gains)
-    else:
+    if controller not in ("hybrid", "gradient"):
         raise ValueError(f"controller must be \"hybrid\" or \"gradient\", got {controller!r}")
-    V0 = V_bar(sc.graph, sc.weighting, sc.design, sc.gains, S0, np.zeros(M), sc.inertia6)
-    bound = jump_bound(V0, sc.gains.k_X, sc.design.delta)
-
-    edges = np.ascontiguousarray(sc.graph.edges)
-    masses = np.ascontiguousarray(sc.masses, float)
-    J = np.ascontiguousarray(sc.inertias, float)
-    rot = np.zeros(M)
-    pos = np.zeros(M)
-    Ubuf = np.zeros(M)  # metrics() adds k_X ΣU to V̄, which the sweep does not use
-    quat = np.zeros((N, 4))
-
-    def errors(S):
-        _, ximax = metrics(S, edges, Ubuf, 1.0, masses, J, rot, pos, quat)
-        return float(rot.max()) if M else 0.0, float(pos.max()) if M else 0.0, float(ximax)
-
-    h = float(sc.step)
-    n_steps = sc.n_steps()
-    spl = max(1, int(round(spec.sample_dt / h)))
-    # The timeout counts from the end of the first block of steps: the one-time set-up of a
-    # fresh worker (loading the compiled kernels and the FMU) is not held against a sample.
-    deadline = None
-    hang = fault == "hang"
-
-    fmu = _plant(sc, S0)
+    S0 = initial_state(sc, spec, index)
+    m = _master(spec, sc, controller, S0)
+    plant = m.plant
+    if fault == "hang":
+        m.plant = _Hanging(plant)
     ok = False
     try:
-        read, apply, do_step, step = fmu.get_state, fmu.set_input, fmu.do_step, ctrl.step_state
-        times, rerr, perr = [], [], []
-        n_jumps = 0
-        t_last_jump = float("nan")
-        u0_max = float("nan")
-        status, message = "ok", ""
-        n = 0
-        while n < n_steps:
-            # a sampling step: errors at t_n (before the step, as the master's ticks)
-            S = read()
-            u, ev = step(S, h)
-            if ev:
-                n_jumps += len(ev)
-                t_last_jump = n * h
-            r, p, _ = errors(S)
-            if n == 0:
-                u0_max = float(np.abs(u).max())
-                rot0, pos0 = r, p
-            times.append(n * h)
-            rerr.append(r)
-            perr.append(p)
-            apply(u)
-            do_step(n * h, h)
-            n += 1
-            nxt = min(n_steps, -(-n // spl) * spl)
-            for k in range(n, nxt):
-                S = read()
-                u, ev = step(S, h)
-                if ev:
-                    n_jumps += len(ev)
-                    t_last_jump = k * h
-                apply(u)
-                do_step(k * h, h)
-            n = nxt
-            if hang:
-                time.sleep(0.02)
-            if deadline is None and spec.timeout is not None:
-                deadline = time.perf_counter() + float(spec.timeout)
-            elif deadline is not None and time.perf_counter() > deadline:
-                if n < n_steps:
-                    status = "timeout"
-                    message = (f"wall-clock timeout of {spec.timeout:g} s after {n * h:.6g} s "
-                               f"simulated")
-                break
-        S = read()
-        rf, pf, xf = errors(S)
-        if n_steps == 0:
-            rot0, pos0 = rf, pf
-            u0_max = float("nan")
-        times.append(n * h)
-        rerr.append(rf)
-        perr.append(pf)
+        # The budget counts from the end of the first block: the one-time set-up of a fresh
+        # worker (loading the compiled kernels and the FMU) is not held against a sample.
+        summary = m.run(sc.n_steps(), budget=spec.timeout)
         ok = True
     finally:
-        _release(sc, fmu, ok)
-
+        m.plant = plant
+        if ok:
+            _MASTERS[(id(sc), controller, spec.sample_dt)] = m
+        else:
+            plant.close()
+    if summary["interrupted"]:
+        raise KeyboardInterrupt
+    h = m.h
+    n = summary["steps"]
+    final = summary["final"]
+    series = list(m.samples)
+    if not series or series[-1]["t"] != final["t"]:
+        series.append(final)
+    status, message = "ok", ""
+    if summary.get("timed_out"):
+        status = "timeout"
+        message = f"wall-clock timeout of {spec.timeout:g} s after {n * h:.6g} s simulated"
+    rf, pf, xf = final["rot_err"], final["pos_err"], final["xi_max"]
+    rot0, pos0 = series[0]["rot_err"], series[0]["pos_err"]
+    u0_max = float(np.abs(m.u0).max()) if m.u0 is not None else float("nan")
     converged = status == "ok" and rf < spec.rot_tol and pf < spec.pos_tol
     t_conv = float("nan")
     if converged:
         # earliest sample time from which every later sample (and the end) is below tolerance
-        t_conv = times[-1]
-        for t, r, p in zip(reversed(times), reversed(rerr), reversed(perr)):
-            if r < spec.rot_tol and p < spec.pos_tol:
-                t_conv = t
+        t_conv = series[-1]["t"]
+        for smp in reversed(series):
+            if smp["rot_err"] < spec.rot_tol and smp["pos_err"] < spec.pos_tol:
+                t_conv = smp["t"]
             else:
                 break
-    theta_end = ctrl.theta if controller == "hybrid" else np.zeros(M)
+    theta_end = m.controller.theta
+    M = sc.graph.M
     return {
         "sample": int(index), "controller": controller, "kind": kind, "edge": int(edge),
         "eigvec": int(e), "status": status, "error": message, "converged": bool(converged),
-        "t_converge": float(t_conv), "n_jumps": int(n_jumps), "jump_bound": int(bound),
-        "V0": float(V0), "t_last_jump": float(t_last_jump), "rot_err0": float(rot0),
-        "pos_err0": float(pos0), "u0_max": float(u0_max), "rot_err": float(rf),
-        "pos_err": float(pf), "xi_max": float(xf),
+        "t_converge": float(t_conv), "n_jumps": len(m.jumps), "jump_bound": int(m.jump_bound),
+        "V0": float(m.V0), "t_last_jump": float(m.jumps[-1]["t"]) if m.jumps else float("nan"),
+        "rot_err0": float(rot0), "pos_err0": float(pos0), "u0_max": u0_max,
+        "rot_err": float(rf), "pos_err": float(pf), "xi_max": float(xf),
         "theta_max": float(np.abs(theta_end).max()) if M else 0.0,
         "sim_time": float(n * h), "steps": int(n), "wall_time": time.perf_counter() - t_wall,
     }

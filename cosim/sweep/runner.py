@@ -1,10 +1,10 @@
-"""Sub-commands `sweep` and `sweep-report`: evidence of global convergence at scale, on Dask.
+"""The sweep driver: evidence of global convergence at scale, on Dask (`se3sync sweep`).
 
 `se3sync sweep SCENARIO --samples K --seed S --out results.parquet` runs the scenario from the
 3M + 3 adversarial initial conditions (the undesired critical points) PLUS K seeded random ones,
 with the hybrid law and (unless --no-baseline) the gradient-only baseline, on a Dask local
 cluster (default), a remote scheduler (--scheduler) or in-process (--workers 0). See
-cosim/SWEEP.md. Heavy imports (dask, pyarrow, matplotlib) happen inside the handlers.
+cosim/sweep/SWEEP.md. Dask and pyarrow are imported where they are used (optional extra `sweep`).
 
 Output format. Parquet is the default and the recommended one: typed columns (int64, float64
 with NaN, bool, string) that read back exactly, schema metadata that records what the rows
@@ -21,19 +21,25 @@ Parquet reader; its types are restored from the known schema when it is read bac
 from __future__ import annotations
 
 import json
+import logging
 import math
-import os
-import sys
+import signal
+import threading
 import time
 from pathlib import Path
 
+from tqdm import tqdm
+
 from controller.errors import Se3SyncError
 
-from ._files import atomic_path
+from ..controllers import law_names
+from ..files import atomic_path, write_json_atomic
+from ..scenario import load_scenario
+from .spec import COLUMNS, SweepSpec, error_row, load_spec_scenario, n_adversarial, run_chunk
 
-__all__ = ["register", "SweepError", "run_sweep", "read_results", "write_results", "make_spec"]
+__all__ = ["SweepError", "run_sweep", "read_results", "write_results", "make_spec"]
 
-CONTROLLERS = ("hybrid", "gradient")
+CONTROLLERS = law_names()
 SINGLE_RETRIES = 1  # extra tries of a single sample whose task failed (e.g. its worker died)
 
 
@@ -42,96 +48,14 @@ class SweepError(Se3SyncError):
 
 
 # ----------------------------------------------------------------------------- CLI
-def register(sub) -> None:
-    p = sub.add_parser(
-        "sweep", help="run many seeded co-simulations (random + critical-point initial "
-                      "conditions) on Dask and record convergence",
-        description="Run the scenario from the 3M+3 adversarial initial conditions (every "
-                    "edge, then all edges, on the undesired critical points of each eigenvector "
-                    "of W) and K seeded random ones (Haar rotations, positions in a box, body "
-                    "velocities in a ball, θ(0) = 0), with the hybrid law and the gradient-only "
-                    "baseline, for the scenario's duration each. Rows are written to --out "
-                    "incrementally; a rerun skips the samples already there. Exit codes: 0 ok, "
-                    "2 bad input, 130 interrupted (finished rows kept).")
-    p.add_argument("scenario", help="scenario TOML file (its [initial] table is ignored)")
-    p.add_argument("--samples", type=int, required=True, metavar="K",
-                   help="number of random samples (the 3M+3 adversarial ones come in addition)")
-    p.add_argument("--seed", type=int, default=0, metavar="S",
-                   help="seed of the generator; sample i uses SeedSequence(S, spawn_key=(i,)) "
-                        "(default 0)")
-    p.add_argument("--out", required=True, metavar="RESULTS.parquet|.csv",
-                   help="output file; Parquet (recommended) or CSV from the suffix")
-    p.add_argument("--scheduler", metavar="tcp://HOST:8786",
-                   help="use a running Dask scheduler instead of a local cluster")
-    p.add_argument("--workers", type=int, metavar="W",
-                   help="local cluster size (one process, one thread each; default: the number "
-                        "of cores); 0 runs in this process without Dask")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY.PATH=VALUE",
-                   help="override a scenario value (a TOML value), repeatable")
-    p.add_argument("--timeout", type=float, metavar="S",
-                   help="wall-clock limit per run in seconds, counted after its first 0.1 s "
-                        "of simulated time (recorded as status timeout)")
-    p.add_argument("--no-baseline", action="store_true",
-                   help="run the hybrid law only (no gradient-only baseline)")
-    p.add_argument("--position-box", type=float, default=1.0, metavar="L",
-                   help="random positions uniform in [-L, L]^3 m (default 1)")
-    p.add_argument("--velocity-ball", type=float, default=0.5, metavar="R",
-                   help="random body velocities ξ = [ω; v] uniform in the 6-ball of radius R "
-                        "(default 0.5)")
-    p.add_argument("--rot-tol", type=float, default=1e-2, metavar="TOL",
-                   help="converged: max_k ‖I − R̄_k‖_F < TOL at the end (default 1e-2)")
-    p.add_argument("--pos-tol", type=float, default=1e-2, metavar="TOL",
-                   help="converged: max_k ‖p̄_k‖ < TOL m at the end (default 1e-2)")
-    p.add_argument("--sample-dt", type=float, default=0.1, metavar="S",
-                   help="simulated interval between error samples for the time to converge "
-                        "(default 0.1 s)")
-    p.add_argument("--chunk", type=int, metavar="C",
-                   help="samples per Dask task (default: automatic, ≤ 16, ≥ 4 tasks per worker)")
-    p.add_argument("--flush-every", type=float, default=10.0, metavar="S",
-                   help="rewrite the output at most every S seconds (default 10)")
-    p.add_argument("--retry-failed", action="store_true",
-                   help="on resume, rerun the samples recorded as error or timeout")
-    p.set_defaults(func=_cmd_sweep)
-
-    p = sub.add_parser(
-        "sweep-report", help="plot and summarise sweep results (convergence rate with Wilson "
-                             "CI, time to converge, jumps against their bound)",
-        description="Read a results file of `se3sync sweep`, print a short summary and plot "
-                    "the convergence rate per kind (random / adversarial) and controller with "
-                    "95%% Wilson intervals, the time to converge, and the jump counts against "
-                    "⌈V̄(0)/(k_X δ)⌉.")
-    p.add_argument("results", help="RESULTS.parquet or .csv written by `se3sync sweep`")
-    p.add_argument("-o", "--output", required=True, metavar="REPORT.png",
-                   help="output figure (png, pdf or svg from the suffix)")
-    p.add_argument("--json", metavar="SUMMARY.json", help="also write the summary as JSON")
-    p.set_defaults(func=_cmd_report)
-
-
 def _bad(option: str, reason: str):
     raise SweepError(f"{option}: {reason}")
-
-
-def _check_out_path(path: str, option: str, suffixes) -> Path:
-    p = Path(path)
-    if p.suffix.lower() not in suffixes:
-        _bad(option, f"must end in {' or '.join(suffixes)}, got {path!r}")
-    d = p.parent if str(p.parent) else Path(".")
-    if not d.is_dir():
-        _bad(option, f"directory {str(d)!r} does not exist")
-    if not os.access(d, os.W_OK):
-        _bad(option, f"directory {str(d)!r} is not writable")
-    if p.exists() and p.is_dir():
-        _bad(option, f"{path!r} is a directory")
-    return p
 
 
 def make_spec(scenario_path, overrides=(), *, seed=0, samples=0, position_box=1.0,
               velocity_ball=0.5, rot_tol=1e-2, pos_tol=1e-2, sample_dt=0.1, timeout=None):
     """Validates the options (SweepError naming the option) and the scenario (ScenarioError);
     returns (spec, scenario)."""
-    from .scenario import load_scenario
-    from .sweep_worker import SweepSpec
-
     def finite(x):
         return isinstance(x, (int, float)) and math.isfinite(x)
 
@@ -160,72 +84,9 @@ def make_spec(scenario_path, overrides=(), *, seed=0, samples=0, position_box=1.
     return spec, sc
 
 
-def _cmd_sweep(args) -> int:
-    if args.workers is not None and args.workers < 0:
-        _bad("--workers", f"must be >= 0, got {args.workers}")
-    if args.workers is not None and args.scheduler:
-        _bad("--workers", "cannot be combined with --scheduler (the scheduler's workers run the "
-                          "samples)")
-    if args.scheduler is not None and "://" not in args.scheduler and ":" not in args.scheduler:
-        _bad("--scheduler", f"expected an address like tcp://HOST:8786, got {args.scheduler!r}")
-    if args.chunk is not None and args.chunk < 1:
-        _bad("--chunk", f"must be >= 1, got {args.chunk}")
-    if not (math.isfinite(args.flush_every) and args.flush_every >= 0):
-        _bad("--flush-every", f"must be a finite number >= 0, got {args.flush_every}")
-    out = _check_out_path(args.out, "--out", (".parquet", ".csv"))
-    spec, sc = make_spec(args.scenario, args.overrides, seed=args.seed, samples=args.samples,
-                         position_box=args.position_box, velocity_ball=args.velocity_ball,
-                         rot_tol=args.rot_tol, pos_tol=args.pos_tol, sample_dt=args.sample_dt,
-                         timeout=args.timeout)
-    ctrls = ("hybrid",) if args.no_baseline else CONTROLLERS
-    # refuse a mismatching existing file before starting a cluster
-    if out.exists():
-        read_results(out, spec=spec)
-    try:
-        import distributed  # noqa: F401
-        import pyarrow  # noqa: F401
-    except ImportError as exc:  # pragma: no cover
-        raise SweepError(f"sweep: needs the 'sweep' extra (pip install 'se3sync[sweep]'): {exc}")
-    if args.workers is None and args.scheduler is None:
-        workers = os.cpu_count() or 1
-    else:
-        workers = args.workers
-    res = run_sweep(spec, out, controllers=ctrls, workers=workers, scheduler=args.scheduler,
-                    chunk=args.chunk, flush_every=args.flush_every,
-                    retry_failed=args.retry_failed, progress=sys.stderr.isatty())
-    c = res["counts"]
-    print(f"{sc.name}: {res['total']} runs ({res['n_adversarial']} adversarial + "
-          f"{spec.n_random} random samples × {len(ctrls)} controller(s)); skipped "
-          f"{res['skipped']} already in {out}, ran {res['ran']} in {res['wall_time']:.3g} s "
-          f"on {res['executor']}; ok {c.get('ok', 0)}, error {c.get('error', 0)}, "
-          f"timeout {c.get('timeout', 0)}", file=sys.stderr)
-    if res["interrupted"]:
-        print(f"se3sync sweep: interrupted; {res['rows']} rows kept in {out} (rerun to resume)",
-              file=sys.stderr)
-        return 130
-    return 0
-
-
-def _cmd_report(args) -> int:
-    p = Path(args.results)
-    if not p.is_file():
-        _bad("results", f"no such file: {args.results!r}")
-    _check_out_path(args.output, "--output", (".png", ".pdf", ".svg"))
-    if args.json:
-        _check_out_path(args.json, "--json", (".json",))
-    from .sweep_report import report
-
-    summary = report(p, args.output, json_path=args.json)
-    print(summary["text"])
-    print(f"wrote {args.output}" + (f" and {args.json}" if args.json else ""), file=sys.stderr)
-    return 0
-
-
 # ----------------------------------------------------------------------------- results I/O
 def _schema(meta: dict | None = None):
     import pyarrow as pa
-
-    from .sweep_worker import COLUMNS
 
     types = {"int": pa.int64(), "float": pa.float64(), "bool": pa.bool_(), "str": pa.string()}
     md = None if meta is None else {b"se3sync.sweep": json.dumps(meta, sort_keys=True).encode()}
@@ -241,8 +102,6 @@ def write_results(path, rows, meta: dict) -> None:
     directory, then os.replace."""
     import pyarrow as pa
 
-    from .sweep_worker import COLUMNS
-
     path = Path(path)
     rows = sorted(rows, key=lambda r: (r["sample"], CONTROLLERS.index(r["controller"])
                                        if r["controller"] in CONTROLLERS else 9))
@@ -250,8 +109,6 @@ def write_results(path, rows, meta: dict) -> None:
     table = pa.Table.from_pydict({c: [r[c] for r in rows] for c in COLUMNS}, schema=schema)
     csv = path.suffix.lower() == ".csv"
     if csv:
-        from .api import write_json_atomic
-
         write_json_atomic(_meta_path(path), meta)
     with atomic_path(path) as tmp:
         if csv:
@@ -268,8 +125,6 @@ def read_results(path, spec=None, option="--out"):
     """(rows: list of dicts, meta: dict). With a SweepSpec, refuses (SweepError naming --out) a
     file written for other settings (the spec's key_dict)."""
     import pyarrow as pa
-
-    from .sweep_worker import COLUMNS
 
     path = Path(path)
     try:
@@ -330,8 +185,6 @@ def run_sweep(spec, out, *, controllers=CONTROLLERS, workers=None, scheduler=Non
     ``workers`` = W ≥ 1 (a LocalCluster of W processes, one thread each) or 0 (in-process,
     no Dask). ``stop_after``: test hook, stop (as if interrupted) after that many new rows.
     """
-    from .sweep_worker import error_row, load_spec_scenario, n_adversarial, run_chunk
-
     out = Path(out)
     sc = load_spec_scenario(spec)
     n_adv = n_adversarial(sc)
@@ -373,8 +226,6 @@ def run_sweep(spec, out, *, controllers=CONTROLLERS, workers=None, scheduler=Non
 
     bar = None
     if progress and todo:
-        from tqdm import tqdm
-
         bar = tqdm(total=len(todo), unit="run", desc=spec.scenario_name, mininterval=0.5)
 
     def take(new_rows):
@@ -419,11 +270,7 @@ def run_sweep(spec, out, *, controllers=CONTROLLERS, workers=None, scheduler=Non
 
 
 def _run_dask(spec, todo, take, error_row, sc, stats, *, client, scheduler, workers, chunk):
-    import logging
-
     from distributed import Client, LocalCluster, as_completed
-
-    from .sweep_worker import run_chunk
 
     cluster = None
     own_client = client is None
@@ -439,9 +286,6 @@ def _run_dask(spec, todo, take, error_row, sc, stats, *, client, scheduler, work
             else:
                 # The worker processes inherit "ignore SIGINT": Ctrl-C stops the sweep (this
                 # process writes the finished rows), not the workers with tracebacks.
-                import signal
-                import threading
-
                 main = threading.current_thread() is threading.main_thread()
                 old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None
                 try:

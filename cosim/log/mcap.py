@@ -9,6 +9,12 @@ metadata record's ``time_base``):
 - ``/lyapunov``  se3sync.Lyapunov: V̄ and k_X ΣU
 - ``/jumps``     se3sync.Jump: one message per jump, never decimated
 - ``/link/stats`` se3sync.LinkStats: link statistics of a hardware plant, 1 Hz (only if any)
+- ``/scene``     foxglove.SceneUpdate: bodies and graph edges, at ``scene_rate`` (cosim/foxglove.py)
+- ``/trail/agent_i`` foxglove.PosesInFrame: agent i's recent poses, at ``scene_rate``
+
+The foxglove.* channels carry Foxglove's published JSON schemas (cosim/foxglove_schemas/).
+A Foxglove layout is attached (``foxglove_layout.json``) and written beside the log
+(``LOG.layout.json``).
 
 The file is written in chunks as the run goes (the summary section only on close), so the
 messages of the complete chunks of a killed process stay readable by a streaming reader.
@@ -16,9 +22,21 @@ messages of the complete chunks of a killed process stay readable by a streaming
 from __future__ import annotations
 
 import json
+import os
 import time
+from pathlib import Path
 
+import numpy as np
+
+from mcap.records import Attachment, Channel, Message, Metadata
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
+
+from controller import __version__
+from controller.errors import Se3SyncError
+
+from ..files import atomic_path
+from . import foxglove as fg
 
 __all__ = ["McapLogger", "SCHEMAS", "read_log"]
 
@@ -117,6 +135,9 @@ JUMP = {
 LINK_STATS = {"title": "se3sync.LinkStats", "type": "object",
               "properties": {"timestamp": TIME}, "additionalProperties": True}
 
+# channels whose schema is Foxglove's published one (cosim/foxglove_schemas/), by type name
+_FOXGLOVE = {"/tf": "FrameTransforms", "/scene": "SceneUpdate"}
+
 SCHEMAS = {"/tf": FRAME_TRANSFORMS, "/edges": EDGES, "/agents": AGENTS, "/lyapunov": LYAPUNOV,
            "/jumps": JUMP, "/link/stats": LINK_STATS}
 
@@ -136,18 +157,24 @@ class McapLogger:
     ``McapLogger(path, scenario, controller="hybrid", model_description=None,
     chunk_size=256 KiB)``; call ``record(...)``, ``jump(...)``, ``link_stats(...)`` and finally
     ``close()`` (also a context manager).
+
+    ``scene_rate`` (Hz of simulated time, 0 = off) is the rate of the /scene and /trail
+    messages, ``trail_seconds`` the length of a trail and ``trail_rate`` (Hz) the spacing of its
+    kept poses (each message adds the current pose); ``layout_path`` is where the Foxglove
+    layout is written ("auto": beside the log as LOG.layout.json; None: not written).
     """
 
     def __init__(self, path, scenario, controller: str = "hybrid", model_description=None,
-                 chunk_size: int = 256 * 1024, extra_metadata: dict | None = None):
-        from controller import __version__
-
+                 chunk_size: int = 256 * 1024, extra_metadata: dict | None = None,
+                 scene_rate: float = 20.0, trail_seconds: float = 5.0, trail_rate: float = 5.0,
+                 layout_path="auto"):
         self.path = str(path)
         self._f = open(self.path, "wb")
         try:
             self._w = w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
             w.start(profile="", library=f"se3sync {__version__}")
             self._ch = {}
+            self._schema_ids = {}
             for topic in ("/tf", "/edges", "/agents", "/lyapunov", "/jumps"):
                 self._channel(topic)
             meta = {
@@ -165,6 +192,9 @@ class McapLogger:
                 "n_agents": str(scenario.graph.n),
                 "edges": json.dumps([list(e) for e in scenario.graph.edge_list]),
                 "created_unix": repr(time.time()),
+                "masses": json.dumps(np.asarray(scenario.masses, float).tolist()),
+                "inertias": json.dumps(np.asarray(scenario.inertias, float).tolist()),
+                "scene_rate": repr(float(scene_rate)),
             }
             if extra_metadata:
                 meta.update({str(k): str(v) for k, v in extra_metadata.items()})
@@ -174,6 +204,19 @@ class McapLogger:
                 w.add_attachment(create_time=time.time_ns(), log_time=0,
                                  name="modelDescription.xml", media_type="application/xml",
                                  data=data)
+            n, M = scenario.graph.n, scenario.graph.M
+            self._layout = fg.layout_json(n, M)
+            w.add_attachment(create_time=time.time_ns(), log_time=0, name="foxglove_layout.json",
+                             media_type="application/json", data=self._layout.encode())
+            self._scene = None
+            if scene_rate and scene_rate > 0:
+                self._scene = fg.SceneBuilder(
+                    [list(e) for e in scenario.graph.edge_list], np.asarray(scenario.inertias, float),
+                    np.asarray(scenario.masses, float),
+                    trail_len=max(1, int(round(trail_seconds * min(trail_rate, scene_rate)))))
+                self._channel(fg.SCENE)
+                for i in range(n):
+                    self._channel(f"{fg.TRAIL_PREFIX}{i + 1}")
         except BaseException:
             self._f.close()
             raise
@@ -187,11 +230,32 @@ class McapLogger:
                           for k, (a, b) in enumerate(scenario.graph.edge_list)]
         self._add = w.add_message
         self.counts = {}
+        self._scene_dt = round(1e9 / scene_rate) if scene_rate and scene_rate > 0 else 0
+        self._next_scene = 0
+        self._trail_dt = round(1e9 / trail_rate) if trail_rate and trail_rate > 0 else 0
+        self._next_trail = 0
+        self._jump_until = [-1] * scenario.graph.M  # edge k is drawn as jumping until this t_ns
+        self._trail_topics = [f"{fg.TRAIL_PREFIX}{i + 1}" for i in range(n)]
+        self._layout_path = None
+        if layout_path == "auto":
+            p = Path(self.path)
+            layout_path = p.with_name(p.name[:-5] if p.name.endswith(".mcap") else p.name)
+            layout_path = layout_path.with_name(layout_path.name + ".layout.json")
+        if layout_path is not None:
+            self._layout_path = Path(layout_path)
 
     def _channel(self, topic):
         if topic not in self._ch:
-            sid = self._w.register_schema(name=SCHEMAS[topic]["title"], encoding="jsonschema",
-                                          data=json.dumps(SCHEMAS[topic]).encode())
+            fox = _FOXGLOVE.get(topic) or ("PosesInFrame" if topic.startswith(fg.TRAIL_PREFIX)
+                                            else None)
+            if fox is not None:  # Foxglove's own schema, name and content as published
+                name, data = f"foxglove.{fox}", fg.schema_bytes(fox)
+            else:
+                name, data = SCHEMAS[topic]["title"], json.dumps(SCHEMAS[topic]).encode()
+            sid = self._schema_ids.get(name)
+            if sid is None:
+                sid = self._schema_ids[name] = self._w.register_schema(
+                    name=name, encoding="jsonschema", data=data)
             self._ch[topic] = self._w.register_channel(topic=topic, message_encoding="json",
                                                        schema_id=sid)
         return self._ch[topic]
@@ -227,8 +291,26 @@ class McapLogger:
             for i, (s, w) in enumerate(zip(Sl, ul)))
         self._msg("/agents", t_ns, f'{{"timestamp":{ts},"agents":[{ag}]}}')
         self._msg("/lyapunov", t_ns, f'{{"timestamp":{ts},"V":{r(V)},"kX_U":{r(kX_U)}}}')
+        if self._scene is not None and t_ns >= self._next_scene:
+            self._next_scene = t_ns + self._scene_dt
+            self.scene(t_ns, ts, S, quat, rot_err, jumped)
+
+    def scene(self, t_ns, ts, S, quat, rot_err, jumped):
+        """The /scene and /trail messages at t_ns (called by record at scene_rate). An edge is
+        drawn as jumping if it jumped at this record or within one scene period before it."""
+        ju = self._jump_until
+        jl = jumped.tolist()
+        jumping = [j or t_ns <= u for j, u in zip(jl, ju)]
+        self._msg("/scene", t_ns, self._scene.scene(ts, S, rot_err, jumping))
+        keep = t_ns >= self._next_trail
+        if keep:
+            self._next_trail = t_ns + self._trail_dt
+        for topic, m in zip(self._trail_topics, self._scene.trails(ts, S, quat, keep)):
+            self._msg(topic, t_ns, m)
 
     def jump(self, t_ns: int, t: float, edge: int, theta_before: float, theta_after: float, mu: float):
+        if 1 <= edge <= len(self._jump_until):
+            self._jump_until[edge - 1] = t_ns + self._scene_dt
         ts = {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
         self._msg("/jumps", t_ns, _dumps({"timestamp": ts, "t": t, "edge": edge,
                                           "theta_before": theta_before,
@@ -239,14 +321,26 @@ class McapLogger:
         ts = {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
         self._msg("/link/stats", t_ns, _dumps(dict(stats, timestamp=ts), default=float))
 
-    def close(self):
+    def close(self, discard: bool = False):
+        """Finishes the file (and writes the layout beside it); ``discard=True`` removes the
+        log instead: a run that failed leaves nothing that looks whole."""
         if self._closed:
             return
         self._closed = True
         try:
-            self._w.finish()
+            if not discard:
+                self._w.finish()
         finally:
             self._f.close()
+        if discard:
+            try:
+                os.unlink(self.path)
+            except OSError:
+                pass
+            return
+        if self._layout_path is not None:
+            with atomic_path(self._layout_path) as tmp:
+                Path(tmp).write_text(self._layout, encoding="utf-8")
 
     def __enter__(self):
         return self
@@ -263,10 +357,6 @@ def read_log(path) -> dict:
     torn tail (a killed run), yields every record before the tear. Raises Se3SyncError (one
     line) when the file is unreadable or is not an se3sync log.
     """
-    from controller.errors import Se3SyncError
-    from mcap.records import Attachment, Channel, Message, Metadata
-    from mcap.stream_reader import StreamReader
-
     out = {"metadata": None, "attachments": {}, "messages": {}, "truncated": False}
     channels = {}
     n_records = 0
@@ -285,7 +375,8 @@ def read_log(path) -> dict:
                     if topic is not None:
                         out["messages"].setdefault(topic, []).append((rec.log_time, json.loads(rec.data)))
                 elif isinstance(rec, Channel):
-                    channels[rec.id] = rec.topic
+                    if rec.message_encoding == "json":  # se3sync writes JSON only
+                        channels[rec.id] = rec.topic
                 elif isinstance(rec, Metadata):
                     if rec.name == "se3sync":
                         out["metadata"] = dict(rec.metadata)

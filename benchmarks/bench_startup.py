@@ -1,0 +1,63 @@
+"""Start-up time of the command line: `se3sync --help` and `se3sync check` on the paper scenario,
+optionally against another revision in the same run (interleaved, so load affects both alike).
+
+    python benchmarks/bench_startup.py [--against REV] [--repeat K]
+
+Reports the median wall time of K runs of each command (numba's on-disk cache warm: one untimed
+run first) and, with --against, the ratio new/old.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMANDS = {"--help": ["--help"], "check paper": ["check", "scenarios/paper_6uav.toml"]}
+
+
+def once(tree: Path, args) -> float:
+    t = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "cosim.cli", *args], cwd=tree, check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--against", metavar="REV", help="also time this revision (git worktree)")
+    ap.add_argument("--repeat", type=int, default=7)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        trees = {"this tree": ROOT}
+        if args.against:
+            old = Path(tmp) / "old"
+            subprocess.run(["git", "worktree", "add", "--detach", "-q", str(old), args.against],
+                           cwd=ROOT, check=True)
+            trees[args.against] = old
+        try:
+            for name, cmd in COMMANDS.items():
+                times = {k: [] for k in trees}
+                for tree in trees.values():
+                    once(tree, cmd)  # warm the numba cache and the file system
+                for _ in range(args.repeat):
+                    for k, tree in trees.items():
+                        times[k].append(once(tree, cmd))
+                med = {k: statistics.median(v) for k, v in times.items()}
+                line = ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in med.items())
+                if args.against:
+                    line += f"; ratio {med['this tree'] / med[args.against]:.2f}"
+                print(f"se3sync {name:12s} median of {args.repeat}: {line}")
+        finally:
+            if args.against:
+                subprocess.run(["git", "worktree", "remove", "--force", str(trees[args.against])],
+                               cwd=ROOT)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

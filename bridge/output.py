@@ -1,0 +1,316 @@
+"""Output profiles: how one vehicle's command travels (issue 14).
+
+A profile turns the bridge's per-vehicle controls c (the ``direct`` mapping's normalised wrench,
+c = clip((w + w_ff) ./ max_wrench, −1, 1), FRD, order τx τy τz fx fy fz; or rotor thrusts for
+``allocation``) into one MAVLink message, and back. The loopback vehicle decodes with the same
+functions, and `bridge.transport.QuantizedPlant` applies ``quantize`` (encode → the wire's
+rounding → decode) so lockstep HIL and the reference stay bit-identical.
+
+Profiles (``bridge.output``, or per vehicle in ``[[bridge.vehicle]]``):
+
+* ``actuator_control_target`` — SET_ACTUATOR_CONTROL_TARGET (#139), controls[0:6] as float32.
+  PX4 removed the message in v1.14; ArduPilot never implemented it. Kept for our loopback vehicle
+  and older PX4 offboard actuator setups. Lockstep stamp: time_usec = k·h.
+* ``do_set_actuator`` — COMMAND_LONG MAV_CMD_DO_SET_ACTUATOR (#187), param1–6 = controls. On
+  PX4 ≥ 1.14 it drives only outputs configured as "Peripheral via Actuator Set 1–6", never the
+  motors (servos, grippers). Kept for those and for the loopback vehicle. Lockstep stamp:
+  ``confirmation`` = k mod 256.
+* ``ardusub_manual_control`` — MANUAL_CONTROL (#69) to ArduSub in MANUAL mode. Axes, each
+  round(1000·c) in ±1000: x = fx (forward), y = fy (right), r = τz (yaw right), s = τy (pitch up)
+  and t = τx (roll right) with ``enabled_extensions`` bits 0 (s) and 1 (t) set; z is ArduSub's
+  throttle, 0…1000 with 500 neutral and > 500 up: z = round(500 − 500·c_fz) (FRD z is down).
+  Quantisation: 1e-3 of max_wrench per axis (5e-4·2 on z: 2e-3 of max fz). ArduSub: arm
+  (COMPONENT_ARM_DISARM, ``bridge.arm = true``), mode MANUAL (custom mode 19), joystick gain
+  JS_GAIN_DEFAULT = JS_GAIN_MAX = 1 so ±1000 reaches the full thruster range (ArduSub scales
+  the axes by the pilot gain), ACRO_YAW_P at its default (MANUAL scales yaw by it), the bridge's
+  HEARTBEAT at 1 Hz for the GCS fail-safe, MANUAL_CONTROL at the control rate (ArduSub's pilot
+  input fail-safe FS_PILOT_INPUT fires after FS_PILOT_TIMEOUT without it). ArduSub reads s and
+  t only in versions that implement the MANUAL_CONTROL extensions (check yours); its motor mix
+  then maps the six normalised axes to the thrusters, so ``max_wrench`` must be the wrench the
+  frame produces at ±1 per axis (from the thruster layout and thrust curve). Lockstep: MANUAL_CONTROL
+  has no time field, so the loopback vehicle steps once per MANUAL_CONTROL it receives, in order
+  ("lockstep by sequence"); the bridge never re-sends it (a re-send would be a second step), so
+  a lost packet is a lockstep timeout (exit 4). Real ArduSub has no lockstep with a GCS.
+* ``px4_attitude_thrust`` — SET_ATTITUDE_TARGET (#82) to PX4 in Offboard mode (attitude
+  control): ``thrust_body`` = c[3:6] (normalised FRD force, type_mask bit THRUST_BODY_SET = 32;
+  PX4's MAVLink receiver copies it into the attitude setpoint), body rates ignored, and the attitude
+  setpoint that realises the torque τ = c[0:3]·max_wrench[0:3] over one control period h:
+  with ω̇ = J⁻¹(τ − ω×Jω), R_d = R exp(w^), w = ω h + ½ ω̇ h² — the attitude reached after h
+  at constant angular acceleration, exact to O(h³) (the neglected terms are the change of ω×Jω
+  over the period and the commutator h³/12·ω×ω̇). The loopback vehicle inverts this exactly:
+  w = log(Rᵀ R_d), ω̇ = 2(w − ωh)/h², τ = J ω̇ + ω×Jω, using the very state (float32 q and ω)
+  the bridge used. PX4's own attitude controller does NOT realise τ: it tracks R_d with its
+  P attitude / PID rate loops (MC_ATT_*, MC_*RATE_*), so on a real PX4 the torque is whatever
+  its loops produce towards R_d; our law then relies on PX4's inner loop being much faster
+  than the synchronisation (time-scale separation). PX4 needs Offboard mode (setpoints streamed
+  at ≥ 2 Hz before and while switching, COM_OF_LOSS_T), arming, a fully actuated airframe
+  whose control allocation accepts a 3-D thrust (e.g. CA_AIRFRAME with tilted rotors) — a
+  standard multicopter ignores thrust_body x/y. Lockstep stamp: time_boot_ms = k·h in ms
+  (h must be a whole number of milliseconds).
+  pymavlink's common.xml (2.4.x) predates the ``thrust_body`` extension (float[3] after
+  type_mask), so `AttitudeTargetMessage` appends it to the payload itself and
+  `thrust_body_of` reads it from the packet.
+"""
+from __future__ import annotations
+
+import math
+import struct
+import time
+
+import numpy as np
+
+from .link import mavlink2
+
+M = mavlink2
+
+ACTUATOR_CONTROL_TARGET = "actuator_control_target"
+DO_SET_ACTUATOR = "do_set_actuator"
+ARDUSUB_MANUAL_CONTROL = "ardusub_manual_control"
+PX4_ATTITUDE_THRUST = "px4_attitude_thrust"
+PROFILES = (ACTUATOR_CONTROL_TARGET, DO_SET_ACTUATOR, ARDUSUB_MANUAL_CONTROL, PX4_ATTITUDE_THRUST)
+# profiles whose flight stack does its own allocation: they carry the normalised wrench
+WRENCH_PROFILES = (ARDUSUB_MANUAL_CONTROL, PX4_ATTITUDE_THRUST)
+
+THRUST_BODY_SET = 32   # ATTITUDE_TARGET_TYPEMASK_THRUST_BODY_SET (common.xml, newer than pymavlink's copy)
+RATES_IGNORE = (M.ATTITUDE_TARGET_TYPEMASK_BODY_ROLL_RATE_IGNORE | M.ATTITUDE_TARGET_TYPEMASK_BODY_PITCH_RATE_IGNORE
+                | M.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE)
+PX4_TYPE_MASK = RATES_IGNORE | THRUST_BODY_SET
+MANUAL_EXTENSIONS = 0b11     # enabled_extensions: bit 0 = s (pitch), bit 1 = t (roll)
+
+
+# ---------------------------------------------------------------------------- ArduSub MANUAL_CONTROL
+def _round_clip(x: float, lo: int, hi: int) -> int:
+    v = math.floor(x + 0.5)
+    return lo if v < lo else hi if v > hi else int(v)
+
+
+def manual_control_axes(c) -> tuple:
+    """Controls (6,) in [−1, 1] -> MANUAL_CONTROL (x, y, z, r, s, t)."""
+    return (_round_clip(1000.0 * c[3], -1000, 1000), _round_clip(1000.0 * c[4], -1000, 1000),
+            _round_clip(500.0 - 500.0 * c[5], 0, 1000), _round_clip(1000.0 * c[2], -1000, 1000),
+            _round_clip(1000.0 * c[1], -1000, 1000), _round_clip(1000.0 * c[0], -1000, 1000))
+
+
+def manual_control_controls(x, y, z, r, s, t, enabled_extensions=MANUAL_EXTENSIONS) -> np.ndarray:
+    """MANUAL_CONTROL axes -> controls (6,); s/t count only when their enable bit is set."""
+    c = np.zeros(6)
+    c[3] = x / 1000.0
+    c[4] = y / 1000.0
+    c[5] = (500.0 - z) / 500.0
+    c[2] = r / 1000.0
+    c[1] = s / 1000.0 if enabled_extensions & 1 else 0.0
+    c[0] = t / 1000.0 if enabled_extensions & 2 else 0.0
+    return c
+
+
+# ---------------------------------------------------------------------------- PX4 attitude + thrust
+def _qmul(a, b):
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw)
+
+
+def _qnorm(q):
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    return (q[0] / n, q[1] / n, q[2] / n, q[3] / n)
+
+
+def _qexp(w):
+    """Unit quaternion of the rotation vector w (exp of w^)."""
+    a = math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    if a < 1e-8:
+        s = 0.5 - a * a / 48.0
+        return _qnorm((1.0 - a * a / 8.0, s * w[0], s * w[1], s * w[2]))
+    s = math.sin(0.5 * a) / a
+    return (math.cos(0.5 * a), s * w[0], s * w[1], s * w[2])
+
+
+def _qlog(q):
+    """Rotation vector of a unit quaternion (shortest: |w| ≤ π)."""
+    if q[0] < 0.0:
+        q = (-q[0], -q[1], -q[2], -q[3])
+    v = math.sqrt(q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if v < 1e-12:
+        return (2.0 * q[1], 2.0 * q[2], 2.0 * q[3])
+    k = 2.0 * math.atan2(v, q[0]) / v
+    return (k * q[1], k * q[2], k * q[3])
+
+
+def _mv(J, v):
+    return (J[0][0] * v[0] + J[0][1] * v[1] + J[0][2] * v[2], J[1][0] * v[0] + J[1][1] * v[1] + J[1][2] * v[2],
+            J[2][0] * v[0] + J[2][1] * v[1] + J[2][2] * v[2])
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+class AttitudeThrust:
+    """The ``px4_attitude_thrust`` encoding for one vehicle: inertia J (FRD, kg·m²), control period
+    h (s), torque limits (N·m). Plain float arithmetic in a fixed order, so the bridge, the loopback
+    vehicle and the reference compute identical numbers."""
+
+    def __init__(self, J, h: float, max_torque):
+        J = np.asarray(J, dtype=np.float64).reshape(3, 3)
+        self.J = tuple(tuple(float(x) for x in row) for row in J)
+        self.Jinv = tuple(tuple(float(x) for x in row) for row in np.linalg.inv(J))
+        self.h = float(h)
+        self.max_torque = tuple(float(x) for x in max_torque)
+
+    def attitude_setpoint(self, tau, q, omega) -> tuple:
+        """R_d = R exp(w^), w = ω h + ½ ω̇ h², ω̇ = J⁻¹(τ − ω×Jω); q = R's quaternion (w-first)."""
+        h = self.h
+        om = (float(omega[0]), float(omega[1]), float(omega[2]))
+        gyro = _cross(om, _mv(self.J, om))
+        wd = _mv(self.Jinv, (tau[0] - gyro[0], tau[1] - gyro[1], tau[2] - gyro[2]))
+        w = tuple(om[i] * h + 0.5 * wd[i] * h * h for i in range(3))
+        return _qmul(_qnorm((float(q[0]), float(q[1]), float(q[2]), float(q[3]))), _qexp(w))
+
+    def torque(self, q_d, q, omega) -> tuple:
+        """The inverse: the torque whose constant-acceleration motion over h reaches q_d."""
+        h = self.h
+        qn = _qnorm((float(q[0]), float(q[1]), float(q[2]), float(q[3])))
+        qd = _qnorm((float(q_d[0]), float(q_d[1]), float(q_d[2]), float(q_d[3])))
+        w = _qlog(_qmul((qn[0], -qn[1], -qn[2], -qn[3]), qd))
+        om = (float(omega[0]), float(omega[1]), float(omega[2]))
+        wd = tuple(2.0 * (w[i] - om[i] * h) / (h * h) for i in range(3))
+        Jw = _mv(self.J, wd)
+        gyro = _cross(om, _mv(self.J, om))
+        return (Jw[0] + gyro[0], Jw[1] + gyro[1], Jw[2] + gyro[2])
+
+    def encode(self, c, wire) -> tuple:
+        """Controls (6,) and the wire state (13,) the bridge used -> (q_d, thrust_body), float64."""
+        mt = self.max_torque
+        tau = (c[0] * mt[0], c[1] * mt[1], c[2] * mt[2])
+        return self.attitude_setpoint(tau, wire[3:7], wire[7:10]), (float(c[3]), float(c[4]), float(c[5]))
+
+    def decode(self, q_d, thrust_body, wire) -> np.ndarray:
+        """(q_d, thrust_body) as received and the vehicle's wire state -> controls (6,) in [−1, 1]."""
+        tau = self.torque(q_d, wire[3:7], wire[7:10])
+        mt = self.max_torque
+        c = np.empty(6)
+        for i in range(3):
+            c[i] = min(1.0, max(-1.0, tau[i] / mt[i]))
+            c[3 + i] = min(1.0, max(-1.0, float(thrust_body[i])))
+        return c
+
+
+class AttitudeTargetMessage(M.MAVLink_set_attitude_target_message):
+    """SET_ATTITUDE_TARGET with the ``thrust_body`` extension (float[3] after type_mask), which
+    pymavlink's bundled common.xml lacks; the CRC extra is unchanged by extensions."""
+
+    def __init__(self, time_boot_ms, target_system, target_component, type_mask, q, thrust_body, thrust=0.0):
+        super().__init__(time_boot_ms, target_system, target_component, type_mask, q, 0.0, 0.0, 0.0, thrust)
+        self.thrust_body = [float(x) for x in thrust_body]
+
+    def pack(self, mav, force_mavlink1=False):
+        base = self.unpacker.pack(self.time_boot_ms, self.q[0], self.q[1], self.q[2], self.q[3],
+                                  self.body_roll_rate, self.body_pitch_rate, self.body_yaw_rate, self.thrust,
+                                  self.target_system, self.target_component, self.type_mask)
+        return self._pack(mav, self.crc_extra, base + struct.pack("<3f", *self.thrust_body),
+                          force_mavlink1=force_mavlink1)
+
+
+def thrust_body_of(m) -> tuple:
+    """``thrust_body`` of a received SET_ATTITUDE_TARGET (MAVLink 2: zeros truncated at the end)."""
+    buf = bytes(m.get_msgbuf())
+    n = buf[1]
+    payload = buf[10:10 + n] + bytes(max(0, 51 - n))
+    return struct.unpack_from("<3f", payload, 39)
+
+
+# ---------------------------------------------------------------------------- one vehicle's profile
+def f32(x: float) -> float:
+    return float(np.float32(x))
+
+
+class OutputProfile:
+    """Encoder/decoder of one vehicle's commands for profile ``name``."""
+
+    def __init__(self, name: str, *, h: float, J=None, max_wrench=None, group_mlx: int = 0,
+                 actuator_index_offset: int = 0):
+        if name not in PROFILES:
+            raise ValueError(f"unknown output profile {name!r}")
+        self.name = name
+        self.h = float(h)
+        self.h_us = int(round(self.h * 1e6))
+        self.h_ms = int(round(self.h * 1e3))
+        self.group_mlx = group_mlx
+        self.actuator_index_offset = actuator_index_offset
+        self.att = None
+        if name == PX4_ATTITUDE_THRUST:
+            self.att = AttitudeThrust(J if J is not None else np.eye(3), h, max_wrench[0:3])
+
+    @property
+    def resend_ok(self) -> bool:
+        """False when a repeated command cannot be told from the next one (lockstep by sequence)."""
+        return self.name != ARDUSUB_MANUAL_CONTROL
+
+    def stamp(self, k: int) -> int:
+        """The lockstep stamp of step k carried by the message."""
+        if self.name == ACTUATOR_CONTROL_TARGET:
+            return k * self.h_us
+        if self.name == DO_SET_ACTUATOR:
+            return k & 0xFF
+        if self.name == PX4_ATTITUDE_THRUST:
+            return (k * self.h_ms) & 0xFFFFFFFF
+        return 0
+
+    def message(self, mav, c, *, target: int, k: int, lockstep: bool, wire=None):
+        """The MAVLink message for controls c (6,) at step k (wire: the state the bridge used)."""
+        if self.name == ACTUATOR_CONTROL_TARGET:
+            t_us = k * self.h_us if lockstep else int(time.time() * 1e6)
+            return mav.set_actuator_control_target_encode(t_us, self.group_mlx, target, 1,
+                                                          [c[0], c[1], c[2], c[3], c[4], c[5], 0.0, 0.0])
+        if self.name == DO_SET_ACTUATOR:
+            return mav.command_long_encode(target, 1, M.MAV_CMD_DO_SET_ACTUATOR, k & 0xFF if lockstep else 0,
+                                           c[0], c[1], c[2], c[3], c[4], c[5], float(self.actuator_index_offset))
+        if self.name == ARDUSUB_MANUAL_CONTROL:
+            x, y, z, r, s, t = manual_control_axes(c)
+            return mav.manual_control_encode(target, x, y, z, r, 0, 0, MANUAL_EXTENSIONS, s, t)
+        q_d, tb = self.att.encode(c, wire)
+        tb_ms = (k * self.h_ms) & 0xFFFFFFFF if lockstep else \
+            int(time.monotonic() * 1000) & 0xFFFFFFFF
+        return AttitudeTargetMessage(tb_ms, target, 1, PX4_TYPE_MASK, list(q_d), list(tb))
+
+    def decode(self, m, wire=None):
+        """A received command -> controls (6,) (NaN entries of DO_SET_ACTUATOR: "no change", left
+        NaN for the caller), or None if the message is not this profile's."""
+        mid = m.get_msgId()
+        if self.name == ACTUATOR_CONTROL_TARGET and mid == M.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET:
+            return np.asarray(m.controls[:6], dtype=np.float64)
+        if self.name == DO_SET_ACTUATOR and mid == M.MAVLINK_MSG_ID_COMMAND_LONG:
+            return np.array([m.param1, m.param2, m.param3, m.param4, m.param5, m.param6])
+        if self.name == ARDUSUB_MANUAL_CONTROL and mid == M.MAVLINK_MSG_ID_MANUAL_CONTROL:
+            if not (0 <= m.z <= 1000 and all(-1000 <= v <= 1000 for v in (m.x, m.y, m.r, m.s, m.t))):
+                return np.full(6, np.nan)
+            return manual_control_controls(m.x, m.y, m.z, m.r, m.s, m.t, m.enabled_extensions)
+        if self.name == PX4_ATTITUDE_THRUST and mid == M.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET:
+            q = m.q
+            tb = thrust_body_of(m)
+            vals = list(q) + list(tb)
+            if not all(math.isfinite(v) for v in vals) or not (m.type_mask & THRUST_BODY_SET) \
+                    or abs(math.sqrt(sum(v * v for v in q)) - 1.0) > 1e-3:
+                return np.full(6, np.nan)
+            return self.att.decode(q, tb, wire)
+        return None
+
+    def quantize(self, c, wire=None) -> np.ndarray:
+        """What the vehicle decodes from controls c (6,): encode, the wire's rounding, decode."""
+        if self.name in (ACTUATOR_CONTROL_TARGET, DO_SET_ACTUATOR):
+            return np.array([f32(x) for x in c])
+        if self.name == ARDUSUB_MANUAL_CONTROL:
+            return manual_control_controls(*manual_control_axes(c))
+        q_d, tb = self.att.encode(c, wire)
+        return self.att.decode([f32(x) for x in q_d], [f32(x) for x in tb], wire)
+
+
+def profiles_for(config, scenario) -> list:
+    """One OutputProfile per vehicle of a BridgeConfig (J in FRD: `transport.vehicle_setup`)."""
+    from .transport import vehicle_setup
+
+    _, J, _, _ = vehicle_setup(scenario, config.world_frame)
+    return [OutputProfile(v.output, h=scenario.step, J=J[i], max_wrench=v.mapping.max_wrench,
+                          group_mlx=config.group_mlx, actuator_index_offset=config.actuator_index_offset)
+            for i, v in enumerate(config.vehicles)]

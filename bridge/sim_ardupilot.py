@@ -1,0 +1,210 @@
+"""`se3sync vehicle --sim-protocol ardupilot`: the plant as the physics backend of ArduPilot's
+JSON SITL interface (libraries/SITL/examples/JSON/readme.md; run ArduPilot SITL with
+``--model JSON:127.0.0.1``).
+
+Transport: UDP; vehicle i listens on ``port + 10·(i − 1)`` (default 9002; SITL instance I uses
+9002 + 10·I) and replies to whatever address the servo packet came from.
+
+In (binary, little endian): ``uint16 magic = 18458, uint16 frame_rate, uint32 frame_count,
+uint16 pwm[16]`` (40 bytes), or magic 29569 with pwm[32] (72 bytes, SERVO_32_ENABLE = 1).
+Each new frame advances the body by 1/frame_rate s; a repeated frame_count re-sends the last
+reply without stepping (SITL re-sends after 10 s of silence); a smaller frame_count means SITL
+restarted: the vehicle is reset to its initial state; a gap counts lost frames and steps once.
+PWM -> controls: unidirectional rotors (allocation, not reversible) c = (pwm − 1000)/1000 ∈ [0, 1]
+(ArduPilot's motor range); otherwise c = (pwm − 1500)/500 ∈ [−1, 1]; channels 1–6 are used.
+
+Out (text, one JSON object preceded and terminated by "\\n"): ``timestamp`` (s, physics time),
+``imu.gyro`` (rad/s, FRD), ``imu.accel_body`` (m/s², FRD specific force), ``position`` (m, NED),
+``velocity`` (m/s, NED), ``quaternion`` (w, x, y, z: FRD -> NED). The IMU has the same white noise
+as the PX4 interface (`bridge.sim_body.Noise`). Until a motor PWM exceeds 1000 µs (allocation) —
+ArduPilot spins armed motors at MOT_SPIN_ARM — the body is held on "the ground" (`sim_body`).
+Malformed packets (size, magic, frame_rate 0) are counted and dropped without a reply.
+"""
+from __future__ import annotations
+
+import json
+import select
+import socket
+import struct
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from .config import default_config
+from .mapping import ALLOCATION
+from .sim_body import Noise, bodies_from_scenario
+
+MAGIC16, MAGIC32 = 18458, 29569
+PKT16, PKT32 = struct.Struct("<HHI16H"), struct.Struct("<HHI32H")
+DEFAULT_PORT = 9002
+
+
+def parse_servo_packet(data: bytes):
+    """-> (frame_rate, frame_count, pwm tuple) or None if the packet is not a valid servo packet."""
+    if len(data) == PKT16.size:
+        magic, rate, count, *pwm = PKT16.unpack(data)
+        ok = magic == MAGIC16
+    elif len(data) == PKT32.size:
+        magic, rate, count, *pwm = PKT32.unpack(data)
+        ok = magic == MAGIC32
+    else:
+        return None
+    if not ok or rate == 0:
+        return None
+    return rate, count, tuple(pwm)
+
+
+def pwm_to_controls(pwm, unidirectional: bool) -> np.ndarray:
+    p = np.asarray(pwm[:6], dtype=np.float64)
+    if unidirectional:
+        return np.clip((p - 1000.0) / 1000.0, 0.0, 1.0)
+    return np.clip((p - 1500.0) / 500.0, -1.0, 1.0)
+
+
+class _JsonLink:
+    def __init__(self, make_body, host, port, unidirectional):
+        self.make_body = make_body
+        self.body = make_body()
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind((host, port))
+        self.sock.setblocking(False)
+        self.port = self.sock.getsockname()[1]
+        self.unidirectional = unidirectional
+        self.last_count = None
+        self.last_reply = None
+
+
+class ArduPilotJsonServer:
+    """Serves each scenario vehicle as one ArduPilot JSON physics backend (lockstep by frame)."""
+
+    def __init__(self, scenario, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, noise: bool = True,
+                 seed: int = 0):
+
+        cfg = scenario.bridge or default_config(scenario.n_agents)
+        self.scenario = scenario
+        self.noise_on, self.seed = noise, seed
+        self.noise = None
+        self.counters = {"received": 0, "sent": 0, "malformed": 0, "duplicates": 0, "lost_frames": 0,
+                         "resets": 0, "steps": 0}
+        self._stop = threading.Event()
+        self.ready = threading.Event()
+        self.links: list[_JsonLink] = []
+        n = scenario.n_agents
+        self._bodies = bodies_from_scenario(scenario, "apsim")
+        try:
+            for i in range(n):
+                spec = cfg.mappings[i]
+                uni = spec.kind == ALLOCATION and not spec.allocation.reversible
+                self.links.append(_JsonLink(self._factory(i), host, port + 10 * i if port else 0, uni))
+        except OSError:
+            self.close()
+            raise
+
+    def _factory(self, i):
+        def make():
+            if self._bodies[i] is not None:   # the first body was built with the others
+                b, self._bodies[i] = self._bodies[i], None
+                return b
+            return bodies_from_scenario(_One(self.scenario, i), "apsim")[0]
+        return make
+
+    # ------------------------------------------------------------------ one packet
+    def reply(self, ln: _JsonLink, h: float) -> bytes:
+        b = ln.body
+        if self.noise is None or abs(self.noise.h - h) > 1e-12:
+            self.noise = Noise(h, self.noise_on, self.seed)
+        nz = self.noise
+        d = {"timestamp": b.t,
+             "imu": {"gyro": [float(x) for x in nz.add(b.omega, nz.gyro)],
+                     "accel_body": [float(x) for x in nz.add(b.specific_force(), nz.accel)]},
+             "position": [float(x) for x in b.S[0:3]],
+             "velocity": [float(x) for x in b.v_ned],
+             "quaternion": [float(x) for x in b.q]}
+        return ("\n" + json.dumps(d, separators=(",", ":")) + "\n").encode()
+
+    def handle(self, ln: _JsonLink, data: bytes, addr) -> None:
+        pkt = parse_servo_packet(data)
+        if pkt is None:
+            self.counters["malformed"] += 1
+            return
+        self.counters["received"] += 1
+        rate, count, pwm = pkt
+        h = 1.0 / rate
+        if ln.last_count is not None and count == ln.last_count:
+            self.counters["duplicates"] += 1
+        else:
+            if ln.last_count is not None and count < ln.last_count:
+                self.counters["resets"] += 1      # SITL restarted: start again from the initial state
+                ln.body.close()
+                ln.body = ln.make_body()
+            elif ln.last_count is not None and count > ln.last_count + 1:
+                self.counters["lost_frames"] += count - ln.last_count - 1
+            c = pwm_to_controls(pwm, ln.unidirectional)
+            if ln.body.held and (not ln.unidirectional or np.any(np.asarray(pwm[:6]) > 1000)):
+                ln.body.release()
+            ln.body.step(c, h)
+            self.counters["steps"] += 1
+            ln.last_count = count
+            ln.last_reply = self.reply(ln, h)
+        try:
+            ln.sock.sendto(ln.last_reply, addr)
+            self.counters["sent"] += 1
+        except OSError:
+            pass
+
+    # ------------------------------------------------------------------ loop
+    def stop(self) -> None:
+        self._stop.set()
+
+    def run(self, duration: float | None = None) -> dict:
+        end = None if duration is None else time.monotonic() + duration
+        by_fd = {ln.sock.fileno(): ln for ln in self.links}
+        self.ready.set()
+        try:
+            while not self._stop.is_set():
+                if end is not None and time.monotonic() >= end:
+                    break
+                r, _, _ = select.select(list(by_fd), [], [], 0.05)
+                for fd in r:
+                    ln = by_fd[fd]
+                    for _ in range(64):
+                        try:
+                            data, addr = ln.sock.recvfrom(2048)
+                        except (BlockingIOError, InterruptedError):
+                            break
+                        except OSError:
+                            self.counters["malformed"] += 1
+                            break
+                        self.handle(ln, data, addr)
+        except KeyboardInterrupt:
+            pass
+        return self.stats()
+
+    def stats(self) -> dict:
+        return dict(self.counters, ports=[ln.port for ln in self.links])
+
+    def close(self) -> None:
+        for ln in self.links:
+            ln.sock.close()
+            ln.body.close()
+        for b in getattr(self, "_bodies", []):
+            if b is not None:
+                b.close()
+
+
+class _One:
+    """Scenario view with agent i only (to rebuild one body after a SITL restart)."""
+
+    def __init__(self, sc, i):
+
+
+        cfg = sc.bridge or default_config(sc.n_agents)
+        self.n_agents = 1
+        self.S0 = np.asarray(sc.S0)[i:i + 1]
+        self.masses = np.asarray(sc.masses)[i:i + 1]
+        self.inertias = np.asarray(sc.inertias)[i:i + 1]
+        self.gravity = sc.gravity
+        self.internal_step = sc.internal_step
+        self.bridge = replace(cfg, n_agents=1, vehicles=[cfg.vehicles[i]])

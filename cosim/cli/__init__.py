@@ -1,0 +1,144 @@
+"""The `se3sync` command line: one sub-command per job, each registered by the module that owns it.
+
+Sub-command modules are found through the ``se3sync.commands`` entry points (cosim/plugins.py),
+so this package names none of them. Imports follow one rule: a command module imports only
+argparse-level things at the top and imports the job it runs inside its handler, because the jobs
+pull in numba-compiled kernels, fmpy, matplotlib, Dask, pyarrow or pymavlink, and `se3sync --help`
+must not pay for them. Everywhere else the project's own modules are imported at the top. An
+optional third-party dependency that is missing surfaces as one line naming the extra that
+installs it (`require`, and the ModuleNotFoundError handler in `main`).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import os
+import sys
+
+from .. import plugins, signals
+
+__all__ = ["main", "entry", "build_parser", "require", "install_hint"]
+
+# Optional dependencies and the extra that installs them.
+_EXTRAS = {"pymavlink": "mavlink", "fastcrc": "mavlink", "dask": "sweep", "distributed": "sweep",
+           "pyarrow": "sweep"}
+
+
+def install_hint(extra: str) -> str:
+    """How to install an extra: from the checkout when se3sync was installed from one."""
+    try:
+        from importlib.metadata import distribution
+
+        url = json.loads(distribution("se3sync").read_text("direct_url.json") or "{}")
+        if url.get("dir_info", {}).get("editable") or str(url.get("url", "")).startswith("file:"):
+            return f"pip install -e '.[{extra}]' in the se3sync checkout"
+    except Exception:  # noqa: BLE001 - a hint must never fail
+        pass
+    return f"pip install 'se3sync[{extra}]'"
+
+
+class MissingExtra(Exception):
+    def __init__(self, module: str):
+        self.module = module
+        super().__init__(module)
+
+
+def require(module: str) -> None:
+    """Import an optional dependency now, or fail with the one-line hint naming its extra."""
+    try:
+        importlib.import_module(module)
+    except ModuleNotFoundError:
+        raise MissingExtra(module) from None
+
+
+def _missing(command: str, name: str) -> int:
+    extra = _EXTRAS.get(name.split(".")[0])
+    what = f"the '{extra}' extra ({install_hint(extra)})" if extra else f"the package {name}"
+    print(f"se3sync {command}: error: needs {what}: no module named {name!r}", file=sys.stderr)
+    return 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line (exit 2), like every other error."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from controller import __version__
+
+    parser = _Parser(
+        prog="se3sync",
+        description="Distributed hybrid pose synchronisation on SE(3): co-simulation, "
+        "plant FMU, MAVLink bridge and sweeps.",
+    )
+    parser.add_argument("--version", action="version", version=f"se3sync {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
+                                parser_class=_Parser)
+    for name in plugins.command_modules():
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Exit status: 0 ok, 2 bad input (one line on stderr), 130 SIGINT, 143 SIGTERM (outputs
+    finished, summaries with "interrupted": true); some commands add their own (see --help)."""
+    old = signals.install()
+    command = "se3sync"
+    try:
+        parser = build_parser()
+        args = parser.parse_args(argv)
+        command = f"se3sync {args.command}"
+        rc = _dispatch(args)
+    except KeyboardInterrupt:
+        print(f"{command}: interrupted ({signals.received() or 'SIGINT'})", file=sys.stderr)
+        return signals.exit_status()
+    finally:
+        signals.uninstall(old)
+    if rc == 130 and signals.received() == "SIGTERM":
+        rc = 143
+    return rc
+
+
+def _dispatch(args) -> int:
+    from controller.errors import Se3SyncError
+
+    try:
+        rc = args.func(args)
+        sys.stdout.flush()  # a closed pipe surfaces here, inside the handlers below
+    except Se3SyncError as exc:
+        print(f"se3sync {args.command}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
+    except MissingExtra as exc:
+        return _missing(args.command, exc.module)
+    except ModuleNotFoundError as exc:
+        if (exc.name or "").split(".")[0] not in _EXTRAS:
+            raise
+        return _missing(args.command, exc.name)
+    except BrokenPipeError:
+        # The reader of our output went away (`se3sync check --json | head`): not our error.
+        # Point stdout at /dev/null so the interpreter's final flush does not raise again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
+    return int(rc or 0)
+
+
+def entry() -> None:
+    """The `se3sync` executable: main(), then exit with its status. After a signal the status is
+    made final with os._exit (exit handlers run first): the interpreter would otherwise turn a
+    KeyboardInterrupt it saw anywhere, even one handled, into death by SIGINT (status −2)."""
+    rc = main()
+    if rc in (130, 143):
+        import atexit
+
+        sys.stdout.flush()
+        sys.stderr.flush()
+        atexit._run_exitfuncs()
+        os._exit(rc)
+    sys.exit(rc)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    entry()

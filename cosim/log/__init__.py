@@ -1,0 +1,1 @@
+"""The log of a run: MCAP writing and reading (`mcap`), and figures made from it (`plot`)."""

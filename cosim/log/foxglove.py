@@ -1,0 +1,222 @@
+"""Foxglove 3D messages for the MCAP log: bodies, graph edges, trails, and a layout.
+
+The messages are JSON on ``jsonschema`` channels whose schema name and content are Foxglove's
+published ones (``foxglove_schemas/``, copied unmodified from foxglove/foxglove-sdk). JSON rather
+than Foxglove's protobuf schemas: the rest of the log is JSON already, the writer builds
+messages as strings without an extra dependency, and Foxglove reads both.
+
+- ``/scene``          foxglove.SceneUpdate: entity ``agent_i`` (frame ``agent_i``, frame-locked)
+  with a box of agent i's inertia and its x/y/z axes; entity ``edge_k`` (frame ``world``) with
+  one line from p_i to p_j coloured by ‖I − R̄_k‖_F, drawn thick and white with a label while
+  edge k jumps.
+- ``/trail/agent_i``  foxglove.PosesInFrame: agent i's last poses (its recent trail).
+
+The builders are string templates: every constant part is formatted once per logger and each
+message only inserts numbers (logging cost, see benchmarks/bench_see_log.py).
+"""
+from __future__ import annotations
+
+import json
+import math
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["SCENE", "TRAIL_PREFIX", "schema_bytes", "box_size", "error_color", "SceneBuilder",
+           "layout", "ERR_LO", "ERR_HI"]
+
+SCENE = "/scene"
+TRAIL_PREFIX = "/trail/agent_"
+_SCHEMA_DIR = Path(__file__).with_name("foxglove_schemas")
+
+# The edge colour scale: ‖I − R̄‖_F on a log scale from ERR_LO (green) to ERR_HI = 2√2, the
+# largest value (R̄ a rotation by π), red. Log, because the errors fall exponentially.
+ERR_LO = 1e-4
+ERR_HI = 2.0 * math.sqrt(2.0)
+
+
+@lru_cache(maxsize=None)
+def schema_bytes(name: str) -> bytes:
+    """Foxglove's JSON schema for ``foxglove.<name>`` (e.g. "SceneUpdate"), as published."""
+    return (_SCHEMA_DIR / f"{name}.json").read_bytes()
+
+
+def box_size(J, m) -> np.ndarray:
+    """Edge lengths (a, b, c) of the uniform solid box of mass m whose inertia about its centre
+    has the diagonal of J: J = m/12 diag(b²+c², a²+c², a²+b²), so a² = 6(J_y + J_z − J_x)/m, ….
+    A non-box J (triangle inequality violated) gets a thin slab (length clamped to 1 cm)."""
+    d = np.diag(np.asarray(J, float))
+    s = d.sum()
+    sq = 6.0 * (s - 2.0 * d) / float(m)
+    return np.sqrt(np.maximum(sq, 1e-4))
+
+
+def error_color(err: float) -> tuple[float, float, float]:
+    """(r, g, b) of an edge error: x = log10(err/ERR_LO)/log10(ERR_HI/ERR_LO) clipped to [0, 1];
+    r = x, g = 1 − x, b = 0.2 (green at consensus, red at a rotation by π)."""
+    if not err > ERR_LO:  # also NaN
+        x = 0.0 if err == err else 1.0
+    else:
+        x = min(1.0, math.log10(err / ERR_LO) / math.log10(ERR_HI / ERR_LO))
+    return x, 1.0 - x, 0.2
+
+
+def _f(x: float) -> str:
+    s = float.__repr__(float(x))
+    return s if s[-1].isdigit() else "0.0"
+
+
+_EMPTY = '"arrows":[],"cubes":[],"spheres":[],"cylinders":[],"lines":[],"triangles":[],' \
+         '"texts":[],"models":[]'
+_KEYS = ("arrows", "cubes", "spheres", "cylinders", "lines", "triangles", "texts", "models")
+_IDQ = '"orientation":{"x":0,"y":0,"z":0,"w":1}'
+_C = 0.7071067811865476
+# an arrow points along +x at identity: y axis = +90° about z, z axis = −90° about y
+_AXES = ((1.0, 0.2, 0.2, (0, 0, 0, 1)), (0.2, 1.0, 0.2, (0, 0, _C, _C)),
+         (0.2, 0.4, 1.0, (0, -_C, 0, _C)))
+
+
+def _entity(ts: str, frame: str, eid: str, frame_locked: bool, parts: dict) -> str:
+    body = ",".join(f'"{k}":[{",".join(parts.get(k, ()))}]' for k in _KEYS)
+    return (f'{{"timestamp":{ts},"frame_id":"{frame}","id":"{eid}",'
+            f'"lifetime":{{"sec":0,"nsec":0}},"frame_locked":{"true" if frame_locked else "false"},'
+            f'"metadata":[],{body}}}')
+
+
+class SceneBuilder:
+    """Builds the /scene and /trail messages of one run.
+
+    ``SceneBuilder(edges, inertias, masses, trail_len=100)``: edges (M, 2) 1-based agent
+    numbers (positive, negative). ``scene(ts, S, rot_err, jumping)`` returns the SceneUpdate
+    JSON; ``trails(ts, S, quat)`` appends the current poses and returns one PosesInFrame JSON per
+    agent. ts is the JSON time object ``{"sec":…,"nsec":…}``; S (N, ≥3) has p_i in S[i, :3];
+    quat (N, 4) is (x, y, z, w); jumping a sequence of M booleans.
+    """
+
+    def __init__(self, edges, inertias, masses, trail_len: int = 100):
+        self.edges = [(int(a), int(b)) for a, b in edges]
+        N = len(masses)
+        self.N, self.M = N, len(self.edges)
+        self.trail_len = int(trail_len)
+        self._agents = []
+        for i in range(N):
+            a, b, c = box_size(inertias[i], masses[i])
+            L = 0.75 * float(max(a, b, c))  # axis arrows reach beyond the box
+            cube = (f'{{"pose":{{"position":{{"x":0,"y":0,"z":0}},{_IDQ}}},'
+                    f'"size":{{"x":{_f(a)},"y":{_f(b)},"z":{_f(c)}}},'
+                    f'"color":{{"r":0.55,"g":0.6,"b":0.7,"a":0.85}}}}')
+            arrows = [f'{{"pose":{{"position":{{"x":0,"y":0,"z":0}},"orientation":'
+                      f'{{"x":{q[0]},"y":{q[1]},"z":{q[2]},"w":{q[3]}}}}},'
+                      f'"shaft_length":{_f(0.8 * L)},"shaft_diameter":{_f(0.04 * L)},'
+                      f'"head_length":{_f(0.2 * L)},"head_diameter":{_f(0.1 * L)},'
+                      f'"color":{{"r":{r},"g":{g},"b":{bb},"a":1}}}}'
+                      for r, g, bb, q in _AXES]
+            # the entity is constant apart from its time stamp: split the template there
+            pre, post = _entity("\0", f"agent_{i + 1}", f"agent_{i + 1}", True,
+                                {"cubes": [cube], "arrows": arrows}).split("\0")
+            self._agents.append((pre, post))
+        # edge line thickness: a tenth of the largest body
+        self._scale = 0.1 * max(float(max(box_size(inertias[i], masses[i]))) for i in range(N))
+        self._trail = [[] for _ in range(N)]
+
+    def edge_line(self, k: int, p_i, p_j, err: float, jumping: bool) -> str:
+        """The LINE_LIST primitive of edge k (0-based) from p_i to p_j."""
+        r, g, b = (1.0, 1.0, 1.0) if jumping else error_color(err)
+        th = 3 * self._scale if jumping else self._scale
+        return (f'{{"type":2,"pose":{{"position":{{"x":0,"y":0,"z":0}},{_IDQ}}},'
+                f'"thickness":{_f(th)},"scale_invariant":false,'
+                f'"points":[{{"x":{_f(p_i[0])},"y":{_f(p_i[1])},"z":{_f(p_i[2])}}},'
+                f'{{"x":{_f(p_j[0])},"y":{_f(p_j[1])},"z":{_f(p_j[2])}}}],'
+                f'"color":{{"r":{_f(r)},"g":{_f(g)},"b":{_f(b)},"a":1}},"colors":[],"indices":[]}}')
+
+    def scene(self, ts: str, S, rot_err, jumping) -> str:
+        P = np.asarray(S)[:, :3].tolist()
+        ents = [pre + ts + post for pre, post in self._agents]
+        errs = rot_err.tolist() if hasattr(rot_err, "tolist") else list(rot_err)
+        for k, (a, b) in enumerate(self.edges):
+            pi, pj = P[a - 1], P[b - 1]
+            parts = {"lines": [self.edge_line(k, pi, pj, errs[k], bool(jumping[k]))]}
+            if jumping[k]:
+                mid = [(x + y) / 2 for x, y in zip(pi, pj)]
+                parts["texts"] = [f'{{"pose":{{"position":{{"x":{_f(mid[0])},"y":{_f(mid[1])},'
+                                  f'"z":{_f(mid[2])}}},{_IDQ}}},"billboard":true,"font_size":14,'
+                                  f'"scale_invariant":true,"color":{{"r":1,"g":1,"b":1,"a":1}},'
+                                  f'"text":"θ_{k + 1} jumps"}}']
+            ents.append(_entity(ts, "world", f"edge_{k + 1}", False, parts))
+        return f'{{"deletions":[],"entities":[{",".join(ents)}]}}'
+
+    def trails(self, ts: str, S, quat, keep: bool = True) -> list[str]:
+        """One PosesInFrame per agent: the kept poses (at most trail_len) and the current one,
+        which is kept too when ``keep`` (the trail is thinned to the caller's trail rate)."""
+        P = np.asarray(S)[:, :3].tolist()
+        Q = np.asarray(quat).tolist()
+        out = []
+        n = self.trail_len
+        for p, q, tr in zip(P, Q, self._trail):
+            cur = (f'{{"position":{{"x":{_f(p[0])},"y":{_f(p[1])},"z":{_f(p[2])}}},'
+                   f'"orientation":{{"x":{_f(q[0])},"y":{_f(q[1])},"z":{_f(q[2])},"w":{_f(q[3])}}}}}')
+            if keep:
+                tr.append(cur)
+                if len(tr) > n:
+                    del tr[0]
+                poses = ",".join(tr)
+            else:
+                poses = ",".join(tr + [cur])
+            out.append(f'{{"timestamp":{ts},"frame_id":"world","poses":[{poses}]}}')
+        return out
+
+
+# ------------------------------------------------------------------ layout
+_PALETTE = ("#4e98e2", "#f5774d", "#f7df71", "#5cd6a9", "#b87fe2", "#e2606d", "#9fd65c",
+            "#61cbe8")
+
+
+def _plot(title: str, paths: list[tuple[str, str]]) -> dict:
+    return {"title": title, "paths": [
+        {"id": f"{title}-{i}", "timestampMethod": "receiveTime", "value": v, "enabled": True,
+         "color": _PALETTE[i % len(_PALETTE)], "label": lab}
+        for i, (v, lab) in enumerate(paths)], "showLegend": True, "legendDisplay": "floating",
+        "isSynced": True}
+
+
+def layout(n_agents: int, n_edges: int) -> dict:
+    """A Foxglove layout: a 3D panel following ``world`` with /tf, /scene and the trails, beside
+    plots of ‖I − R̄_k‖_F per edge, θ_k per edge and V̄ (log time = simulated time)."""
+    topics = {SCENE: {"visible": True}}
+    for i in range(n_agents):
+        topics[f"{TRAIL_PREFIX}{i + 1}"] = {"visible": True, "type": "line", "lineWidth": 0.03,
+                                           "gradient": [_PALETTE[i % len(_PALETTE)] + "20",
+                                                        _PALETTE[i % len(_PALETTE)] + "ff"]}
+    three_d = {
+        "followTf": "world", "fixedFrame": "world", "followMode": "follow-none",
+        "cameraState": {"perspective": True, "distance": 25, "phi": 60, "thetaOffset": 45,
+                        "target": [0, 0, 0], "targetOffset": [0, 0, 0],
+                        "targetOrientation": [0, 0, 0, 1], "fovy": 45, "near": 0.05,
+                        "far": 5000},
+        "scene": {"transforms": {"showLabel": True, "axisScale": 0.5}},
+        "transforms": {}, "topics": topics, "layers": {
+            "grid": {"layerId": "foxglove.Grid", "instanceId": "grid", "visible": True,
+                     "frameId": "world", "size": 20, "divisions": 20}},
+    }
+    cfg = {
+        "3D!se3sync": three_d,
+        "Plot!rot_err": _plot("edge error ‖I − R̄_k‖_F",
+                              [(f"/edges.edges[{k}].rot_err", f"k={k + 1}") for k in range(n_edges)]),
+        "Plot!theta": _plot("θ_k (rad)",
+                            [(f"/edges.edges[{k}].theta", f"k={k + 1}") for k in range(n_edges)]),
+        "Plot!V": _plot("V̄", [("/lyapunov.V", "V̄")]),
+    }
+    return {
+        "configById": cfg,
+        "layout": {"direction": "row", "splitPercentage": 60, "first": "3D!se3sync",
+                   "second": {"direction": "column", "first": "Plot!rot_err",
+                              "second": {"direction": "column", "first": "Plot!theta",
+                                         "second": "Plot!V"}}},
+        "globalVariables": {}, "userNodes": {},
+        "playbackConfig": {"speed": 1},
+    }
+
+
+def layout_json(n_agents: int, n_edges: int) -> str:
+    return json.dumps(layout(n_agents, n_edges), indent=1, ensure_ascii=False)

@@ -1,0 +1,337 @@
+"""The ``[network]`` scenario table (inter-agent endpoints, link delay/jitter/loss, the age rule)
+and `NetworkController`, the law run per agent on delayed, lossy neighbour data in co-simulation.
+
+Delay contract (shared with the stability analysis). At communication step n agent i uses its own
+state x_i(n) fresh and, from each neighbour j, the newest message it has received: j's message of
+sample s carries X_j(s), ξ_j(s) and, for the edges k that j owns, θ_k(s) after the jump stage.
+Over link j→i that message arrives at step s + d_ji + J_s, with d_ji = ⌈delay/h − 1e-9⌉ and J_s
+= ⌈U[0, jitter]/h − 1e-9⌉ steps, and is lost with probability ``loss`` (both seeded). Until a
+link's first message arrives the receiver uses the sender's initial state S0 and θ(0), as if a
+message of sample 0 had arrived at step 0. Agent i then computes X̄_k from its fresh pose and the
+received one, jumps and flows the θ_k it owns, and uses the received θ_k for the edges its
+neighbour owns (`ex_controller`). With every delay, jitter and loss 0 this is the network step.
+
+Age rule: data older than ``max_age`` is not used: the edge's term is held at its last value (an
+owned θ_k is frozen) for ``hold`` more seconds, after which the agent fails safe (zero wrench)
+until fresh data arrives again.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from controller import JumpEvent
+from controller.errors import ConfigError, Se3SyncError
+from controller.kernels import delayed_network_step
+
+__all__ = ["NetworkConfig", "LinkSpec", "parse_network", "check_links", "NetworkController",
+           "networked", "DEFAULT_HOST", "DEFAULT_BASE_PORT"]
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_BASE_PORT = 15600
+DEFAULT_HOLD = 0.5
+KEYS = {"host", "base_port", "agent", "delay", "jitter", "loss", "seed", "link", "max_age", "hold"}
+AGENT_KEYS = {"id", "address", "port"}
+LINK_KEYS = {"from", "to", "delay", "jitter", "loss"}
+AGE_BINS = 1 << 16  # used-data ages ≥ this many steps share the last histogram bin
+CHUNK = 4096        # steps of link schedule drawn at a time
+
+
+@dataclass(frozen=True)
+class LinkSpec:
+    """Delay and jitter (s) and loss probability of one directed link."""
+
+    delay: float = 0.0
+    jitter: float = 0.0
+    loss: float = 0.0
+
+
+@dataclass(frozen=True)
+class NetworkConfig:
+    """The parsed ``[network]`` table. ``endpoints[i - 1]`` = (address, port) of agent i;
+    ``links`` maps (from, to) (1-based) to the overriding LinkSpec."""
+
+    endpoints: tuple
+    default: LinkSpec
+    seed: int
+    links: dict = field(default_factory=dict)
+    max_age: float = math.inf
+    hold: float = DEFAULT_HOLD
+
+    def link(self, frm: int, to: int) -> LinkSpec:
+        return self.links.get((frm, to), self.default)
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _seconds(key, v, *, allow_inf=False, positive=False) -> float:
+    if not _is_num(v) or math.isnan(v) or (math.isinf(v) and not allow_inf):
+        raise ConfigError(key, f"must be a {'number' if allow_inf else 'finite number'} of "
+                               f"seconds, got {v!r}")
+    v = float(v)
+    if v < 0 or (positive and v == 0):
+        raise ConfigError(key, f"must be {'> 0' if positive else '≥ 0'}, got {v!r}")
+    return v
+
+
+def _loss(key, v) -> float:
+    if not _is_num(v) or not (0.0 <= float(v) < 1.0):
+        raise ConfigError(key, f"must be a probability in [0, 1), got {v!r}")
+    return float(v)
+
+
+def _int(key, v, lo, hi) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise ConfigError(key, f"must be an integer in {lo}..{hi}, got {v!r}")
+    return int(v)
+
+
+def _host(key, v) -> str:
+    if not isinstance(v, str) or not v.strip() or any(c.isspace() for c in v):
+        raise ConfigError(key, f"must be a host name or address without spaces, got {v!r}")
+    return v
+
+
+def _keys(prefix, table, allowed):
+    if not isinstance(table, dict):
+        raise ConfigError(prefix, f"must be a table, got {table!r}")
+    for k in table:
+        if k not in allowed:
+            raise ConfigError(f"{prefix}.{k}" if prefix else k,
+                              f"unknown key (allowed: {', '.join(sorted(allowed))})")
+
+
+def _tables(key, v) -> list:
+    if not isinstance(v, list) or not all(isinstance(x, dict) for x in v):
+        raise ConfigError(key, f"must be an array of tables ([[network.{key}]])")
+    return v
+
+
+def parse_network(table: dict, n_agents: int) -> NetworkConfig:
+    """``[network]`` → NetworkConfig (entry point ``se3sync.tables``); key paths in errors are
+    relative to the table (the loader prefixes ``network.`` and the file name)."""
+    _keys("", table, KEYS)
+    host = _host("host", table.get("host", DEFAULT_HOST))
+    base = _int("base_port", table.get("base_port", DEFAULT_BASE_PORT), 1, 65535 - (n_agents - 1))
+    endpoints = [(host, base + i) for i in range(n_agents)]
+    seen_ids = set()
+    for idx, a in enumerate(_tables("agent", table.get("agent", []))):
+        pre = f"agent[{idx}]"
+        _keys(pre, a, AGENT_KEYS)
+        if "id" not in a:
+            raise ConfigError(f"{pre}.id", "missing (the agent's number, 1..N)")
+        i = _int(f"{pre}.id", a["id"], 1, n_agents)
+        if i in seen_ids:
+            raise ConfigError(f"{pre}.id", f"agent {i} is given twice")
+        seen_ids.add(i)
+        addr = _host(f"{pre}.address", a.get("address", host))
+        port = _int(f"{pre}.port", a.get("port", base + i - 1), 1, 65535)
+        endpoints[i - 1] = (addr, port)
+    owner = {}
+    for i, ep in enumerate(endpoints, start=1):
+        if ep in owner:
+            raise ConfigError("agent", f"agents {owner[ep]} and {i} share the endpoint "
+                                       f"{ep[0]}:{ep[1]}")
+        owner[ep] = i
+    default = LinkSpec(_seconds("delay", table.get("delay", 0.0)),
+                       _seconds("jitter", table.get("jitter", 0.0)),
+                       _loss("loss", table.get("loss", 0.0)))
+    seed = _int("seed", table.get("seed", 0), 0, 2 ** 63 - 1)
+    links = {}
+    for idx, lk in enumerate(_tables("link", table.get("link", []))):
+        pre = f"link[{idx}]"
+        _keys(pre, lk, LINK_KEYS)
+        for end in ("from", "to"):
+            if end not in lk:
+                raise ConfigError(f"{pre}.{end}", "missing (an agent number, 1..N)")
+        frm = _int(f"{pre}.from", lk["from"], 1, n_agents)
+        to = _int(f"{pre}.to", lk["to"], 1, n_agents)
+        if frm == to:
+            raise ConfigError(f"{pre}.to", f"a link joins two agents, got from = to = {frm}")
+        if (frm, to) in links:
+            raise ConfigError(pre, f"the link {frm} → {to} is given twice")
+        links[(frm, to)] = LinkSpec(
+            _seconds(f"{pre}.delay", lk.get("delay", default.delay)),
+            _seconds(f"{pre}.jitter", lk.get("jitter", default.jitter)),
+            _loss(f"{pre}.loss", lk.get("loss", default.loss)))
+    max_age = _seconds("max_age", table.get("max_age", math.inf), allow_inf=True, positive=True)
+    hold = _seconds("hold", table.get("hold", DEFAULT_HOLD))
+    return NetworkConfig(tuple(endpoints), default, seed, links, max_age, hold)
+
+
+def check_links(net: NetworkConfig, graph) -> None:
+    """Refuses a ``[[network.link]]`` between agents that are not graph neighbours."""
+    nbrs = {frozenset(map(int, e)) for e in np.asarray(graph.edges) + 1}
+    for idx, (frm, to) in enumerate(net.links):
+        if frozenset((frm, to)) not in nbrs:
+            raise ConfigError(f"network.link[{idx}]",
+                              f"agents {frm} and {to} are not neighbours in the graph")
+
+
+def _steps(seconds: float, h: float) -> int:
+    return int(math.ceil(seconds / h - 1e-9)) if seconds > 0 else 0
+
+
+class NetworkController:
+    """The hybrid law (or the gradient baseline) of ``inner`` run per agent on neighbour data that
+    crosses the ``[network]`` links: the `cosim.controllers.Controller` protocol, one compiled
+    call (`controller.kernels.delayed_network_step`) per step.
+
+    Links are numbered 2k (edge k's positive end → negative end) and 2k + 1 (back). The schedule
+    of each link (loss, jitter) comes from its own random stream, spawned from ``seed``, drawn
+    CHUNK steps at a time: the same seed gives the same run, whatever else changes.
+    """
+
+    def __init__(self, scenario, inner, net: NetworkConfig):
+        if not hasattr(inner, "edges") or not hasattr(inner, "P"):
+            raise Se3SyncError(f"the [network] table needs a law with the network view "
+                               f"(hybrid or gradient), got {type(inner).__name__}")
+        check_links(net, scenario.graph)
+        self.inner = inner
+        self.net = net
+        self.name = getattr(inner, "name", "hybrid")
+        self.hybrid = bool(inner.hybrid)
+        self.params = inner.params
+        self.P = inner.P
+        self.edges = inner.edges
+        self.N, self.M = scenario.graph.n, scenario.graph.M
+        self.theta = inner.theta
+        self.mu = inner.mu
+        self.jumped = inner.jumped
+        self.theta_prev = inner.theta_prev
+        self.theta_jump = inner.theta_jump
+        self.u = inner.u
+        self.theta0 = self.theta.copy()
+        M2 = 2 * self.M
+        self.specs = [net.link(*self._ends(l)) for l in range(M2)]
+        self.h = None
+        self.counts = np.zeros((M2, 2), dtype=np.int64)
+        self.age_hist = np.zeros((M2, AGE_BINS), dtype=np.int64)
+        self.failsafe = np.zeros((self.N, 4), dtype=np.int64)
+
+    def _ends(self, l: int) -> tuple:
+        """(from, to), 1-based, of link l."""
+        a, b = (int(x) + 1 for x in self.edges[l // 2])
+        return (a, b) if l % 2 == 0 else (b, a)
+
+    def write_wrench_into(self, buf):
+        self.inner.write_wrench_into(buf)
+        self.u = self.inner.u
+
+    def reset(self, theta0=None) -> None:
+        self.inner.reset(theta0)
+        self.theta0 = self.theta.copy()
+        self.h = None  # the link state starts again at the next step
+
+    def _start(self, S, h: float) -> None:
+        M2 = 2 * self.M
+        self.h = h
+        self.d = np.array([_steps(s.delay, h) for s in self.specs], dtype=np.int64)
+        self.jmax = np.array([_steps(s.jitter, h) for s in self.specs], dtype=np.int64)
+        L = int((self.d + self.jmax).max(initial=0)) + 1
+        self.max_age = _steps(self.net.max_age, h) if math.isfinite(self.net.max_age) else 2 ** 62
+        self.hold = _steps(self.net.hold, h)
+        self.ring_S = np.zeros((L, self.N, S.shape[1]))
+        self.ring_theta = np.zeros((L, self.M))
+        self.arrival = np.full((M2, L), -1, dtype=np.int64)
+        self.held = np.full(M2, -1, dtype=np.int64)
+        src = np.where(np.arange(M2) % 2 == 0, self.edges[:, 0].repeat(2), self.edges[:, 1].repeat(2))
+        self.recv_S = np.ascontiguousarray(np.asarray(S, float)[src])
+        self.recv_theta = self.theta0.repeat(2).copy()
+        self.term = np.zeros((M2, 6))
+        self.counts[:] = 0
+        self.age_hist[:] = 0
+        self.failsafe[:] = 0
+        seq = np.random.SeedSequence(self.net.seed)
+        self.rngs = [np.random.default_rng(s) for s in seq.spawn(M2)]
+        self.sched = np.zeros((CHUNK, M2), dtype=np.int64)
+        self.r = CHUNK  # forces a draw at the first step
+        self.n = 0
+
+    def _draw(self) -> None:
+        """The next CHUNK steps of every link's schedule: transit steps d + J, or −1 if lost."""
+        h = self.h
+        for l, (spec, rng) in enumerate(zip(self.specs, self.rngs)):
+            col = np.full(CHUNK, self.d[l], dtype=np.int64)
+            if spec.loss > 0 or spec.jitter > 0:
+                x = rng.random((CHUNK, 2))  # one (loss, jitter) pair per step, in step order
+                if spec.jitter > 0:
+                    j = np.ceil(x[:, 1] * spec.jitter / h - 1e-9).astype(np.int64)
+                    col += np.clip(j, 0, self.jmax[l])
+                if spec.loss > 0:
+                    col[x[:, 0] < spec.loss] = -1
+            self.sched[:, l] = col
+        self.r = 0
+
+    def step_state(self, S, h: float):
+        if self.h is None:
+            self._start(S, float(h))
+        elif h != self.h:
+            raise Se3SyncError(f"network: the communication step changed from {self.h} to {h}")
+        if self.r == CHUNK:
+            self._draw()
+        nj = delayed_network_step(S, self.n, self.sched, self.r, self.ring_S, self.ring_theta,
+                                  self.arrival, self.held, self.recv_S, self.recv_theta, self.term,
+                                  self.max_age, self.hold, self.theta, self.edges, self.P, self.h,
+                                  self.hybrid, self.u, self.mu, self.jumped, self.theta_prev,
+                                  self.theta_jump, self.age_hist, self.counts, self.failsafe)
+        self.n += 1
+        self.r += 1
+        if nj == 0:
+            return self.u, ()
+        return self.u, tuple(
+            JumpEvent(int(k) + 1, float(self.theta_prev[k]), float(self.theta_jump[k]),
+                      float(self.mu[k]))
+            for k in np.flatnonzero(self.jumped))
+
+    def network_stats(self) -> dict:
+        """The summary's ``"network"``: per directed link messages, losses and the nearest-rank
+        p50/p99 of the age of the data used (steps and seconds), totals, and fail-safe counts."""
+        h = self.h or 0.0
+        links = []
+        for l in range(2 * self.M):
+            frm, to = self._ends(l)
+            hist = self.age_hist[l]
+            links.append({"from": frm, "to": to, "sent": int(self.counts[l, 0]),
+                          "lost": int(self.counts[l, 1]), **_ages(hist, h)})
+        total = self.age_hist.sum(axis=0)
+        sent = int(self.counts[:, 0].sum())
+        lost = int(self.counts[:, 1].sum())
+        spec = self.net
+        return {
+            "delay": spec.default.delay, "jitter": spec.default.jitter,
+            "loss": spec.default.loss, "seed": spec.seed,
+            "max_age": spec.max_age if math.isfinite(spec.max_age) else None,
+            "hold": spec.hold,
+            "links": links,
+            "total": {"sent": sent, "lost": lost, **_ages(total, h)},
+            "failsafe_steps": [int(x) for x in self.failsafe[:, 2]],
+            "failsafe_entries": [int(x) for x in self.failsafe[:, 3]],
+        }
+
+
+def _ages(hist, h) -> dict:
+    n = int(hist.sum())
+    if n == 0:
+        return {"age_p50_steps": None, "age_p99_steps": None, "age_p50_s": None,
+                "age_p99_s": None}
+    c = np.cumsum(hist)
+    p50 = int(np.searchsorted(c, math.ceil(0.50 * n)))
+    p99 = int(np.searchsorted(c, math.ceil(0.99 * n)))
+    return {"age_p50_steps": p50, "age_p99_steps": p99, "age_p50_s": p50 * h,
+            "age_p99_s": p99 * h}
+
+
+def networked(scenario, ctrl):
+    """``ctrl`` itself, or wrapped in a NetworkController when the scenario has [network]."""
+    net = scenario.tables.get("network")
+    if net is None or isinstance(ctrl, NetworkController):
+        return ctrl
+    try:
+        return NetworkController(scenario, ctrl, net)
+    except ConfigError as exc:
+        raise exc.with_file(scenario.path) from None

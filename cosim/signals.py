@@ -1,0 +1,98 @@
+"""Ctrl-C and SIGTERM stop every command the same way: the outputs are finished, the summary says
+``"interrupted": true`` and the exit status is 130 (SIGINT) or 143 (SIGTERM).
+
+`install` (called by the command line) makes both signals note themselves and raise
+KeyboardInterrupt, as Ctrl-C does by default. The master loop swaps in `note_only` while it runs,
+so that a signal stops it between two blocks instead of in the middle of an FMU call; a second
+signal there raises at once. A signal that arrives while Python runs inside a ctypes callback
+(where KeyboardInterrupt is printed and swallowed) is still noted, and the master stops as soon as
+it starts: nothing is lost silently.
+"""
+from __future__ import annotations
+
+import signal
+import threading
+
+__all__ = ["install", "uninstall", "note", "requested", "pending", "received", "exit_status", "reset",
+           "catching"]
+
+_received: list = []
+_installed: list = []
+STATUS = {"SIGINT": 130, "SIGTERM": 143}
+
+
+def note(signum) -> None:
+    name = signal.Signals(signum).name if isinstance(signum, int) else str(signum)
+    _received.append(name)
+
+
+def requested() -> bool:
+    return bool(_received)
+
+
+def pending() -> bool:
+    """A signal arrived while the command line's handlers were installed (see `install`)."""
+    return bool(_installed) and bool(_received)
+
+
+def received() -> str | None:
+    """The first signal received, or None."""
+    return _received[0] if _received else None
+
+
+def exit_status() -> int:
+    return STATUS.get(received() or "SIGINT", 130)
+
+
+def reset() -> None:
+    _received.clear()
+
+
+def _raise(signum, frame):
+    note(signum)
+    raise KeyboardInterrupt
+
+
+def install() -> dict:
+    """SIGINT and SIGTERM: note, then raise KeyboardInterrupt (main thread only). Returns the
+    previous handlers for `uninstall`."""
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        reset()
+        for s in (signal.SIGINT, signal.SIGTERM):
+            old[s] = signal.signal(s, _raise)
+        _installed[:] = [True]
+    return old
+
+
+def uninstall(old: dict) -> None:
+    for s, h in old.items():
+        signal.signal(s, h)
+    _installed.clear()
+
+
+class catching:
+    """``with catching(on_signal):`` SIGINT and SIGTERM call ``on_signal()`` (after noting the
+    signal) instead of raising, in the main thread; the previous handlers come back on exit."""
+
+    def __init__(self, on_signal):
+        self.on_signal = on_signal
+        self.old = {}
+
+    def _handler(self, signum, frame):
+        note(signum)
+        self.on_signal()
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                try:
+                    self.old[s] = signal.signal(s, self._handler)
+                except ValueError:  # pragma: no cover - not the main interpreter
+                    pass
+        return self
+
+    def __exit__(self, *exc):
+        for s, h in self.old.items():
+            signal.signal(s, h)
+        return False

@@ -1,0 +1,273 @@
+"""Bad input gets one line naming the option or key, exit status 2, and nothing written; SIGINT and
+SIGTERM leave finished outputs; `check` gates CI with its exit status. Each case below was a
+traceback, a misleading message or a wrong status before (issue 13)."""
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cosim.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = str(ROOT / "scenarios" / "paper_6uav.toml")
+SMALL = str(ROOT / "scenarios" / "sweep_small.toml")
+
+
+def _call(argv, capsys):
+    try:
+        rc = main(argv)
+    except SystemExit as exc:  # argparse
+        rc = exc.code
+    err = capsys.readouterr().err
+    return rc, [ln for ln in err.splitlines() if ln.strip()]
+
+
+def _files(d: Path):
+    return sorted(p.relative_to(d) for p in d.rglob("*"))
+
+
+def _foreign_mcap(path: Path):
+    """A valid MCAP that is not an se3sync log: one protobuf channel with binary messages."""
+    from mcap.writer import Writer
+
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start(profile="", library="test")
+        sid = w.register_schema(name="pkg.Msg", encoding="protobuf", data=b"\x0a\x03abc")
+        cid = w.register_channel(topic="/x", message_encoding="protobuf", schema_id=sid)
+        for i in range(5):
+            w.add_message(cid, log_time=i, data=bytes([0xFF, 0xFE, 0x80, i]), publish_time=i)
+        w.finish()
+
+
+CASES = [
+    # (id, argv (TMP/ is the test's directory), words the one stderr line must contain)
+    ("plot-bad-format", ["plot", "TMP/log.mcap", "-o", "TMP/x.txt"], ["--output", "x.txt"]),
+    ("plot-into-dir", ["plot", "TMP/log.mcap", "-o", "TMP/adir"], ["--output", "adir"]),
+    ("run-summary-dir", ["run", PAPER, "--duration", "0.01", "--summary", "TMP/adir"],
+     ["--summary", "adir", "directory"]),
+    ("run-log-no-parent", ["run", PAPER, "--duration", "0.01", "--log", "TMP/nodir/x.mcap"],
+     ["--log", "does not exist"]),
+    ("run-summary-unwritable", ["run", PAPER, "--summary", "/proc/x.json"], ["--summary", "/proc"]),
+    ("run-scenario-dir", ["run", str(ROOT / "scenarios")], ["is a directory"]),
+    ("argparse-one-line", ["run", PAPER, "--step", "abc"], ["--step", "abc"]),
+    ("vehicle-count-0", ["vehicle", "--count", "0"], ["--count"]),
+    ("vehicle-stats-dir", ["vehicle", "--stats", "TMP/adir"], ["--stats"]),
+    ("sweep-out-dir", ["sweep", SMALL, "--samples", "1", "--workers", "0", "--out", "TMP/adir"],
+     ["--out"]),
+    ("fmu-output-dir", ["fmu", "build", "--bodies", "1", "-o", "TMP/adir"], ["--output"]),
+    ("plot-foreign-mcap", ["plot", "TMP/foreign.mcap", "-o", "TMP/f.png"],
+     ["not an se3sync log"]),
+    ("k_X-huge", ["check", PAPER, "--set", "gains.k_X=1e308"], ["gains.k_X"]),
+    ("k_e-int64", ["check", PAPER, "--set", "gains.k_e=9223372036854775807"], ["gains.k_e"]),
+    ("d-denormal", ["check", PAPER, "--set", "weighting.d=1e-320"], ["weighting.d"]),
+    ("count-int64", ["check", PAPER, "--set", "agents.count=9223372036854775807"],
+     ["agents.count"]),
+    ("box-huge", ["check", SMALL, "--set", "initial.generator=\"random\"", "--set",
+                  "initial.position_box=1e308"], ["initial"]),
+    ("theta0-huge", ["check", PAPER, "--set", "initial.theta0=1e308"], ["initial.theta0"]),
+    ("step-absurd", ["check", PAPER, "--set", "simulation.step=1e-12"], ["simulation.step"]),
+    ("internal-absurd", ["check", PAPER, "--set", "plant.internal_step=1e-13"],
+     ["plant.internal_step"]),
+    ("triangle", ["check", PAPER, "--set", "agents.inertia=[0.043, 0.041, 0.3]"],
+     ["agents.inertia", "triangle"]),
+    ("gravity-huge", ["run", PAPER, "--set", "plant.gravity=[0, 0, 1e308]", "--log",
+                      "TMP/g.mcap"], ["plant.gravity"]),
+    ("simulation-not-table", ["run", "TMP/sim5.toml", "--duration", "1"], ["simulation"]),
+    ("toml-deep", ["check", "TMP/deep.toml"], ["TOML"]),
+]
+
+
+@pytest.fixture(scope="module")
+def logfile(tmp_path_factory):
+    d = tmp_path_factory.mktemp("log")
+    assert main(["run", PAPER, "--duration", "0.02", "--log", str(d / "log.mcap")]) == 0
+    return d / "log.mcap"
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def test_bad_input_is_one_line_and_nothing_written(case, tmp_path, logfile, capsys):
+    _, argv, words = case
+    (tmp_path / "adir").mkdir()
+    (tmp_path / "log.mcap").write_bytes(logfile.read_bytes())
+    _foreign_mcap(tmp_path / "foreign.mcap")
+    text = Path(PAPER).read_text()
+    (tmp_path / "sim5.toml").write_text(text.replace("[simulation]", "[simulation_]")
+                                        + "\nsimulation = 5\n")
+    (tmp_path / "deep.toml").write_text("x = " + "[" * 600 + "]" * 600 + "\n")
+    before = _files(tmp_path)
+    argv = [a.replace("TMP/", str(tmp_path) + "/") for a in argv]
+    rc, lines = _call(argv, capsys)
+    assert rc == 2, (rc, lines)
+    assert len(lines) == 1, lines
+    assert "Traceback" not in lines[0]
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert _files(tmp_path) == before  # nothing written, nothing left behind
+
+
+def test_check_exit_status_gates_an_unstable_step(capsys):
+    rc, _ = _call(["check", PAPER, "--step", "2e-4"], capsys)
+    assert rc == 3
+    rc = main(["check", PAPER, "--step", "2e-4", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 3 and out["stable"] is False and out["spectral_radius"] > 1
+    assert main(["check", PAPER, "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["stable"] is True
+
+
+def test_missing_extra_hint_names_the_checkout_install(capsys):
+    code = ("import sys; sys.modules['pyarrow'] = None; from cosim.cli import main; "
+            f"sys.exit(main(['sweep', {SMALL!r}, '--samples', '1', '--workers', '0', "
+            "'--out', '/tmp/x.parquet']))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    lines = out.stderr.strip().splitlines()
+    assert out.returncode == 2 and len(lines) == 1
+    assert "'sweep' extra" in lines[0] and "pip install" in lines[0]
+    assert "sweep: error: sweep:" not in lines[0]
+
+
+def _wait_for(path: Path, timeout=60.0):
+    t = time.monotonic()
+    while time.monotonic() - t < timeout:
+        if path.exists() and path.stat().st_size > 400_000:  # past the header: records
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"{path} did not grow")
+
+
+@pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_run_stopped_by_a_signal_leaves_complete_outputs(sig, status, tmp_path):
+    from mcap.reader import make_reader
+
+    log, summ = tmp_path / "l.mcap", tmp_path / "s.json"
+    p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "run", PAPER, "--log", str(log),
+                          "--summary", str(summ)], stderr=subprocess.PIPE, text=True)
+    _wait_for(log)
+    p.send_signal(sig)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == status, err
+    d = json.loads(summ.read_text())
+    assert d["interrupted"] is True and 0 < d["steps"] < 400_000
+    with open(log, "rb") as f:
+        s = make_reader(f).get_summary()
+    assert s is not None and s.statistics.message_count > 0
+
+
+def test_sweep_stopped_by_sigterm_keeps_its_rows(tmp_path):
+    pytest.importorskip("pyarrow")
+    out = tmp_path / "r.csv"
+    p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "sweep", SMALL, "--samples", "400",
+                          "--workers", "0", "--out", str(out), "--flush-every", "0"],
+                         stderr=subprocess.PIPE, text=True)
+    t = time.monotonic()
+    while not out.exists() and time.monotonic() - t < 60:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 143, err
+    rows = out.read_text().strip().splitlines()
+    assert 1 < len(rows) < 1 + 2 * (400 + 18)
+
+
+def test_a_failed_run_leaves_no_log(tmp_path):
+    """A plant failing mid-run: the error propagates and the half-written log is removed."""
+    from controller.errors import Se3SyncError
+    from cosim.plants import FmuPlant
+    from cosim.run import run_scenario
+    from cosim.scenario import load_scenario
+
+    sc = load_scenario(PAPER, duration=0.05)
+
+    class Failing(FmuPlant):
+        def advance(self, h):
+            if self._k == 200:
+                raise Se3SyncError("plant failed")
+            super().advance(h)
+
+    plant = Failing.from_scenario(sc)
+    try:
+        with pytest.raises(Se3SyncError, match="plant failed"):
+            run_scenario(sc, plant=plant, log_path=tmp_path / "x.mcap",
+                         summary_path=tmp_path / "x.json")
+    finally:
+        plant.close()
+    assert _files(tmp_path) == []
+
+
+@pytest.mark.parametrize("delay", [0.3, 0.5, 0.8, 1.2])
+def test_sigint_during_start_up_is_never_lost(delay, tmp_path):
+    """Ctrl-C while the command loads the kernels, the scenario and the FMU: exit 130, one line,
+    no traceback, and no summary that claims a complete run. (A signal in the first tens of
+    milliseconds, before the interpreter has run any se3sync code, gets Python's default.)"""
+    summ = tmp_path / "s.json"
+    p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "run", PAPER, "--summary", str(summ)],
+                         stderr=subprocess.PIPE, text=True)
+    time.sleep(delay)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, (p.returncode, err)
+    assert "Traceback" not in err
+    if summ.exists():
+        assert json.loads(summ.read_text())["interrupted"] is True
+
+
+def test_vehicle_ctrl_c_exits_130_with_its_stats(tmp_path):
+    pytest.importorskip("pymavlink")
+    from bridge.link import free_base_port
+
+    stats = tmp_path / "st.json"
+    p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "vehicle", "--count", "1",
+                          "--base-port", str(free_base_port(1)), "--stats", str(stats)],
+                         stderr=subprocess.PIPE, text=True)
+    t = time.monotonic()
+    line = p.stderr.readline()  # printed once the vehicles are up
+    assert "vehicle(s)" in line and time.monotonic() - t < 60
+    time.sleep(0.3)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=30)
+    assert p.returncode == 130, err
+    assert "sent" in json.loads(stats.read_text())
+
+
+def test_connect_stopped_by_sigterm_leaves_complete_outputs(tmp_path):
+    """`connect` against the loopback vehicles, stopped by SIGTERM mid-run: exit 143, finished
+    MCAP, summary with "interrupted": true."""
+    pytest.importorskip("pymavlink")
+    from mcap.reader import make_reader
+
+    from bridge.link import free_base_port
+
+    hil = str(ROOT / "scenarios" / "hil_6uav.toml")
+    port = free_base_port(6)
+    sets = ["--set", f"bridge.base_port={port}"]
+    veh = subprocess.Popen([sys.executable, "-m", "cosim.cli", "vehicle", "--scenario", hil,
+                            *sets], stderr=subprocess.DEVNULL)
+    try:
+        log, summ = tmp_path / "c.mcap", tmp_path / "c.json"
+        p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "connect", hil, *sets,
+                              "--duration", "60", "--log", str(log), "--summary", str(summ)],
+                             stderr=subprocess.PIPE, text=True)
+        t = time.monotonic()
+        while p.poll() is None and time.monotonic() - t < 60:
+            if log.exists() and log.stat().st_size > 20_000:
+                break
+            time.sleep(0.1)
+        time.sleep(0.5)
+        p.send_signal(signal.SIGTERM)
+        _, err = p.communicate(timeout=60)
+        assert p.returncode == 143, err
+        d = json.loads(summ.read_text())
+        assert d["interrupted"] is True and d["steps"] > 0
+        with open(log, "rb") as f:
+            assert make_reader(f).get_summary().statistics.message_count > 0
+    finally:
+        veh.terminate()
+        veh.wait(10)

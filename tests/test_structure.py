@@ -1,0 +1,129 @@
+"""The package structure (README "Layout"): read every module's imports with ast and check the
+rules that keep the data flow readable."""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("controller", "plant_fmu", "cosim", "bridge")
+
+
+def _modules():
+    for pkg in PACKAGES:
+        for f in sorted((ROOT / pkg).rglob("*.py")):
+            rel = f.relative_to(ROOT).with_suffix("")
+            parts = list(rel.parts)
+            is_pkg = parts[-1] == "__init__"
+            if is_pkg:
+                parts = parts[:-1]
+            yield ".".join(parts), f, is_pkg
+
+
+def _imports(name, path, is_pkg):
+    """(imported module, top_level) for every import of a project module in the file."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    top = set(id(n) for n in tree.body)
+    pkg = name if is_pkg else name.rpartition(".")[0]
+    out = []
+    for node in ast.walk(tree):
+        at_top = id(node) in top
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                out.append((a.name, at_top))
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = pkg.split(".")
+                base = base[:len(base) - node.level + 1]
+                mod = ".".join(base + ([node.module] if node.module else []))
+            else:
+                mod = node.module or ""
+            out.append((mod, at_top))
+            for a in node.names:  # `from pkg import module`
+                out.append((f"{mod}.{a.name}", at_top))
+    known = {m for m, _, _ in _modules()}
+    res = []
+    for mod, at_top in out:
+        # resolve to the longest known project module
+        parts = mod.split(".")
+        while parts and ".".join(parts) not in known:
+            parts.pop()
+        if parts:
+            res.append((".".join(parts), at_top))
+    return res
+
+
+GRAPH = {name: _imports(name, f, is_pkg) for name, f, is_pkg in _modules()}
+
+
+def test_every_package_is_scanned():
+    assert {n.split(".")[0] for n in GRAPH} == set(PACKAGES)
+    assert len(GRAPH) > 40
+
+
+def find_cycles(edges: dict) -> list:
+    """Every cycle a depth-first search meets in the directed graph ``edges``."""
+    state, stack, cycles = {}, [], []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for d in sorted(edges.get(m, ())):
+            if state.get(d) == 1:
+                cycles.append(stack[stack.index(d):] + [d])
+            elif d not in state:
+                visit(d)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(edges):
+        if m not in state:
+            visit(m)
+    return cycles
+
+
+def test_no_import_cycle_between_modules():
+    # import-time edges: module-level imports (a package's __init__ importing its own
+    # submodules is how a package exposes them, not a cycle of the data flow)
+    edges = {m: {d for d, top in deps if top and d != m and not m.startswith(d + ".")}
+             for m, deps in GRAPH.items()}
+    cycles = find_cycles(edges)
+    assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
+
+
+def test_layering():
+    bad = []
+    for m, deps in GRAPH.items():
+        top = m.split(".")[0]
+        for d, _ in deps:
+            dtop = d.split(".")[0]
+            if top == "controller" and dtop != "controller":
+                bad.append(f"{m} imports {d} (controller/ imports nothing outside it)")
+            if top == "plant_fmu" and dtop in ("cosim", "bridge"):
+                bad.append(f"{m} imports {d} (plant_fmu/ does not import cosim or bridge)")
+            if top == "cosim" and dtop == "bridge":
+                bad.append(f"{m} imports {d} (cosim/ finds bridge through entry points only)")
+    assert not bad, "\n".join(bad)
+
+
+def test_no_private_module_of_another_package():
+    bad = []
+    for m, deps in GRAPH.items():
+        for d, _ in deps:
+            if d.split(".")[0] != m.split(".")[0] and any(p.startswith("_") and p != "__init__"
+                                                            for p in d.split(".")[1:]):
+                bad.append(f"{m} imports the private {d}")
+    assert not bad, "\n".join(bad)
+
+
+def test_the_checks_see_a_cycle_and_a_private_import():
+    """The scanner itself: relative imports resolve, and a cycle would be found."""
+    deps = dict(GRAPH["cosim.master"])
+    assert deps.get("controller.kernels") is True and "cosim.controllers" in deps
+    assert "controller._kernels" in dict(GRAPH["controller.law"])
+    assert "cosim.log.mcap" in dict(GRAPH["cosim.log.plot"])  # `from .mcap import ...`
+    # the two cycles issue 11 found on the old layout, as they were
+    old = {"bridge.config": {"cosim.scenario"}, "cosim.scenario": {"bridge.config"},
+           "cosim.sweep": {"cosim.sweep_report"}, "cosim.sweep_report": {"cosim.sweep"},
+           "cosim.master": {"controller.kernels"}}
+    assert len(find_cycles(old)) == 2
