@@ -150,15 +150,12 @@ def max_stable_step(scenario, Kx=None, G=None, hybrid: bool = True, rel_tol: flo
 
 def analyse(scenario, h: float | None = None, hybrid: bool = True, bisect: bool = True,
             law: str | None = None) -> dict:
-    """{"step", "spectral_radius", "stable", "max_stable_step"} for the scenario's h (or h).
-    ``law``: a registered law name (`cosim.controllers.LAWS`); it decides ``hybrid`` (whether θ
-    is a state of the loop)."""
+    """{"step", "spectral_radius", "stable", "max_stable_step", "method"} for the scenario's h
+    (or h). ``law``: a registered law name (`cosim.controllers.LAWS`); it decides ``hybrid``
+    (whether θ is a state of the loop). Computed without dense matrices by `stability_sparse`
+    (exact modal decoupling when the agents are identical, else a sparse eigensolver); the
+    dense functions above are the reference it is tested against."""
+    from .stability_sparse import analyse_fast
     if law is not None:
         hybrid = make_controller(law, scenario).hybrid
-    h = float(scenario.step if h is None else h)
-    Kx, G = linearise(scenario, hybrid)
-    rho = spectral_radius(scenario, h, Kx, G)
-    out = {"step": h, "spectral_radius": rho, "stable": bool(rho < 1.0)}
-    if bisect:
-        out["max_stable_step"] = max_stable_step(scenario, Kx, G, hybrid, h_start=h)
-    return out
+    return analyse_fast(scenario, h, hybrid, bisect)

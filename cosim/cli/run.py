@@ -62,6 +62,8 @@ def register(sub) -> None:
     p.add_argument("--step", type=float, metavar="H", help="check this step instead")
     p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
                    help="which law's loop to linearise (default hybrid)")
+    p.add_argument("--from-error", type=float, metavar="E", dest="from_error",
+                   help="error to converge from (default: the scenario's initial error)")
     _add_set(p)
     p.set_defaults(func=_cmd_check)
 
@@ -143,11 +145,14 @@ def _cmd_check(args) -> int:
     from ..master import design_summary
     from ..scenario import load_scenario
 
+    from ..analysis.stability_report import check_extras, check_lines
+
     sc = load_scenario(args.scenario, args.overrides, step=args.step)
     st = analyse(sc, law=args.controller)
     out = {"scenario": sc.name, "design": design_summary(sc), "step": sc.step,
            "spectral_radius": st["spectral_radius"], "stable": st["stable"],
            "max_stable_step": st["max_stable_step"]}
+    out.update(check_extras(sc, st, args.controller, args.from_error))
     rc = 0 if st["stable"] else EXIT_UNSTABLE
     if args.json:
         print(json.dumps(out, indent=1))
@@ -171,6 +176,7 @@ def _cmd_check(args) -> int:
         f"spectral_radius {st['spectral_radius']:.8f} ({'stable' if st['stable'] else 'UNSTABLE'})",
         f"max_stable_step {st['max_stable_step']:.4g} s",
     ]
+    lines += check_lines(out)
     print("\n".join(lines))
     return rc
 

@@ -1,0 +1,210 @@
+"""The delay margin against direct simulations of the delayed loop.
+
+Two independent simulations, each following the delay contract of `cosim.delay_margin`:
+* hil_6uav (the main case): the linear delayed loop built here from the DENSE finite-difference
+  Jacobian of `cosim.stability.linearise` (columns split into fresh/delayed by which agent they
+  belong to) and the `expm` ZOH plant, simulated step by step with a history of d samples;
+* hil_6uav with k_X = 30, k_e = 1 (a margin of a few steps): the NONLINEAR law, one kernel call
+  per agent on its own fresh row and its neighbours' delayed rows and θ, with a rigid-body plant
+  integrated by RK4 here.
+Stable at d = ⌈0.8 d_max⌉, unstable at ⌈1.2 d_max⌉ (delays of 0.8× and 1.2× the margin in s).
+"""
+import math
+
+import numpy as np
+import pytest
+
+from controller import LawParameters, se3
+from controller.kernels import network_step
+from cosim.analysis import stability as dense
+from cosim.analysis.delay_margin import (augmented, delay_margin, delayed_loop, delayed_parts,
+                                steps_of_delay)
+from cosim.scenario import load_scenario
+from cosim.analysis.stability_sparse import Linearisation, sparse_loop
+
+HIL = "scenarios/hil_6uav.toml"
+
+
+def _split_dense(sc):
+    """(K₀, K_d, G₀, G_d) from the dense Jacobian: agent i's own δ_i, ξ_i and the θ_k it owns
+    are fresh in its wrench; an edge's owner uses its own δ, ξ and θ_k fresh in θ_k's flow."""
+    N, M = sc.graph.n, sc.graph.M
+    E = np.asarray(sc.graph.edges)
+    Kx, G = dense.linearise(sc, True)
+    nx = 12 * N + M
+    owner_of_col = np.empty(nx, dtype=int)       # agent a column belongs to (θ: its owner)
+    owner_of_col[:6 * N] = np.repeat(np.arange(N), 6)
+    owner_of_col[6 * N:12 * N] = np.repeat(np.arange(N), 6)
+    owner_of_col[12 * N:] = E[:, 0]
+    fresh_u = owner_of_col[None, :] == np.repeat(np.arange(N), 6)[:, None]
+    fresh_g = owner_of_col[None, :] == E[:, 0][:, None]
+    return Kx * fresh_u, Kx * ~fresh_u, G * fresh_g, G * ~fresh_g
+
+
+def _linear_growth(sc, d, steps, seed=0):
+    """‖relative state‖ at the end over its start, for the linear delayed loop built densely."""
+    N, M = sc.graph.n, sc.graph.M
+    h = sc.step
+    K0, Kd, G0, Gd = _split_dense(sc)
+    Phi_plant = dense.closed_loop(sc, h, np.zeros_like(K0), np.zeros_like(G0))  # A_d, θ ↦ θ
+    Bd_K0 = dense.closed_loop(sc, h, K0, G0) - Phi_plant
+    Bd_Kd = dense.closed_loop(sc, h, Kd, Gd) - Phi_plant
+    E = np.asarray(sc.graph.edges)
+    rng = np.random.default_rng(seed)
+    s = np.zeros(12 * N + M)
+    s[:6 * N] = 1e-3 * rng.standard_normal(6 * N)
+    hist = [s.copy() for _ in range(d)]            # s(n − d), …, s(n − 1); s(< 0) = s(0)
+
+    def rel(x):
+        dl = x[:6 * N].reshape(N, 6)
+        return np.concatenate([(dl[E[:, 0]] - dl[E[:, 1]]).ravel(), x[6 * N:]])
+
+    e0 = np.linalg.norm(rel(s))
+    for _ in range(steps):
+        hist.append(s)                             # now hist[0] = s(n − d)
+        s = Phi_plant @ s + Bd_K0 @ s + Bd_Kd @ hist.pop(0)
+    return np.linalg.norm(rel(s)) / e0
+
+
+def test_delay_margin_hil_matches_a_linear_simulation_built_from_the_dense_jacobian():
+    sc = load_scenario(HIL)
+    out = delay_margin(sc)
+    dm = out["delay_margin_steps"]
+    assert dm is not None and dm >= 1
+    assert out["rho_at_margin"] < 1.0 <= out["rho_beyond"]
+    assert out["delay_margin_s"] == pytest.approx(dm * sc.step)
+    d_lo = steps_of_delay(0.8 * dm * sc.step, sc.step)
+    d_hi = steps_of_delay(1.2 * dm * sc.step, sc.step)
+    assert d_lo <= dm < d_hi
+    assert _linear_growth(sc, d_lo, 20000) < 1e-2
+    assert _linear_growth(sc, d_hi, 20000) > 1e2
+
+
+def test_zero_delay_is_the_undelayed_loop():
+    sc = load_scenario(HIL)
+    lin = Linearisation(sc, True, force_sparse=True)
+    P0, Pd = delayed_loop(lin, sc.step)
+    assert abs((P0 + Pd) - sparse_loop(lin, sc.step)).max() < 1e-15
+    assert abs(augmented(*delayed_parts(lin, sc.step), 0) - sparse_loop(lin, sc.step)).max() < 1e-15
+
+
+def test_reduced_history_has_the_companion_spectrum():
+    """(s, w(n−1..n−d)) with w = C s against the plain companion matrix on (s(n), …, s(n−d))."""
+    sc = load_scenario(HIL)
+    lin = Linearisation(sc, True, force_sparse=True)
+    P0, Pd = (m.toarray() for m in delayed_loop(lin, sc.step))
+    n, d = P0.shape[0], 3
+    comp = np.zeros(((d + 1) * n, (d + 1) * n))
+    comp[:n, :n], comp[:n, d * n:] = P0, Pd
+    comp[n:, :-n] = np.eye(d * n)
+    big = np.sort(np.abs(np.linalg.eigvals(comp)))[::-1]
+    red = augmented(*delayed_parts(lin, sc.step), d).toarray()
+    red = np.sort(np.abs(np.linalg.eigvals(red)))[::-1]
+    k = 50    # the dominant part of both spectra (the rest are zeros and tiny modes)
+    assert np.abs(big[:k] - red[:k]).max() < 1e-8
+
+
+def test_steps_of_delay():
+    assert steps_of_delay(0.0, 0.004) == 0
+    assert steps_of_delay(0.004, 0.004) == 1        # exactly one step, despite rounding
+    assert steps_of_delay(0.004 * 3, 0.004) == 3
+    assert steps_of_delay(0.0041, 0.004) == 2
+
+
+# ---- nonlinear law with delayed neighbour data -------------------------------------------
+
+
+def _rigid_body_rk4(S, u, J, m, h):
+    """One RK4 step of Ṙ = Rω^, ṗ = Rv, Jω̇ = Jω×ω + τ, m v̇ = m v×ω + f (ξ = [ω; v])."""
+    def f(y):
+        p, R, w, v = y
+        dp = np.einsum("nab,nb->na", R, v)
+        dR = R @ _hat(w)
+        Jw = np.einsum("nab,nb->na", J, w)
+        dw = np.linalg.solve(J, (np.cross(Jw, w) + u[:, :3])[..., None])[..., 0]
+        dv = np.cross(v, w) + u[:, 3:] / m[:, None]
+        return dp, dR, dw, dv
+
+    y = (S[:, 0:3].copy(), S[:, 3:12].reshape(-1, 3, 3).copy(), S[:, 12:15].copy(),
+         S[:, 15:18].copy())
+    k1 = f(y)
+    k2 = f(tuple(a + 0.5 * h * b for a, b in zip(y, k1)))
+    k3 = f(tuple(a + 0.5 * h * b for a, b in zip(y, k2)))
+    k4 = f(tuple(a + h * b for a, b in zip(y, k3)))
+    y = tuple(a + h / 6 * (b + 2 * c + 2 * e + g) for a, b, c, e, g in zip(y, k1, k2, k3, k4))
+    out = np.empty_like(S)
+    out[:, 0:3], out[:, 3:12] = y[0], y[1].reshape(-1, 9)
+    out[:, 12:15], out[:, 15:18] = y[2], y[3]
+    return out
+
+
+def _hat(w):
+    Z = np.zeros(w.shape[:-1] + (3, 3))
+    Z[..., 0, 1], Z[..., 0, 2], Z[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    Z[..., 1, 0], Z[..., 2, 0], Z[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    return Z
+
+
+def _nonlinear_growth(sc, d, steps, seed=1):
+    N, M = sc.graph.n, sc.graph.M
+    E = np.asarray(sc.graph.edges)
+    h = sc.step
+    P = LawParameters.of(sc.weighting, sc.design, sc.gains).P
+    rng = np.random.default_rng(seed)
+    X = se3.exp_se3(1e-4 * rng.standard_normal((N, 6)))
+    S = np.zeros((N, 18))
+    S[:, 0:3] = X[:, :3, 3]
+    S[:, 3:12] = X[:, :3, :3].reshape(N, 9)
+    theta = np.zeros(M)
+    inc = [[k for k in range(M) if i in E[k]] for i in range(N)]
+    S_hist = [S.copy() for _ in range(d)]           # published rows of steps n − d … n − 1
+    th_hist = [theta.copy() for _ in range(d)]      # published θ (after the jump stage)
+
+    def err(S, theta):
+        R = S[:, 3:12].reshape(N, 3, 3)
+        Rb = np.einsum("kea,kec->kac", R[E[:, 1]], R[E[:, 0]])
+        pb = np.einsum("kea,ke->ka", R[E[:, 1]], S[E[:, 0], :3] - S[E[:, 1], :3])
+        return math.sqrt(((np.eye(3) - Rb) ** 2).sum() + (pb ** 2).sum() + (theta ** 2).sum()
+                         + (S[:, 12:] ** 2).sum())
+
+    e0 = err(S, theta)
+    for _ in range(steps):
+        S_hist.append(S)                  # rows are published at once, θ after its jump stage
+        Sd = S_hist.pop(0)                # = S(n − d)
+        # near consensus no jump fires (asserted below), so θ after the jump stage is θ(n)
+        th_hist.append(theta.copy())
+        thd = th_hist.pop(0)
+        u = np.zeros((N, 6))
+        th_new = theta.copy()
+        for i in range(N):
+            nb = [int(E[k, 1] if E[k, 0] == i else E[k, 0]) for k in inc[i]]
+            rows = [i] + nb
+            S_loc = np.ascontiguousarray(np.vstack([S[i]] + [Sd[j] for j in nb]))
+            loc = {a: b for b, a in enumerate(rows)}
+            e_loc = np.array([[loc[int(E[k, 0])], loc[int(E[k, 1])]] for k in inc[i]],
+                             dtype=np.int64).reshape(-1, 2)
+            th_loc = np.array([theta[k] if E[k, 0] == i else thd[k] for k in inc[i]])
+            m_ = len(inc[i])
+            u_loc = np.zeros((len(rows), 6))
+            jumped = np.zeros(m_, dtype=np.bool_)
+            network_step(S_loc, th_loc, e_loc, P, h, True, u_loc, np.zeros(m_), jumped,
+                           np.zeros(m_), np.zeros(m_))
+            assert not jumped.any()
+            u[i] = u_loc[0]
+            for c, k in enumerate(inc[i]):
+                if E[k, 0] == i:           # the owner flows θ_k
+                    th_new[k] = th_loc[c]
+        S = _rigid_body_rk4(S, u, sc.inertias, sc.masses, h)
+        theta = th_new
+    return err(S, theta) / e0
+
+
+def test_delay_margin_matches_the_nonlinear_law_with_delayed_neighbour_data():
+    sc = load_scenario(HIL, ["gains.k_X=30", "gains.k_e=1"])
+    out = delay_margin(sc)
+    dm = out["delay_margin_steps"]
+    assert dm is not None and dm >= 2
+    d_lo = steps_of_delay(0.8 * dm * sc.step, sc.step)
+    d_hi = steps_of_delay(1.2 * dm * sc.step, sc.step)
+    assert _nonlinear_growth(sc, d_lo, 4000) < 0.1
+    assert _nonlinear_growth(sc, d_hi, 4000) > 10.0
