@@ -18,8 +18,14 @@ import types
 
 import numpy as np
 
-from .stability_sparse import (DENSE_MAX, Linearisation, _rigid_basis, common_mode_eigenvalues,
-                               modal_matrices, sparse_loop)
+from .stability_sparse import (
+    DENSE_MAX,
+    Linearisation,
+    _rigid_basis,
+    common_mode_eigenvalues,
+    modal_matrices,
+    sparse_loop,
+)
 
 __all__ = ["slowest_mode", "convergence", "initial_error", "ROT_TOL", "POS_TOL"]
 

@@ -26,13 +26,13 @@ Two ways to get the spectral radius (`method` in the result):
 """
 from __future__ import annotations
 
+# the inertia counts are compiled, like the kernels (numba, on-disk cache)
+import numba
 import numpy as np
 import scipy.sparse as sp
 
 from controller import LawParameters
 from controller.kernels import network_step
-# the (private) numba-or-Python decorator, so that the inertia counts compile like the kernels
-from controller._jit import jit
 
 __all__ = ["edge_jacobian", "modal_blocks", "laplacian_eigenvalues", "sparse_loop",
            "spectral_radius_fast", "analyse_fast", "params_of", "DENSE_MAX"]
@@ -122,7 +122,7 @@ def _tree_order(N, edges, root=0):
     return order, parent
 
 
-@jit
+@numba.njit(cache=True, nogil=True)
 def _count_below(x, order, parent, deg, a):
     """Number of eigenvalues of L = D − Adj below x (Sylvester's inertia of L − xI, eliminated
     from the leaves up: a tree's LDLᵀ has no fill; a zero pivot is nudged as bisection does)."""
@@ -143,7 +143,7 @@ def _count_below(x, order, parent, deg, a):
     return count
 
 
-@jit
+@numba.njit(cache=True, nogil=True)
 def _bisect_all(order, parent, deg, hi, tol, out):
     N = order.shape[0]
     a = np.empty(N)
