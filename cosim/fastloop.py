@@ -82,12 +82,12 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
               theta_prev, theta_jump, n0, n1, dec, spl, Pm, kX, masses, J, rot, pos, U, quat,
               rec_step, rec_S, rec_u, rec_theta, rec_mu, rec_jumped, rec_rot, rec_pos, rec_U,
               rec_quat, rec_V, jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu,
-              smp_S, smp_theta, smp_u, k0, out):
+              smp_step, smp_S, smp_theta, smp_u, k0, out):
     """Steps n0 … n1−1 (stopping early before a step whose jumps might not fit the buffers).
 
     fn = (fmi2GetReal, fmi2SetReal, fmi2DoStep) addresses, comp the fmi2Component. A step n
-    with dec > 0 and n % dec == 0 stores a log record; n0 % spl == 0 stores the summary sample
-    (a block never crosses a sample tick). doStep runs from (n + k0)·h: k0 is the plant's
+    with dec > 0 and n % dec == 0 stores a log record; n % spl == 0 stores a summary sample
+    (S and θ after the jump stage; at n = 0 also u, for u(0)), as many as the block crosses. doStep runs from (n + k0)·h: k0 is the plant's
     own step counter at the start of the run (FmuPlant.advance steps from k·h). out receives the steps done (completed doSteps),
     records, jumps (those of a failing step included, as the Python loop has them), the first
     FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
@@ -122,11 +122,14 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
                     jmp_after[njmp] = theta_jump[k]
                     jmp_mu[njmp] = mu[k]
                     njmp += 1
-        if n == n0 and n % spl == 0:
-            smp_S[:, :] = S
-            smp_theta[:] = theta_jump
-            smp_u[:, :] = u
-            out[O_SAMPLED] = 1
+        if n % spl == 0:
+            ns = out[O_SAMPLED]
+            smp_step[ns] = n
+            smp_S[ns] = S
+            smp_theta[ns] = theta_jump
+            if n == 0:
+                smp_u[:, :] = u
+            out[O_SAMPLED] = ns + 1
         if dec > 0 and n % dec == 0:
             network_U(S, theta_jump, edges, Pm, U)
             V, ximax = metrics(S, edges, U, kX, masses, J, rot, pos, quat)
@@ -239,8 +242,12 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
     theta = ctrl.theta
     rot, pos, U, quat = master._rot, master._pos, master._U, master._quat
     jcap = max(M, JUMP_CAPACITY)
-    smp_S = np.zeros((N, 18))
-    smp_theta = np.zeros(M)
+    # summary samples: as many as the longest block crosses (blocks do not stop at them, so
+    # a sweep sampling every few steps still runs up to MAX_BLOCK steps per compiled call)
+    scap = MAX_BLOCK // spl + 2
+    smp_step = np.zeros(scap, np.int64)
+    smp_S = np.zeros((scap, N, 18))
+    smp_theta = np.zeros((scap, M))
     smp_u = np.zeros((N, 6))
     out = np.zeros(6, dtype=np.int64)
     writer = None
@@ -257,7 +264,7 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
     catcher = signals.catching(master.request_stop).__enter__()
     try:
         while n < n_steps and not master._stop:
-            nxt = min(n_steps, n + block, (n // spl + 1) * spl)
+            nxt = min(n_steps, n + block)
             cap = (nxt - n - 1) // dec + 1 if logging else 0
             rec = _RecordBuffers(cap, N, M)
             jb = (np.empty(jcap, np.int64), np.empty(jcap, np.int64), np.empty(jcap),
@@ -266,8 +273,8 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
             run_block(fn, comp, fmu._vr_state, fmu._vr_input, S, u, theta, ctrl.edges, ctrl.P,
                       h, bool(ctrl.hybrid), ctrl.mu, ctrl.jumped, ctrl.theta_prev,
                       ctrl.theta_jump, n, nxt, dec, spl, master._P, master._kX, master._masses,
-                      master._J, rot, pos, U, quat, *rec.arrays(), *jb, smp_S, smp_theta, smp_u,
-                      k0, out)
+                      master._J, rot, pos, U, quat, *rec.arrays(), *jb, smp_step, smp_S,
+                      smp_theta, smp_u, k0, out)
             now = time.perf_counter()
             dt = now - t0
             n0, n = n, int(out[O_N])
@@ -280,7 +287,7 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
             elif block < MAX_BLOCK and dt < TARGET_BLOCK_S / 2:
                 block = min(MAX_BLOCK, 2 * block)
             _hand_over(master, writer, rec, int(out[O_REC]), jb, int(out[O_JMP]), h,
-                       smp_S if out[O_SAMPLED] else None, smp_theta, smp_u, n0)
+                       int(out[O_SAMPLED]), smp_step, smp_S, smp_theta, smp_u)
             if out[O_STATUS]:
                 pending = (CALL_NAMES[int(out[O_CALL])], int(out[O_STATUS]))
                 break
@@ -333,13 +340,15 @@ class _RecordBuffers:
                 self.U, self.quat, self.V)
 
 
-def _hand_over(master, writer, rec, nrec, jb, njmp, h, smp_S, smp_theta, smp_u, n0):
-    """The block's events, in step order: the summary sample (main thread, it fills
+def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, smp_theta,
+               smp_u):
+    """The block's events, in step order: the summary samples (main thread, they fill
     master.samples), jumps (master.jumps now, the log on the writer) and log records."""
-    if smp_S is not None:
-        if n0 == 0:
+    for q in range(nsmp):
+        step = int(smp_step[q])
+        if step == 0:
             master.u0 = smp_u.copy()
-        master._sample(n0 * h, smp_S, smp_theta)
+        master._sample(step * h, smp_S[q], smp_theta[q])
     jstep, jedge, jbefore, jafter, jmu = (a[:njmp].tolist() for a in jb)
     for s, e, b, a, m in zip(jstep, jedge, jbefore, jafter, jmu):
         master.jumps.append({"t": s * h, "edge": e, "theta_before": b, "theta_after": a,
