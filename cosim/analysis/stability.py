@@ -17,6 +17,7 @@ from controller import LawParameters, se3
 from controller.kernels import network_step
 
 from ..controllers import make_controller
+from .stability_sparse import analyse_fast, largest_stable_step
 
 __all__ = ["linearise", "closed_loop", "spectral_radius", "max_stable_step", "analyse"]
 
@@ -114,38 +115,8 @@ def max_stable_step(scenario, Kx=None, G=None, hybrid: bool = True, rel_tol: flo
     if Kx is None:
         Kx, G = linearise(scenario, hybrid)
 
-    def stable(h):
-        return spectral_radius(scenario, h, Kx, G) < 1.0
-
-    lo, hi = None, None
-    h = h_start
-    if stable(h):
-        lo = h
-        while hi is None:
-            h *= 2
-            if h > 1e3:
-                return float("inf")
-            if stable(h):
-                lo = h
-            else:
-                hi = h
-    else:
-        hi = h
-        while lo is None:
-            h /= 2
-            if h < 1e-12:
-                return 0.0
-            if stable(h):
-                lo = h
-            else:
-                hi = h
-    while hi - lo > rel_tol * lo:
-        mid = 0.5 * (lo + hi)
-        if stable(mid):
-            lo = mid
-        else:
-            hi = mid
-    return float(lo)
+    return largest_stable_step(lambda h: spectral_radius(scenario, h, Kx, G) < 1.0, h_start,
+                               rel_tol)
 
 
 def analyse(scenario, h: float | None = None, hybrid: bool = True, bisect: bool = True,
@@ -155,7 +126,6 @@ def analyse(scenario, h: float | None = None, hybrid: bool = True, bisect: bool 
     (whether θ is a state of the loop). Computed without dense matrices by `stability_sparse`
     (exact modal decoupling when the agents are identical, else a sparse eigensolver); the
     dense functions above are the reference it is tested against."""
-    from .stability_sparse import analyse_fast
     if law is not None:
         hybrid = make_controller(law, scenario).hybrid
     return analyse_fast(scenario, h, hybrid, bisect)

@@ -5,6 +5,10 @@ import math
 
 from controller.errors import Se3SyncError
 
+from ..controllers import make_controller
+from .convergence_rate import convergence
+from .delay_margin import delay_margin
+
 # The delayed loop does not decouple by graph modes (agent i weighs its own fresh state by its
 # degree and its neighbours' delayed ones by the adjacency, and D and Adj do not commute), so
 # its augmented state has 12N + M + d(6N + M) entries; above this N, `check` skips it (under
@@ -14,10 +18,6 @@ DELAY_MAX_AGENTS = 16
 
 def check_extras(sc, st: dict, law, from_error=None) -> dict:
     """law: a registered law name (decides whether θ is a state of the loop) or a bool."""
-    from ..controllers import make_controller
-    from .convergence_rate import convergence
-    from .delay_margin import delay_margin
-
     hybrid = make_controller(law, sc).hybrid if isinstance(law, str) else bool(law)
 
     if from_error is not None and not (math.isfinite(from_error) and from_error > 0):

@@ -377,11 +377,9 @@ def _sparse_radius(Phi, lin, k=6):
     return float(np.abs(lam).max())
 
 
-def max_stable_step(lin, h_start, rel_tol=0.01):
-    """The largest h with ρ < 1, by bracketing and bisection (as `stability.max_stable_step`)."""
-    def stable(h):
-        return lin.spectral_radius(h) < 1.0
-
+def largest_stable_step(stable, h_start: float, rel_tol: float = 0.01) -> float:
+    """The largest h with ``stable(h)``, by bracketing from h_start (doubling or halving) and
+    bisection to ``rel_tol``; inf above 1000 s, 0 below 1e-12 s."""
     lo = hi = None
     h = h_start
     if stable(h):
@@ -411,6 +409,11 @@ def max_stable_step(lin, h_start, rel_tol=0.01):
         else:
             hi = mid
     return float(lo)
+
+
+def max_stable_step(lin, h_start, rel_tol=0.01):
+    """The largest h with ρ < 1 (`largest_stable_step` on this linearisation)."""
+    return largest_stable_step(lambda h: lin.spectral_radius(h) < 1.0, h_start, rel_tol)
 
 
 def spectral_radius_fast(scenario, h=None, hybrid=True):
