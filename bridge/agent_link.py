@@ -122,6 +122,10 @@ class _Assembly:
         self.chunks = {}
 
 
+def _steps(seconds: float, h: float) -> int:
+    return int(math.ceil(seconds / h - 1e-9)) if seconds > 0 else 0
+
+
 def _nearest_rank(hist: Counter, p: float):
     total = sum(hist.values())
     if total == 0:
@@ -171,6 +175,10 @@ class AgentLink:
         self.owned = tuple(graph.M_plus(self.id))                       # M_i⁺, ascending
         self.owned_by = {j: tuple(graph.M_plus(j)) for j in self.neighbours}
         self.addr = {j: tuple(network.endpoints[j - 1]) for j in self.neighbours}
+        # the age rule in steps, rounded as cosim.network rounds it (⌈s/h − 1e-9⌉)
+        h = h_us * 1e-6
+        self.max_age_steps = _steps(network.max_age, h) if math.isfinite(network.max_age) else None
+        self.hold_steps = _steps(network.hold, h)
         host, port = network.endpoints[self.id - 1]
         self.counters = counters if counters is not None else Counters()
         self.peer = Peer(self.id, AGENT_COMPONENT, self.counters, key=key,
@@ -360,6 +368,18 @@ class AgentLink:
         if record:
             self._ages[j][max(age, 0)] += 1
         return age
+
+    def freshness(self, j: int, n: int) -> str:
+        """The age rule of ``[network]`` for neighbour j at step n: "fresh" (age ≤ max_age: use
+        the data), "hold" (up to ``hold`` more: hold the edge's term, freeze an owned θ_k) or
+        "failsafe" (older still: zero wrench until fresh data arrives, then rejoin). Before the
+        first sample the age counts from step 0, as if the sender's S0 and θ(0) had arrived then
+        (the delay contract of `cosim.network`). Does not record the age."""
+        held = self.neighbour(j)
+        age = int(n) - (0 if held is None else held.step)
+        if self.max_age_steps is None or age <= self.max_age_steps:
+            return "fresh"
+        return "hold" if age <= self.max_age_steps + self.hold_steps else "failsafe"
 
     def stats(self) -> dict:
         """Counters (JSON-friendly): the link counters of `bridge.link.Counters` plus, per

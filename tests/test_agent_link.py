@@ -388,3 +388,22 @@ def test_flood_is_read_within_the_budget(closing):
         send_raw(sc, 1, os.urandom(20))
     time.sleep(0.05)
     assert rx.poll() == 16 and rx.stats()["drain_capped"] == 1
+
+
+def test_freshness_follows_max_age_then_hold_then_failsafe_and_rejoins(closing):
+    base = free_base_port(6)
+    sc = parse_scenario(HIL + f"\n[network]\nbase_port = {base}\nmax_age = 0.02\nhold = 0.01\n",
+                        name="al", path="al.toml")
+    rx = AgentLink.from_scenario(sc, 1)
+    closing.append(rx)
+    assert (rx.max_age_steps, rx.hold_steps) == (5, 3)    # 20 ms and 10 ms at h = 4 ms
+    # before any sample: counted from S0 at step 0
+    assert [rx.freshness(2, n) for n in (5, 6, 8, 9)] == ["fresh", "hold", "hold", "failsafe"]
+    mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
+    send_raw(sc, 1, sample_datagram(mav, 100 * H_US, 1.0))
+    assert poll_until(rx, lambda: rx.neighbour(2) is not None)
+    assert [rx.freshness(2, n) for n in (100, 105, 106, 108, 109)] == \
+        ["fresh", "fresh", "hold", "hold", "failsafe"]
+    send_raw(sc, 1, sample_datagram(mav, 107 * H_US, 1.0))   # fresh data again: rejoin
+    assert poll_until(rx, lambda: rx.neighbour(2).step == 107)
+    assert rx.freshness(2, 109) == "fresh"
