@@ -39,6 +39,7 @@ sample is held (`neighbour`); a newer sample replaces an incomplete one in assem
 from __future__ import annotations
 
 import math
+import socket
 import time
 from collections import Counter
 from dataclasses import dataclass
@@ -122,6 +123,15 @@ class _Assembly:
         self.chunks = {}
 
 
+def _resolve(j: int, host: str, port: int) -> tuple:
+    """(IPv4 address, port) of agent j's endpoint, resolved once (not at every sendto)."""
+    try:
+        return socket.gethostbyname(host), int(port)
+    except OSError as exc:
+        raise Se3SyncError(f"network: agent {j}'s address {host!r} does not resolve: "
+                           f"{exc.strerror or exc}") from None
+
+
 def _steps(seconds: float, h: float) -> int:
     return int(math.ceil(seconds / h - 1e-9)) if seconds > 0 else 0
 
@@ -174,7 +184,7 @@ class AgentLink:
         self.neighbours = tuple(graph.neighbours(self.id))
         self.owned = tuple(graph.M_plus(self.id))                       # M_i⁺, ascending
         self.owned_by = {j: tuple(graph.M_plus(j)) for j in self.neighbours}
-        self.addr = {j: tuple(network.endpoints[j - 1]) for j in self.neighbours}
+        self.addr = {j: _resolve(j, *network.endpoints[j - 1]) for j in self.neighbours}
         # the age rule in steps, rounded as cosim.network rounds it (⌈s/h − 1e-9⌉)
         h = h_us * 1e-6
         self.max_age_steps = _steps(network.max_age, h) if math.isfinite(network.max_age) else None
@@ -183,7 +193,11 @@ class AgentLink:
         self.counters = counters if counters is not None else Counters()
         self.peer = Peer(self.id, AGENT_COMPONENT, self.counters, key=key,
                          signing_state=signing_state)
-        self.sock = UdpSocket(f"udpin:{host}:{port}")
+        try:
+            self.sock = UdpSocket(f"udpin:{host}:{port}")
+        except OSError as exc:
+            raise Se3SyncError(f"network: agent {self.id}'s endpoint {host}:{port} cannot be "
+                               f"bound: {exc.strerror or exc}") from None
         self._held: dict = {j: None for j in self.neighbours}
         self._asm: dict = {j: None for j in self.neighbours}
         self._packets = {j: 0 for j in self.neighbours}      # accepted packets per neighbour

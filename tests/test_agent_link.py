@@ -407,3 +407,18 @@ def test_freshness_follows_max_age_then_hold_then_failsafe_and_rejoins(closing):
     send_raw(sc, 1, sample_datagram(mav, 107 * H_US, 1.0))   # fresh data again: rejoin
     assert poll_until(rx, lambda: rx.neighbour(2).step == 107)
     assert rx.freshness(2, 109) == "fresh"
+
+
+def test_endpoint_errors_are_one_line(closing):
+    sc = scenario()
+    busy = raw_socket(sc, 1)
+    closing.append(busy)
+    with pytest.raises(Se3SyncError, match=r"network: agent 1's endpoint 127\.0\.0\.1:\d+ cannot be bound"):
+        AgentLink.from_scenario(sc, 1)
+    base = free_base_port(6)
+    bad = parse_scenario(HIL + f"\n[network]\nbase_port = {base}\n[[network.agent]]\nid = 2\n"
+                         "address = \"no-such-host.invalid\"\n", name="al", path="al.toml")
+    with pytest.raises(Se3SyncError, match="network: agent 2's address 'no-such-host.invalid' does not resolve"):
+        AgentLink.from_scenario(bad, 1)
+    with pytest.raises(Se3SyncError, match="no \\[network\\] table"):
+        AgentLink.from_scenario(parse_scenario(HIL, name="al", path="al.toml"), 1)
