@@ -422,3 +422,24 @@ def test_endpoint_errors_are_one_line(closing):
         AgentLink.from_scenario(bad, 1)
     with pytest.raises(Se3SyncError, match="no \\[network\\] table"):
         AgentLink.from_scenario(parse_scenario(HIL, name="al", path="al.toml"), 1)
+
+
+def test_more_than_58_owned_edges_travel_in_chunks(closing):
+    from controller import Graph
+    from cosim.network import parse_network
+
+    n = 62                                              # agent 1 owns 61 edges: chunks of 58 + 3
+    graph = Graph(n, [(1, j) for j in range(2, n + 1)])
+    net = parse_network({"base_port": free_base_port(n)}, n)
+    tx = AgentLink(1, net, graph, step=0.004)
+    rx = AgentLink(7, net, graph, step=0.004)
+    closing.extend([tx, rx])
+    theta = {k: 0.01 * k - 0.3 for k in graph.M_plus(1)}
+    rng = np.random.default_rng(2)
+    S = random_row(rng)
+    tx.publish(3, S, theta)
+    assert poll_until(rx, lambda: rx.neighbour(1) is not None)
+    got = rx.neighbour(1)
+    assert got.theta == {k: float(np.float32(v)) for k, v in theta.items()}
+    assert np.array_equal(got.S, expected_row(S, "ned"))
+    assert rx.stats()["received"] == 3                  # ODOMETRY + "theta" + "theta1"
