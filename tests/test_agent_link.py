@@ -418,7 +418,8 @@ def test_endpoint_errors_are_one_line(closing):
     base = free_base_port(6)
     bad = parse_scenario(HIL + f"\n[network]\nbase_port = {base}\n[[network.agent]]\nid = 2\n"
                          "address = \"no-such-host.invalid\"\n", name="al", path="al.toml")
-    with pytest.raises(Se3SyncError, match="network: agent 2's address 'no-such-host.invalid' does not resolve"):
+    with pytest.raises(Se3SyncError,
+                       match="network: agent 2's address 'no-such-host.invalid' does not resolve"):
         AgentLink.from_scenario(bad, 1)
     with pytest.raises(Se3SyncError, match="no \\[network\\] table"):
         AgentLink.from_scenario(parse_scenario(HIL, name="al", path="al.toml"), 1)
