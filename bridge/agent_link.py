@@ -186,7 +186,7 @@ class AgentLink:
         self.owned_by = {j: tuple(graph.M_plus(j)) for j in self.neighbours}
         self.addr = {j: _resolve(j, *network.endpoints[j - 1]) for j in self.neighbours}
         # the age rule in steps, rounded as cosim.network rounds it (⌈s/h − 1e-9⌉)
-        h = h_us * 1e-6
+        h = float(step)
         self.max_age_steps = _steps(network.max_age, h) if math.isfinite(network.max_age) else None
         self.hold_steps = _steps(network.hold, h)
         host, port = network.endpoints[self.id - 1]
