@@ -34,7 +34,9 @@ wrong-key and replayed packets are counted by `bridge.link.Peer`; a decoded mess
 ``unexpected_message`` (any other message), ``out_of_order`` (older than the held or assembling
 sample) or ``duplicate`` (same stamp as the held sample). Per neighbour only the NEWEST complete
 sample is held (`neighbour`); a newer sample replaces an incomplete one in assembly (counted
-``incomplete``), an older arrival never replaces newer data.
+``incomplete``), an older arrival never replaces newer data, except a stamp more than 10 s of
+sample time back, taken as the neighbour restarting (counted ``restarts`` per link, as
+`bridge.state` treats a vehicle reboot; it also undoes a lock-out by one far-future stamp).
 """
 from __future__ import annotations
 
@@ -63,6 +65,7 @@ THETA_NAME = "theta"
 THETA_PER_MESSAGE = 58                                     # DEBUG_FLOAT_ARRAY.data has 58 floats
 ID_ODOMETRY = mavlink2.MAVLINK_MSG_ID_ODOMETRY
 ID_DEBUG_FLOAT_ARRAY = mavlink2.MAVLINK_MSG_ID_DEBUG_FLOAT_ARRAY
+RESTART_S = 10.0                                           # a stamp this far back: the sender restarted
 NAN21 = [math.nan] + [0.0] * 20                            # covariance unknown (first element NaN)
 LINK_REASONS = ("not_neighbour", "bad_stamp", "bad_theta", "unexpected_message", "duplicate",
                 "incomplete")
@@ -189,6 +192,7 @@ class AgentLink:
         h = float(step)
         self.max_age_steps = _steps(network.max_age, h) if math.isfinite(network.max_age) else None
         self.hold_steps = _steps(network.hold, h)
+        self.restart_steps = _steps(RESTART_S, h)
         host, port = network.endpoints[self.id - 1]
         self.counters = counters if counters is not None else Counters()
         self.peer = Peer(self.id, AGENT_COMPONENT, self.counters, key=key,
@@ -203,6 +207,7 @@ class AgentLink:
         self._packets = {j: 0 for j in self.neighbours}      # accepted packets per neighbour
         self._samples = {j: 0 for j in self.neighbours}      # complete samples taken
         self._sent = {j: 0 for j in self.neighbours}         # datagrams sent per neighbour
+        self._restarts = {j: 0 for j in self.neighbours}     # stamps that jumped back > RESTART_S
         self._ages = {j: Counter() for j in self.neighbours}  # ages (steps) of the data used
 
     @classmethod
@@ -282,19 +287,21 @@ class AgentLink:
 
     def _assembly(self, j: int, s: int):
         """The assembly for sample s of j, or None (counted) when s is not newer than what is held
-        or older than what is being assembled."""
+        or being assembled. A stamp more than `RESTART_S` of sample time older than that is j
+        restarting (as `bridge.state` treats a vehicle reboot): taken, counted in ``restarts``."""
         c = self.counters
-        held = self._held[j]
-        if held is not None and s <= held.step:
-            c.reject("duplicate" if s == held.step else "out_of_order")
-            return None
         a = self._asm[j]
-        if a is not None:
-            if s < a.step:
-                c.reject("out_of_order")
+        if a is not None and a.step == s:
+            return a
+        held = self._held[j]
+        steps = [x.step for x in (held, a) if x is not None]
+        newest = max(steps) if steps else None
+        if newest is not None and s <= newest:
+            if newest - s <= self.restart_steps:
+                c.reject("duplicate" if held is not None and s == held.step else "out_of_order")
                 return None
-            if s == a.step:
-                return a
+            self._restarts[j] += 1
+        if a is not None:
             c.reject("incomplete")   # a newer sample starts before the older one was complete
         a = self._asm[j] = _Assembly(s)
         return a
@@ -406,7 +413,7 @@ class AgentLink:
         for j in self.neighbours:
             held = self._held[j]
             links[str(j)] = {"sent": self._sent[j], "received": self._packets[j],
-                             "samples": self._samples[j],
+                             "samples": self._samples[j], "restarts": self._restarts[j],
                              "last_step": None if held is None else held.step,
                              "age_p50_steps": _nearest_rank(self._ages[j], 50),
                              "age_p99_steps": _nearest_rank(self._ages[j], 99)}

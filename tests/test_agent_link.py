@@ -444,3 +444,17 @@ def test_more_than_58_owned_edges_travel_in_chunks(closing):
     assert got.theta == {k: float(np.float32(v)) for k, v in theta.items()}
     assert np.array_equal(got.S, expected_row(S, "ned"))
     assert rx.stats()["received"] == 3                  # ODOMETRY + "theta" + "theta1"
+
+
+def test_a_stamp_far_back_is_a_restart_a_near_one_is_late(closing):
+    sc = scenario()
+    rx = AgentLink.from_scenario(sc, 1)
+    closing.append(rx)
+    assert rx.restart_steps == 2500                      # 10 s at h = 4 ms
+    mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
+    for k, (s, held) in enumerate([(5000, 5000), (2500, 5000), (2499, 2499), (2600, 2600)]):
+        send_raw(sc, 1, sample_datagram(mav, s * H_US, float(s)))
+        poll_until(rx, lambda k=k: rx.stats()["datagrams"] == k + 1)
+        assert rx.neighbour(2).step == held and rx.neighbour(2).S[0] == float(held)
+    st = rx.stats()
+    assert st["links"]["2"]["restarts"] == 1 and st["rejected_by_reason"] == {"out_of_order": 2}
