@@ -1,0 +1,59 @@
+"""Cost of the inter-agent link (bridge.agent_link) per control step, against the control period.
+
+    python benchmarks/bench_agent_link.py [STEPS]
+
+Agent 2 of hil_6uav (three neighbours, two owned edges) publishes STEPS samples over loopback UDP
+while agents 1, 3 and 5 poll them; unsigned and signed. Reported: time per publish (encode, pack,
+three sendto) and per sample taken by a receiver (drain, decode, checks, wire → row), as fractions
+of the 4 ms period, medians of 3 repeats in one run: compare the ratios, not the absolute numbers.
+"""
+from __future__ import annotations
+
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bridge.agent_link import AgentLink
+from bridge.link import free_base_port
+from cosim.scenario import parse_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+TEXT = (ROOT / "scenarios" / "hil_6uav.toml").read_text()
+
+
+def once(steps: int, key) -> tuple[float, float]:
+    sc = parse_scenario(TEXT + f"\n[network]\nbase_port = {free_base_port(6)}\n", path="b.toml")
+    links = {i: AgentLink.from_scenario(sc, i, key=key) for i in (1, 2, 3, 5)}
+    try:
+        S, th = sc.S0[1], {2: 0.1, 4: 0.2}
+        t_pub = t_rx = 0.0
+        for n in range(steps):
+            t0 = time.perf_counter()
+            links[2].publish(n, S, th)
+            t1 = time.perf_counter()
+            for i in (1, 3, 5):
+                links[i].poll()
+            t_rx += time.perf_counter() - t1
+            t_pub += t1 - t0
+        taken = sum(links[i].stats()["links"]["2"]["samples"] for i in (1, 3, 5))
+        return t_pub / steps, t_rx / max(taken, 1)
+    finally:
+        for link in links.values():
+            link.close()
+
+
+def main(steps: int = 5000) -> None:
+    h = 0.004
+    for name, key in (("unsigned", None), ("signed", bytes(range(32)))):
+        runs = [once(steps, key) for _ in range(3)]
+        pub = statistics.median(r[0] for r in runs)
+        rx = statistics.median(r[1] for r in runs)
+        print(f"{name:9s} publish to 3 neighbours: {pub / h:.4f} of h   "
+              f"one sample received: {rx / h:.4f} of h   (h = 4 ms)")
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 5000)

@@ -1,0 +1,430 @@
+"""The inter-agent link: what one agent's controller process sends to and receives from its graph
+neighbours (and only them) over MAVLink 2 / UDP, signed when a key is given (issue 9).
+
+One sample of agent j at step s is what the delay contract of `cosim.network` calls "j's message
+of sample s": X_j(s), ξ_j(s) and θ_k(s) after the jump stage for the edges j owns (k ∈ M_j⁺). On
+the wire it is two standard common-dialect messages, packed into **one UDP datagram** per
+neighbour (so they arrive together or not at all):
+
+* **ODOMETRY (#331)**: time_usec = s · round(h·1e6) (µs of simulated time, the sample stamp),
+  frame_id MAV_FRAME_LOCAL_NED, child_frame_id MAV_FRAME_BODY_FRD, x y z, q (w, x, y, z), body
+  rates and body velocity, converted from the scenario's world/body frames exactly as the bridge
+  converts vehicle state (`bridge.frames`, ``bridge.world_frame``); the receiver rebuilds the same
+  float32-rounded row S_j as `bridge.transport.wire_to_state`.
+* **DEBUG_FLOAT_ARRAY (#350)** carries θ: time_usec = the same stamp, name ``"theta"``,
+  array_id = the sender's agent id, data[0..] = θ_k for the sender's owned edges in ascending
+  edge order, NaN-padded (the receiver maps them to edges with the graph). Why this message: θ_k
+  is a controller-internal scalar per edge with no semantic message of its own; DEBUG_FLOAT_ARRAY
+  is the common dialect's one message made for an application array, carries a 64-bit sample
+  stamp (NAMED_VALUE_FLOAT has only a 32-bit millisecond boot time, too coarse for h < 1 ms and
+  one message per edge) and 58 floats at once. An agent owning more than 58 edges sends further
+  chunks named ``"theta1"``, ``"theta2"``, … (edges 58c … 58c+57 of its owned list). An agent that
+  owns no edge sends ODOMETRY only.
+
+System id = agent id; component id = `AGENT_COMPONENT` = 191 (MAV_COMP_ID_ONBOARD_COMPUTER: the
+controller runs as the vehicle's companion computer, which shares the vehicle's system id). No
+HEARTBEAT is sent: a link's liveness is the age of its newest sample (`age_steps`).
+
+Receiving (`poll`) is untrusted input and never raises: a datagram that does not frame or decode
+is counted ``malformed``; a packet whose system id is not a neighbour's (or whose component is
+not `AGENT_COMPONENT`) is counted ``not_neighbour`` before it is decoded; with a key, unsigned,
+wrong-key and replayed packets are counted by `bridge.link.Peer`; a decoded message is counted
+``nan``, ``non_unit_quaternion`` (| ‖q‖ − 1 | > 1e-3), ``bad_frame`` (other frame ids),
+``bad_stamp`` (time_usec not a whole step), ``bad_theta`` (wrong name or array_id),
+``unexpected_message`` (any other message), ``out_of_order`` (older than the held or assembling
+sample) or ``duplicate`` (same stamp as the held sample). Per neighbour only the NEWEST complete
+sample is held (`neighbour`); a newer sample replaces an incomplete one in assembly (counted
+``incomplete``), an older arrival never replaces newer data, except a stamp more than 10 s of
+sample time back, taken as the neighbour restarting (counted ``restarts`` per link, as
+`bridge.state` treats a vehicle reboot; it also undoes a lock-out by one far-future stamp).
+"""
+from __future__ import annotations
+
+import math
+import socket
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from controller import layout
+from controller.errors import Se3SyncError
+
+from . import frames
+from .link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlink2, packet_ids,
+                   receive_datagrams)
+from .state import QUAT_TOL
+from .transport import f32, wire_to_state
+
+__all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
+           "encode_sample", "theta_name"]
+
+AGENT_COMPONENT = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER   # 191
+THETA_NAME = "theta"
+THETA_PER_MESSAGE = 58                                     # DEBUG_FLOAT_ARRAY.data has 58 floats
+ID_ODOMETRY = mavlink2.MAVLINK_MSG_ID_ODOMETRY
+ID_DEBUG_FLOAT_ARRAY = mavlink2.MAVLINK_MSG_ID_DEBUG_FLOAT_ARRAY
+RESTART_S = 10.0                                           # a stamp this far back: the sender restarted
+NAN21 = [math.nan] + [0.0] * 20                            # covariance unknown (first element NaN)
+LINK_REASONS = ("not_neighbour", "bad_stamp", "bad_theta", "unexpected_message", "duplicate",
+                "incomplete")
+
+
+def theta_name(chunk: int) -> str:
+    """DEBUG_FLOAT_ARRAY name of θ chunk c (edges 58c … 58c+57 of the owned list)."""
+    return THETA_NAME if chunk == 0 else f"{THETA_NAME}{chunk}"
+
+
+def stamp_us(n: int, h_us: int) -> int:
+    """time_usec of sample step n."""
+    return int(n) * h_us
+
+
+def encode_sample(mav, n: int, h_us: int, S_row, theta, world: str = "ned") -> list:
+    """The message objects of one sample: ODOMETRY, then one DEBUG_FLOAT_ARRAY per 58 owned θ
+    (none if ``theta`` is empty). ``theta`` lists θ_k of the owned edges in ascending k; ``mav``
+    is the sender's pymavlink MAVLink object (its system id is the agent id)."""
+    S = frames.state_world_to_ned(np.asarray(S_row, float).reshape(1, layout.S_WIDTH), world)
+    q = frames.rot_to_quat(S[:, layout.R])[0]
+    p, w, v = S[0, layout.P], S[0, layout.OMEGA], S[0, layout.V]
+    t = stamp_us(n, h_us)
+    out = [mav.odometry_encode(t, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD,
+                               p[0], p[1], p[2], [q[0], q[1], q[2], q[3]], v[0], v[1], v[2],
+                               w[0], w[1], w[2], NAN21, NAN21, 0,
+                               mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, 100)]
+    theta = [float(x) for x in theta]
+    for c in range(0, len(theta), THETA_PER_MESSAGE):
+        chunk = theta[c:c + THETA_PER_MESSAGE]
+        data = chunk + [math.nan] * (THETA_PER_MESSAGE - len(chunk))
+        out.append(mav.debug_float_array_encode(t, theta_name(c // THETA_PER_MESSAGE).encode(),
+                                                mav.srcSystem, data))
+    return out
+
+
+@dataclass
+class NeighbourSample:
+    """The newest complete sample of a neighbour j: S_j (scenario frames, float32-rounded values),
+    ξ_j (= S_j[ξ]), θ_k (float32 values) for the edges j owns, its step and our wall arrival time
+    (``clock()``, time.monotonic by default)."""
+
+    step: int
+    S: np.ndarray
+    xi: np.ndarray
+    theta: dict
+    t_arrival: float
+
+
+class _Assembly:
+    """A sample being put together from its messages (normally all in one datagram)."""
+
+    __slots__ = ("step", "wire", "chunks")
+
+    def __init__(self, step: int):
+        self.step = step
+        self.wire = None
+        self.chunks = {}
+
+
+def _resolve(j: int, host: str, port: int) -> tuple:
+    """(IPv4 address, port) of agent j's endpoint, resolved once (not at every sendto)."""
+    try:
+        return socket.gethostbyname(host), int(port)
+    except OSError as exc:
+        raise Se3SyncError(f"network: agent {j}'s address {host!r} does not resolve: "
+                           f"{exc.strerror or exc}") from None
+
+
+def _steps(seconds: float, h: float) -> int:
+    return int(math.ceil(seconds / h - 1e-9)) if seconds > 0 else 0
+
+
+def _nearest_rank(hist: Counter, p: float):
+    total = sum(hist.values())
+    if total == 0:
+        return None
+    rank = max(1, math.ceil(p / 100.0 * total))
+    acc = 0
+    for age in sorted(hist):
+        acc += hist[age]
+        if acc >= rank:
+            return int(age)
+    return int(max(hist))
+
+
+class AgentLink:
+    """Agent ``agent_id``'s end of the inter-agent links (see the module docstring).
+
+    ``network`` is the parsed ``[network]`` table (`cosim.network.NetworkConfig`): the socket is
+    bound on ``network.endpoints[agent_id − 1]`` and samples go to the endpoints of the agent's
+    graph neighbours only. ``step`` is the control period h (s) that turns sample steps into
+    time_usec; ``world`` the scenario's world frame ("ned" or "enu", ``bridge.world_frame``).
+    ``key`` (32 bytes) signs everything sent and requires valid signatures on everything received.
+    """
+
+    def __init__(self, agent_id: int, network, graph, *, step: float, key: bytes | None = None,
+                 counters: Counters | None = None, world: str = "ned",
+                 drain_budget: int = DRAIN_BUDGET, signing_state=None, clock=time.monotonic):
+        n = graph.n
+        if isinstance(agent_id, bool) or not isinstance(agent_id, (int, np.integer)) \
+                or not 1 <= agent_id <= n:
+            raise Se3SyncError(f"agent_link: agent id must be 1..{n}, got {agent_id!r}")
+        if len(network.endpoints) != n:
+            raise Se3SyncError(f"agent_link: [network] has {len(network.endpoints)} endpoints for "
+                               f"{n} agents")
+        h_us = round(float(step) * 1e6) if math.isfinite(float(step)) else 0
+        if h_us < 1:
+            raise Se3SyncError(f"agent_link: step must be ≥ 1 µs, got {step!r}")
+        if world not in frames.WORLD_FRAMES:
+            raise Se3SyncError(f"agent_link: world frame must be one of {frames.WORLD_FRAMES}, "
+                               f"got {world!r}")
+        self.id = int(agent_id)
+        self.graph = graph
+        self.world = world
+        self.h_us = h_us
+        self.drain_budget = int(drain_budget)
+        self.clock = clock
+        self.neighbours = tuple(graph.neighbours(self.id))
+        self.owned = tuple(graph.M_plus(self.id))                       # M_i⁺, ascending
+        self.owned_by = {j: tuple(graph.M_plus(j)) for j in self.neighbours}
+        self.addr = {j: _resolve(j, *network.endpoints[j - 1]) for j in self.neighbours}
+        # the age rule in steps, rounded as cosim.network rounds it (⌈s/h − 1e-9⌉)
+        h = float(step)
+        self.max_age_steps = _steps(network.max_age, h) if math.isfinite(network.max_age) else None
+        self.hold_steps = _steps(network.hold, h)
+        self.restart_steps = _steps(RESTART_S, h)
+        host, port = network.endpoints[self.id - 1]
+        self.counters = counters if counters is not None else Counters()
+        self.peer = Peer(self.id, AGENT_COMPONENT, self.counters, key=key,
+                         signing_state=signing_state)
+        try:
+            self.sock = UdpSocket(f"udpin:{host}:{port}")
+        except OSError as exc:
+            raise Se3SyncError(f"network: agent {self.id}'s endpoint {host}:{port} cannot be "
+                               f"bound: {exc.strerror or exc}") from None
+        self._held: dict = {j: None for j in self.neighbours}
+        self._asm: dict = {j: None for j in self.neighbours}
+        self._packets = {j: 0 for j in self.neighbours}      # accepted packets per neighbour
+        self._samples = {j: 0 for j in self.neighbours}      # complete samples taken
+        self._sent = {j: 0 for j in self.neighbours}         # datagrams sent per neighbour
+        self._restarts = {j: 0 for j in self.neighbours}     # stamps that jumped back > RESTART_S
+        self._ages = {j: Counter() for j in self.neighbours}  # ages (steps) of the data used
+
+    @classmethod
+    def from_scenario(cls, scenario, agent_id: int, **kw) -> "AgentLink":
+        """The link of agent ``agent_id`` from a loaded scenario: its ``[network]`` table, graph,
+        step and ``bridge.world_frame`` (default "ned")."""
+        net = scenario.tables.get("network")
+        if net is None:
+            raise Se3SyncError(f"{scenario.path}: network: the scenario has no [network] table "
+                               "(the agents' endpoints)")
+        br = scenario.tables.get("bridge")
+        kw.setdefault("world", br.world_frame if br is not None else "ned")
+        return cls(agent_id, net, scenario.graph, step=scenario.step, **kw)
+
+    # ------------------------------------------------------------------ out
+    def publish(self, n: int, S_row, theta_owned: dict) -> int:
+        """Sends sample n (own row S_row in scenario frames, {k: θ_k} for every owned edge after
+        the jump stage) to every neighbour, one datagram each. Returns the datagrams sent."""
+        missing = [k for k in self.owned if k not in theta_owned]
+        extra = [k for k in theta_owned if k not in self.owned]
+        if missing or extra:
+            raise Se3SyncError(f"agent_link: agent {self.id} owns edges {list(self.owned)}; "
+                               f"theta_owned has {sorted(theta_owned)}")
+        if n < 0:
+            raise Se3SyncError(f"agent_link: sample step must be ≥ 0, got {n}")
+        msgs = encode_sample(self.peer.mav, n, self.h_us, S_row,
+                             [theta_owned[k] for k in self.owned], self.world)
+        bufs = [self.peer.pack(m) for m in msgs]
+        data = b"".join(bytes(b) for b in bufs)
+        c = self.counters
+        ok = 0
+        for j in self.neighbours:
+            if self.sock.send(data, self.addr[j]):
+                c.sent += len(bufs)
+                self._sent[j] += 1
+                ok += 1
+            else:
+                c.send_errors += 1
+        return ok
+
+    # ------------------------------------------------------------------ in
+    def poll(self, limit: int | None = None) -> int:
+        """Reads at most ``limit`` (default the drain budget) pending datagrams and takes what is
+        valid. Never raises on network input. Returns the number of datagrams read."""
+        return receive_datagrams(self.sock, self.counters, self._on_packet,
+                                 self.drain_budget if limit is None else int(limit))
+
+    receive = poll
+
+    def _on_packet(self, pkt, addr) -> None:
+        c = self.counters
+        _, sysid, compid, _, _ = packet_ids(pkt)
+        if sysid not in self._held or compid != AGENT_COMPONENT:
+            c.reject("not_neighbour")
+            return
+        m = self.peer.accept(pkt)
+        if m is None:
+            return
+        mid = m.get_msgId()
+        if mid == ID_ODOMETRY:
+            ok = self._on_odometry(sysid, m)
+        elif mid == ID_DEBUG_FLOAT_ARRAY:
+            ok = self._on_theta(sysid, m)
+        else:
+            c.reject("unexpected_message")
+            ok = False
+        if ok:
+            self.peer.commit_sequence()
+            self._packets[sysid] += 1
+
+    def _step_of(self, t_us) -> int | None:
+        t_us = int(t_us)
+        if t_us < 0 or t_us % self.h_us:
+            self.counters.reject("bad_stamp")
+            return None
+        return t_us // self.h_us
+
+    def _assembly(self, j: int, s: int):
+        """The assembly for sample s of j, or None (counted) when s is not newer than what is held
+        or being assembled. A stamp more than `RESTART_S` of sample time older than that is j
+        restarting (as `bridge.state` treats a vehicle reboot): taken, counted in ``restarts``."""
+        c = self.counters
+        a = self._asm[j]
+        if a is not None and a.step == s:
+            return a
+        held = self._held[j]
+        steps = [x.step for x in (held, a) if x is not None]
+        newest = max(steps) if steps else None
+        if newest is not None and s <= newest:
+            if newest - s <= self.restart_steps:
+                c.reject("duplicate" if held is not None and s == held.step else "out_of_order")
+                return None
+            self._restarts[j] += 1
+        if a is not None:
+            c.reject("incomplete")   # a newer sample starts before the older one was complete
+        a = self._asm[j] = _Assembly(s)
+        return a
+
+    def _on_odometry(self, j: int, m) -> bool:
+        c = self.counters
+        if m.frame_id != mavlink2.MAV_FRAME_LOCAL_NED or m.child_frame_id != mavlink2.MAV_FRAME_BODY_FRD:
+            c.reject("bad_frame")
+            return False
+        vals = [m.x, m.y, m.z, *m.q, m.rollspeed, m.pitchspeed, m.yawspeed, m.vx, m.vy, m.vz]
+        if len(vals) != 13 or not all(math.isfinite(v) for v in vals):
+            c.reject("nan")
+            return False
+        q = vals[3:7]
+        if abs(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]) - 1.0) > QUAT_TOL:
+            c.reject("non_unit_quaternion")
+            return False
+        s = self._step_of(m.time_usec)
+        if s is None:
+            return False
+        a = self._assembly(j, s)
+        if a is None:
+            return False
+        if a.wire is not None:
+            c.reject("duplicate")
+            return False
+        a.wire = np.asarray(vals, float)
+        self._complete(j, a)
+        return True
+
+    def _on_theta(self, j: int, m) -> bool:
+        c = self.counters
+        owned = self.owned_by[j]
+        n_chunks = -(-len(owned) // THETA_PER_MESSAGE)
+        name = m.name.decode("ascii", "replace") if isinstance(m.name, bytes) else str(m.name)
+        chunk = next((i for i in range(n_chunks) if theta_name(i) == name), None)
+        if chunk is None or m.array_id != j:
+            c.reject("bad_theta")
+            return False
+        count = min(THETA_PER_MESSAGE, len(owned) - THETA_PER_MESSAGE * chunk)
+        vals = list(m.data[:count])
+        if len(vals) != count or not all(math.isfinite(v) for v in vals):
+            c.reject("nan")
+            return False
+        s = self._step_of(m.time_usec)
+        if s is None:
+            return False
+        a = self._assembly(j, s)
+        if a is None:
+            return False
+        if chunk in a.chunks:
+            c.reject("duplicate")
+            return False
+        a.chunks[chunk] = vals
+        self._complete(j, a)
+        return True
+
+    def _complete(self, j: int, a: _Assembly) -> None:
+        owned = self.owned_by[j]
+        if a.wire is None or len(a.chunks) < -(-len(owned) // THETA_PER_MESSAGE):
+            return
+        S = wire_to_state(f32(a.wire)[None, :], self.world)[0]
+        theta_vals = [v for i in sorted(a.chunks) for v in a.chunks[i]]
+        self._held[j] = NeighbourSample(a.step, S, S[layout.XI].copy(),
+                                        {k: float(v) for k, v in zip(owned, theta_vals)},
+                                        self.clock())
+        self._asm[j] = None
+        self._samples[j] += 1
+
+    # ------------------------------------------------------------------ queries
+    def neighbour(self, j: int) -> NeighbourSample | None:
+        """The newest complete sample of neighbour j (None before the first one)."""
+        if j not in self._held:
+            raise Se3SyncError(f"agent_link: agent {j} is not a neighbour of agent {self.id} "
+                               f"(neighbours: {list(self.neighbours)})")
+        return self._held[j]
+
+    def age_steps(self, j: int, n: int, record: bool = True) -> int | None:
+        """n − (step of j's newest sample), or None before the first one. With ``record`` the age
+        counts as "used at step n" in the link's age percentiles (call it once per control step)."""
+        held = self.neighbour(j)
+        if held is None:
+            return None
+        age = int(n) - held.step
+        if record:
+            self._ages[j][max(age, 0)] += 1
+        return age
+
+    def freshness(self, j: int, n: int) -> str:
+        """The age rule of ``[network]`` for neighbour j at step n: "fresh" (age ≤ max_age: use
+        the data), "hold" (up to ``hold`` more: hold the edge's term, freeze an owned θ_k) or
+        "failsafe" (older still: zero wrench until fresh data arrives, then rejoin). Before the
+        first sample the age counts from step 0, as if the sender's S0 and θ(0) had arrived then
+        (the delay contract of `cosim.network`). Does not record the age."""
+        held = self.neighbour(j)
+        age = int(n) - (0 if held is None else held.step)
+        if self.max_age_steps is None or age <= self.max_age_steps:
+            return "fresh"
+        return "hold" if age <= self.max_age_steps + self.hold_steps else "failsafe"
+
+    def stats(self) -> dict:
+        """Counters (JSON-friendly): the link counters of `bridge.link.Counters` plus, per
+        neighbour, datagrams sent, packets and samples accepted, the newest step held and the
+        nearest-rank p50/p99 of the recorded ages (steps)."""
+        out = self.counters.as_dict()
+        out["agent"] = self.id
+        out["neighbours"] = list(self.neighbours)
+        links = {}
+        for j in self.neighbours:
+            held = self._held[j]
+            links[str(j)] = {"sent": self._sent[j], "received": self._packets[j],
+                             "samples": self._samples[j], "restarts": self._restarts[j],
+                             "last_step": None if held is None else held.step,
+                             "age_p50_steps": _nearest_rank(self._ages[j], 50),
+                             "age_p99_steps": _nearest_rank(self._ages[j], 99)}
+        out["links"] = links
+        return out
+
+    def close(self) -> None:
+        self.sock.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
