@@ -82,34 +82,41 @@ def rot_axis_angle(theta, u0, u1, u2):
 
 
 @jit(inline=True)
-def rel_pose(S, i, j):
-    """X̄ = X_j⁻¹ X_i: (R̄ = R_jᵀ R_i as a 9-tuple, p̄ = R_jᵀ (p_i − p_j) as a 3-tuple)."""
-    a0 = S[j, 3]
-    a1 = S[j, 4]
-    a2 = S[j, 5]
-    a3 = S[j, 6]
-    a4 = S[j, 7]
-    a5 = S[j, 8]
-    a6 = S[j, 9]
-    a7 = S[j, 10]
-    a8 = S[j, 11]
-    b0 = S[i, 3]
-    b1 = S[i, 4]
-    b2 = S[i, 5]
-    b3 = S[i, 6]
-    b4 = S[i, 7]
-    b5 = S[i, 8]
-    b6 = S[i, 9]
-    b7 = S[i, 10]
-    b8 = S[i, 11]
-    d0 = S[i, 0] - S[j, 0]
-    d1 = S[i, 1] - S[j, 1]
-    d2 = S[i, 2] - S[j, 2]
+def rel_pose_rows(A, i, B, j):
+    """X̄ = X_j⁻¹ X_i with X_i from row i of A and X_j from row j of B: `rel_pose` with the two
+    poses taken from different arrays (the same products, so equal data gives equal bits)."""
+    a0 = B[j, 3]
+    a1 = B[j, 4]
+    a2 = B[j, 5]
+    a3 = B[j, 6]
+    a4 = B[j, 7]
+    a5 = B[j, 8]
+    a6 = B[j, 9]
+    a7 = B[j, 10]
+    a8 = B[j, 11]
+    b0 = A[i, 3]
+    b1 = A[i, 4]
+    b2 = A[i, 5]
+    b3 = A[i, 6]
+    b4 = A[i, 7]
+    b5 = A[i, 8]
+    b6 = A[i, 9]
+    b7 = A[i, 10]
+    b8 = A[i, 11]
+    d0 = A[i, 0] - B[j, 0]
+    d1 = A[i, 1] - B[j, 1]
+    d2 = A[i, 2] - B[j, 2]
     R = (a0 * b0 + a3 * b3 + a6 * b6, a0 * b1 + a3 * b4 + a6 * b7, a0 * b2 + a3 * b5 + a6 * b8,
          a1 * b0 + a4 * b3 + a7 * b6, a1 * b1 + a4 * b4 + a7 * b7, a1 * b2 + a4 * b5 + a7 * b8,
          a2 * b0 + a5 * b3 + a8 * b6, a2 * b1 + a5 * b4 + a8 * b7, a2 * b2 + a5 * b5 + a8 * b8)
     p = (a0 * d0 + a3 * d1 + a6 * d2, a1 * d0 + a4 * d1 + a7 * d2, a2 * d0 + a5 * d1 + a8 * d2)
     return R, p
+
+
+@jit(inline=True)
+def rel_pose(S, i, j):
+    """X̄ = X_j⁻¹ X_i: (R̄ = R_jᵀ R_i as a 9-tuple, p̄ = R_jᵀ (p_i − p_j) as a 3-tuple)."""
+    return rel_pose_rows(S, i, S, j)
 
 
 @jit(inline=True)
@@ -460,36 +467,6 @@ def metrics(S, edges, U, kX, masses, J, rot_err, pos_err, quat):
 # and the newest data received from each neighbour
 
 
-@jit(inline=True)
-def rel_pose_rows(A, i, B, j):
-    """X̄ = X_j⁻¹ X_i with X_i from row i of A and X_j from row j of B: `rel_pose` with the two
-    poses taken from different arrays (the same products, so equal data gives equal bits)."""
-    a0 = B[j, 3]
-    a1 = B[j, 4]
-    a2 = B[j, 5]
-    a3 = B[j, 6]
-    a4 = B[j, 7]
-    a5 = B[j, 8]
-    a6 = B[j, 9]
-    a7 = B[j, 10]
-    a8 = B[j, 11]
-    b0 = A[i, 3]
-    b1 = A[i, 4]
-    b2 = A[i, 5]
-    b3 = A[i, 6]
-    b4 = A[i, 7]
-    b5 = A[i, 8]
-    b6 = A[i, 9]
-    b7 = A[i, 10]
-    b8 = A[i, 11]
-    d0 = A[i, 0] - B[j, 0]
-    d1 = A[i, 1] - B[j, 1]
-    d2 = A[i, 2] - B[j, 2]
-    R = (a0 * b0 + a3 * b3 + a6 * b6, a0 * b1 + a3 * b4 + a6 * b7, a0 * b2 + a3 * b5 + a6 * b8,
-         a1 * b0 + a4 * b3 + a7 * b6, a1 * b1 + a4 * b4 + a7 * b7, a1 * b2 + a4 * b5 + a7 * b8,
-         a2 * b0 + a5 * b3 + a8 * b6, a2 * b1 + a5 * b4 + a8 * b7, a2 * b2 + a5 * b5 + a8 * b8)
-    p = (a0 * d0 + a3 * d1 + a6 * d2, a1 * d0 + a4 * d1 + a7 * d2, a2 * d0 + a5 * d1 + a8 * d2)
-    return R, p
 
 
 @jit
