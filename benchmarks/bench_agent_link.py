@@ -14,7 +14,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from bridge.agent_link import AgentLink
 from bridge.link import free_base_port

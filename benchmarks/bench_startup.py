@@ -12,11 +12,12 @@ import argparse
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _revisions import trees as revision_trees  # noqa: E402
 COMMANDS = {"--help": ["--help"], "check paper": ["check", "scenarios/paper_6uav.toml"]}
 
 
@@ -32,30 +33,19 @@ def main() -> int:
     ap.add_argument("--against", metavar="REV", help="also time this revision (git worktree)")
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        trees = {"this tree": ROOT}
-        if args.against:
-            old = Path(tmp) / "old"
-            subprocess.run(["git", "worktree", "add", "--detach", "-q", str(old), args.against],
-                           cwd=ROOT, check=True)
-            trees[args.against] = old
-        try:
-            for name, cmd in COMMANDS.items():
-                times = {k: [] for k in trees}
-                for tree in trees.values():
-                    once(tree, cmd)  # warm the numba cache and the file system
-                for _ in range(args.repeat):
-                    for k, tree in trees.items():
-                        times[k].append(once(tree, cmd))
-                med = {k: statistics.median(v) for k, v in times.items()}
-                line = ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in med.items())
-                if args.against:
-                    line += f"; ratio {med['this tree'] / med[args.against]:.2f}"
-                print(f"se3sync {name:12s} median of {args.repeat}: {line}")
-        finally:
+    with revision_trees(args.against) as trees:
+        for name, cmd in COMMANDS.items():
+            times = {k: [] for k in trees}
+            for tree in trees.values():
+                once(tree, cmd)  # warm the numba cache and the file system
+            for _ in range(args.repeat):
+                for k, tree in trees.items():
+                    times[k].append(once(tree, cmd))
+            med = {k: statistics.median(v) for k, v in times.items()}
+            line = ", ".join(f"{k} {v * 1e3:.0f} ms" for k, v in med.items())
             if args.against:
-                subprocess.run(["git", "worktree", "remove", "--force", str(trees[args.against])],
-                               cwd=ROOT)
+                line += f"; ratio {med['this tree'] / med[args.against]:.2f}"
+            print(f"se3sync {name:12s} median of {args.repeat}: {line}")
     return 0
 
 

@@ -16,6 +16,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from _revisions import trees as revision_trees  # noqa: E402
 
 
 def sweep(tree: Path, samples: int, out: Path) -> float:
@@ -34,29 +36,18 @@ def main() -> int:
     ap.add_argument("--repeat", type=int, default=2)
     args = ap.parse_args()
     runs = 2 * (12 + args.samples)  # sweep_small: 3M + 3 = 12 adversarial samples, 2 laws
-    with tempfile.TemporaryDirectory() as tmp:
-        trees = {"this tree": ROOT}
+    with tempfile.TemporaryDirectory() as tmp, revision_trees(args.against) as trees:
+        best = {}
+        for _ in range(args.repeat):
+            for k, tree in trees.items():
+                base = sweep(tree, 1, Path(tmp) / "b.csv")
+                full = sweep(tree, args.samples, Path(tmp) / "f.csv")
+                rate = (runs - 26) / max(full - base, 1e-9) * 60
+                best[k] = max(best.get(k, 0.0), rate)
+        line = ", ".join(f"{k} {v:,.0f} runs/min" for k, v in best.items())
         if args.against:
-            old = Path(tmp) / "old"
-            subprocess.run(["git", "worktree", "add", "--detach", "-q", str(old), args.against],
-                           cwd=ROOT, check=True)
-            trees[args.against] = old
-        try:
-            best = {}
-            for _ in range(args.repeat):
-                for k, tree in trees.items():
-                    base = sweep(tree, 1, Path(tmp) / "b.csv")
-                    full = sweep(tree, args.samples, Path(tmp) / "f.csv")
-                    rate = (runs - 26) / max(full - base, 1e-9) * 60
-                    best[k] = max(best.get(k, 0.0), rate)
-            line = ", ".join(f"{k} {v:,.0f} runs/min" for k, v in best.items())
-            if args.against:
-                line += f"; ratio {best['this tree'] / best[args.against]:.2f}"
-            print(f"sweep_small in one process, {runs} runs: {line}")
-        finally:
-            if args.against:
-                subprocess.run(["git", "worktree", "remove", "--force", str(trees[args.against])],
-                               cwd=ROOT)
+            line += f"; ratio {best['this tree'] / best[args.against]:.2f}"
+        print(f"sweep_small in one process, {runs} runs: {line}")
     return 0
 
 
