@@ -315,13 +315,18 @@ class SimVehicle:
             return
         self.ack(cmd, M.MAV_RESULT_UNSUPPORTED, m)
 
-    def check_timeout(self, now: float) -> None:
+    def check_timeout(self, now: float, scheduled: float | None = None) -> None:
+        """Fails safe once no command came for longer than the command timeout. ``scheduled`` is
+        the time this physics tick was due: the delay minus the tick's own lateness is what the
+        design bounds (≤ timeout + one tick), whatever the scheduler did to this process."""
         if self.failsafe or self.last_cmd is None:
             return
         if now - self.last_cmd > self.server.command_timeout:
             self.failsafe = True
             self.failsafe_count += 1
             self.server.failsafe_delays.append(now - self.last_cmd)
+            self.server.failsafe_tick_delays.append((now if scheduled is None else scheduled)
+                                                    - self.last_cmd)
             self.statustext(M.MAV_SEVERITY_WARNING, "failsafe: commands timed out, zero wrench")
 
     def close(self):
@@ -370,6 +375,7 @@ class VehicleServer:
         self.repeats = 0
         self.drain_deadline_hits = 0      # receive passes cut short by the tick deadline
         self.failsafe_delays: list = []   # command timeout detected: seconds since the last command
+        self.failsafe_tick_delays: list = []  # the same, from the time the detecting tick was due
         self.started_commands: dict = {}
         self.quiet = quiet
         self.t_boot = time.monotonic()
@@ -434,6 +440,7 @@ class VehicleServer:
                  drain_deadline_hits=self.drain_deadline_hits, commander=list(self.commander),
                  failsafe_delay_max=max(self.failsafe_delays) if self.failsafe_delays else None,
                  failsafe_delays=[round(x, 6) for x in self.failsafe_delays[:200]],
+                 failsafe_tick_delays=[round(x, 6) for x in self.failsafe_tick_delays[:200]],
                  command_timeout=self.command_timeout, control_period=self.h)
         return d
 
@@ -517,7 +524,7 @@ class VehicleServer:
                     continue
                 if not self.lockstep:
                     for v in self.vehicles:
-                        v.check_timeout(now)
+                        v.check_timeout(now, next_tick)
                         v.step(tick)
                 else:
                     for v in self.vehicles:  # idle: repeat the current state now and then

@@ -65,13 +65,16 @@ def test_link_cut_fails_safe_reports_and_recovers(tmp_path):
     s, vst, events, relay = _run(tmp_path, 8.0, cut=(2.0, 3.0))
     h = 0.004
     ln = s["link"]
-    # the vehicles failed safe, each within 3 control periods of its last command
+    # the vehicles failed safe, each within 3 control periods of its last command: the command
+    # timeout is 2 h, checked every physics tick h. Counted from the time the detecting tick was
+    # due this holds exactly; the wall-clock delay adds the tick's lateness, which is the
+    # scheduler's (a loaded 2-core machine can deschedule a process for ms): it is measured by
+    # benchmarks/bench_bridge_flood.py, and here only required not to come early.
     assert vst["failsafe"] >= 6
-    # (the command timeout is 2 h, checked every physics tick h; the median guards the design, the
-    # max only gross failures: on a loaded 2-core machine a process can be descheduled for ms)
-    d = sorted(vst["failsafe_delays"])
-    assert d[len(d) // 2] <= 3 * h, d
-    assert d[-1] <= 10 * h, d
+    d_tick, d_wall = vst["failsafe_tick_delays"], vst["failsafe_delays"]
+    assert len(d_tick) == len(d_wall) == vst["failsafe"]
+    assert max(d_tick) <= 3 * h + 1e-6, d_tick
+    assert min(d_wall) > 2 * h, d_wall
     # the bridge reported the loss and the recovery of every link
     assert ln["link_losses"] >= 6 and ln["link_recoveries"] >= 6 and ln["links_down"] == []
     assert sum("link lost" in e for e in events) >= 6 and sum("link recovered" in e for e in events) >= 6

