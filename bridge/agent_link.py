@@ -40,6 +40,7 @@ sample time back, taken as the neighbour restarting (counted ``restarts`` per li
 """
 from __future__ import annotations
 
+import heapq
 import math
 import socket
 import time
@@ -67,6 +68,9 @@ ID_ODOMETRY = mavlink2.MAVLINK_MSG_ID_ODOMETRY
 ID_DEBUG_FLOAT_ARRAY = mavlink2.MAVLINK_MSG_ID_DEBUG_FLOAT_ARRAY
 RESTART_S = 10.0                                           # a stamp this far back: the sender restarted
 NAN21 = [math.nan] + [0.0] * 20                            # covariance unknown (first element NaN)
+_TYPES = {ID_ODOMETRY: mavlink2.MAVLink_odometry_message,
+          ID_DEBUG_FLOAT_ARRAY: mavlink2.MAVLink_debug_float_array_message}
+_ODO_FRAME = 56   # ODOMETRY's wire order: time_usec, x y z, q[4], vx vy vz, rates, 2×21 cov, frame ids
 LINK_REASONS = ("not_neighbour", "bad_stamp", "bad_theta", "unexpected_message", "duplicate",
                 "incomplete")
 
@@ -82,18 +86,21 @@ def stamp_us(n: int, h_us: int) -> int:
 
 
 def encode_sample(mav, n: int, h_us: int, S_row, theta, world: str = "ned") -> list:
-    """The message objects of one sample: ODOMETRY, then one DEBUG_FLOAT_ARRAY per 58 owned θ
-    (none if ``theta`` is empty). ``theta`` lists θ_k of the owned edges in ascending k; ``mav``
-    is the sender's pymavlink MAVLink object (its system id is the agent id)."""
-    S = frames.state_world_to_ned(np.asarray(S_row, float).reshape(1, layout.S_WIDTH), world)
-    q = frames.rot_to_quat(S[:, layout.R])[0]
-    p, w, v = S[0, layout.P], S[0, layout.OMEGA], S[0, layout.V]
+    """The message objects of one sample: ODOMETRY (unless ``S_row`` is None), then one
+    DEBUG_FLOAT_ARRAY per 58 owned θ (none if ``theta`` is empty or None). ``theta`` lists θ_k of
+    the owned edges in ascending k; ``mav`` is the sender's pymavlink MAVLink object (its system
+    id is the agent id)."""
     t = stamp_us(n, h_us)
-    out = [mav.odometry_encode(t, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD,
-                               p[0], p[1], p[2], [q[0], q[1], q[2], q[3]], v[0], v[1], v[2],
-                               w[0], w[1], w[2], NAN21, NAN21, 0,
-                               mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, 100)]
-    theta = [float(x) for x in theta]
+    out = []
+    if S_row is not None:
+        S = frames.state_world_to_ned(np.asarray(S_row, float).reshape(1, layout.S_WIDTH), world)
+        q = frames.rot_to_quat(S[:, layout.R])[0]
+        p, w, v = S[0, layout.P], S[0, layout.OMEGA], S[0, layout.V]
+        out.append(mav.odometry_encode(t, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD,
+                                       p[0], p[1], p[2], [q[0], q[1], q[2], q[3]], v[0], v[1],
+                                       v[2], w[0], w[1], w[2], NAN21, NAN21, 0,
+                                       mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, 100))
+    theta = [float(x) for x in (theta if theta is not None else ())]
     for c in range(0, len(theta), THETA_PER_MESSAGE):
         chunk = theta[c:c + THETA_PER_MESSAGE]
         data = chunk + [math.nan] * (THETA_PER_MESSAGE - len(chunk))
@@ -160,11 +167,19 @@ class AgentLink:
     graph neighbours only. ``step`` is the control period h (s) that turns sample steps into
     time_usec; ``world`` the scenario's world frame ("ned" or "enu", ``bridge.world_frame``).
     ``key`` (32 bytes) signs everything sent and requires valid signatures on everything received.
+
+    ``history`` (steps) keeps, besides the newest sample, every valid pose and θ message of the
+    last ``history`` steps per neighbour (`pose_at`, `theta_at`): lockstep asks for exactly the
+    data of step n, whatever order the messages came in. ``emulate`` applies the ``[network]``
+    table's delay, jitter and loss of each outgoing link on the sending side (seeded per directed
+    link from ``network.seed``): a message of step n leaves at step n + d + J (`release`) or is
+    dropped, as in the co-simulation, on top of what the real network does.
     """
 
     def __init__(self, agent_id: int, network, graph, *, step: float, key: bytes | None = None,
                  counters: Counters | None = None, world: str = "ned",
-                 drain_budget: int = DRAIN_BUDGET, signing_state=None, clock=time.monotonic):
+                 drain_budget: int = DRAIN_BUDGET, signing_state=None, clock=time.monotonic,
+                 history: int = 0, emulate: bool = False):
         n = graph.n
         if isinstance(agent_id, bool) or not isinstance(agent_id, (int, np.integer)) \
                 or not 1 <= agent_id <= n:
@@ -207,8 +222,24 @@ class AgentLink:
         self._packets = {j: 0 for j in self.neighbours}      # accepted packets per neighbour
         self._samples = {j: 0 for j in self.neighbours}      # complete samples taken
         self._sent = {j: 0 for j in self.neighbours}         # datagrams sent per neighbour
+        self._published = {j: 0 for j in self.neighbours}    # samples (steps) published to it
+        self._last_published = -1
         self._restarts = {j: 0 for j in self.neighbours}     # stamps that jumped back > RESTART_S
         self._ages = {j: Counter() for j in self.neighbours}  # ages (steps) of the data used
+        self.history = int(history)
+        self._hist = {j: {} for j in self.neighbours}          # step -> [S or None, θ chunks]
+        self._emu = {}                                          # j -> (d, jmax, jitter, loss, rng)
+        self._queue = []                                        # (release step, seq, j, data)
+        self._qseq = 0
+        self._emu_lost = {j: 0 for j in self.neighbours}
+        if emulate:
+            streams = np.random.SeedSequence(network.seed).spawn(n * n)
+            for j in self.neighbours:
+                spec = network.link(self.id, j)
+                if spec.delay > 0 or spec.jitter > 0 or spec.loss > 0:
+                    rng = np.random.default_rng(streams[(self.id - 1) * n + (j - 1)])
+                    self._emu[j] = (_steps(spec.delay, h), _steps(spec.jitter, h), spec.jitter,
+                                    spec.loss, rng)
 
     @classmethod
     def from_scenario(cls, scenario, agent_id: int, **kw) -> "AgentLink":
@@ -223,30 +254,66 @@ class AgentLink:
         return cls(agent_id, net, scenario.graph, step=scenario.step, **kw)
 
     # ------------------------------------------------------------------ out
-    def publish(self, n: int, S_row, theta_owned: dict) -> int:
+    def publish(self, n: int, S_row, theta_owned: dict | None) -> int:
         """Sends sample n (own row S_row in scenario frames, {k: θ_k} for every owned edge after
-        the jump stage) to every neighbour, one datagram each. Returns the datagrams sent."""
-        missing = [k for k in self.owned if k not in theta_owned]
-        extra = [k for k in theta_owned if k not in self.owned]
-        if missing or extra:
-            raise Se3SyncError(f"agent_link: agent {self.id} owns edges {list(self.owned)}; "
-                               f"theta_owned has {sorted(theta_owned)}")
+        the jump stage) to every neighbour, one datagram each. Returns the datagrams sent (or
+        queued by the emulated delay). ``S_row=None`` sends θ only, ``theta_owned=None`` the pose
+        only: lockstep sends the two in turn, since θ after the jump needs the neighbours'
+        poses of the same step."""
+        if theta_owned is not None:
+            missing = [k for k in self.owned if k not in theta_owned]
+            extra = [k for k in theta_owned if k not in self.owned]
+            if missing or extra:
+                raise Se3SyncError(f"agent_link: agent {self.id} owns edges {list(self.owned)}; "
+                                   f"theta_owned has {sorted(theta_owned)}")
         if n < 0:
             raise Se3SyncError(f"agent_link: sample step must be ≥ 0, got {n}")
-        msgs = encode_sample(self.peer.mav, n, self.h_us, S_row,
-                             [theta_owned[k] for k in self.owned], self.world)
+        self.release(n)
+        theta = None if theta_owned is None else [theta_owned[k] for k in self.owned]
+        msgs = encode_sample(self.peer.mav, n, self.h_us, S_row, theta, self.world)
+        if not msgs:
+            return 0
         bufs = [self.peer.pack(m) for m in msgs]
         data = b"".join(bytes(b) for b in bufs)
-        c = self.counters
+        if S_row is not None and n > self._last_published:   # a new sample (not a resend)
+            self._last_published = n
+            for j in self.neighbours:
+                self._published[j] += 1
         ok = 0
         for j in self.neighbours:
-            if self.sock.send(data, self.addr[j]):
-                c.sent += len(bufs)
-                self._sent[j] += 1
-                ok += 1
-            else:
-                c.send_errors += 1
+            emu = self._emu.get(j)
+            if emu is not None:
+                d, jmax, jitter, loss, rng = emu
+                x = rng.random(2)
+                if loss > 0 and x[0] < loss:
+                    self._emu_lost[j] += 1
+                    continue
+                wait = d + (min(jmax, _steps(x[1] * jitter, self.h_us * 1e-6)) if jitter > 0 else 0)
+                if wait > 0:
+                    self._qseq += 1
+                    heapq.heappush(self._queue, (n + wait, self._qseq, j, data, len(bufs)))
+                    ok += 1
+                    continue
+            ok += self._send(j, data, len(bufs))
         return ok
+
+    def _send(self, j: int, data: bytes, n_msgs: int) -> int:
+        c = self.counters
+        if self.sock.send(data, self.addr[j]):
+            c.sent += n_msgs
+            self._sent[j] += 1
+            return 1
+        c.send_errors += 1
+        return 0
+
+    def release(self, n: int) -> int:
+        """Sends the datagrams the emulated delay holds whose time (step ≤ n) has come."""
+        q = self._queue
+        sent = 0
+        while q and q[0][0] <= n:
+            _, _, j, data, n_msgs = heapq.heappop(q)
+            sent += self._send(j, data, n_msgs)
+        return sent
 
     # ------------------------------------------------------------------ in
     def poll(self, limit: int | None = None) -> int:
@@ -263,17 +330,14 @@ class AgentLink:
         if sysid not in self._held or compid != AGENT_COMPONENT:
             c.reject("not_neighbour")
             return
-        m = self.peer.accept(pkt)
-        if m is None:
+        got = self.peer.accept_fields(pkt, _TYPES)
+        if got is None:
             return
-        mid = m.get_msgId()
+        mid, f = got
         if mid == ID_ODOMETRY:
-            ok = self._on_odometry(sysid, m)
-        elif mid == ID_DEBUG_FLOAT_ARRAY:
-            ok = self._on_theta(sysid, m)
+            ok = self._on_odometry(sysid, f)
         else:
-            c.reject("unexpected_message")
-            ok = False
+            ok = self._on_theta(sysid, f)
         if ok:
             self.peer.commit_sequence()
             self._packets[sysid] += 1
@@ -306,49 +370,93 @@ class AgentLink:
         a = self._asm[j] = _Assembly(s)
         return a
 
-    def _on_odometry(self, j: int, m) -> bool:
+    def _remember(self, j: int, s: int, what, value) -> None:
+        """Lockstep history: the pose (what = None) or θ chunk c of neighbour j's step s."""
+        if not self.history:
+            return
+        h = self._hist[j]
+        e = h.get(s)
+        if e is None:
+            if h and s <= max(h) - self.history:
+                return
+            e = h[s] = [None, {}]
+            for old in [x for x in h if x <= s - self.history]:
+                del h[old]
+        if what is None:
+            e[0] = value
+        else:
+            e[1][what] = value
+
+    def pose_at(self, j: int, n: int):
+        """Neighbour j's row S_j of step n (scenario frames, float32-rounded values) if its pose
+        message has arrived (needs ``history``), else None."""
+        e = self._hist[j].get(n)
+        if e is None or e[0] is None:
+            return None
+        return wire_to_state(f32(e[0])[None, :], self.world)[0]
+
+    def theta_at(self, j: int, n: int):
+        """{k: θ_k} of the edges neighbour j owns, as j published them for step n ({} if j owns
+        none), or None while a θ chunk of step n is missing (needs ``history``)."""
+        owned = self.owned_by[j]
+        if not owned:
+            return {}
+        e = self._hist[j].get(n)
+        if e is None or len(e[1]) < -(-len(owned) // THETA_PER_MESSAGE):
+            return None
+        vals = [v for c in sorted(e[1]) for v in e[1][c]]
+        return {k: float(v) for k, v in zip(owned, vals)}
+
+    def _on_odometry(self, j: int, f: tuple) -> bool:
+        """f: ODOMETRY's fields in wire order (`_ODO`)."""
         c = self.counters
-        if m.frame_id != mavlink2.MAV_FRAME_LOCAL_NED or m.child_frame_id != mavlink2.MAV_FRAME_BODY_FRD:
+        if f[_ODO_FRAME] != mavlink2.MAV_FRAME_LOCAL_NED \
+                or f[_ODO_FRAME + 1] != mavlink2.MAV_FRAME_BODY_FRD:
             c.reject("bad_frame")
             return False
-        vals = [m.x, m.y, m.z, *m.q, m.rollspeed, m.pitchspeed, m.yawspeed, m.vx, m.vy, m.vz]
-        if len(vals) != 13 or not all(math.isfinite(v) for v in vals):
+        # the wire row: x y z, q (w x y z), body rates, body velocity
+        vals = [*f[1:8], *f[11:14], *f[8:11]]
+        if not all(math.isfinite(v) for v in vals):
             c.reject("nan")
             return False
         q = vals[3:7]
         if abs(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]) - 1.0) > QUAT_TOL:
             c.reject("non_unit_quaternion")
             return False
-        s = self._step_of(m.time_usec)
+        s = self._step_of(f[0])
         if s is None:
             return False
+        wire = np.asarray(vals, float)
+        self._remember(j, s, None, wire)
         a = self._assembly(j, s)
         if a is None:
             return False
         if a.wire is not None:
             c.reject("duplicate")
             return False
-        a.wire = np.asarray(vals, float)
+        a.wire = wire
         self._complete(j, a)
         return True
 
-    def _on_theta(self, j: int, m) -> bool:
+    def _on_theta(self, j: int, f: tuple) -> bool:
+        """f: DEBUG_FLOAT_ARRAY's fields in wire order (time_usec, array_id, name, data[58])."""
         c = self.counters
         owned = self.owned_by[j]
         n_chunks = -(-len(owned) // THETA_PER_MESSAGE)
-        name = m.name.decode("ascii", "replace") if isinstance(m.name, bytes) else str(m.name)
+        name = f[2].split(b"\0", 1)[0].decode("ascii", "replace")
         chunk = next((i for i in range(n_chunks) if theta_name(i) == name), None)
-        if chunk is None or m.array_id != j:
+        if chunk is None or f[1] != j:
             c.reject("bad_theta")
             return False
         count = min(THETA_PER_MESSAGE, len(owned) - THETA_PER_MESSAGE * chunk)
-        vals = list(m.data[:count])
+        vals = list(f[3:3 + count])
         if len(vals) != count or not all(math.isfinite(v) for v in vals):
             c.reject("nan")
             return False
-        s = self._step_of(m.time_usec)
+        s = self._step_of(f[0])
         if s is None:
             return False
+        self._remember(j, s, chunk, vals)
         a = self._assembly(j, s)
         if a is None:
             return False
@@ -404,19 +512,22 @@ class AgentLink:
 
     def stats(self) -> dict:
         """Counters (JSON-friendly): the link counters of `bridge.link.Counters` plus, per
-        neighbour, datagrams sent, packets and samples accepted, the newest step held and the
-        nearest-rank p50/p99 of the recorded ages (steps)."""
+        neighbour, datagrams sent, samples published to it (one per step, resends and the
+        emulated losses included), packets and complete samples accepted from it, the newest
+        step held and the nearest-rank p50/p99 of the recorded ages (steps)."""
         out = self.counters.as_dict()
         out["agent"] = self.id
         out["neighbours"] = list(self.neighbours)
         links = {}
         for j in self.neighbours:
             held = self._held[j]
-            links[str(j)] = {"sent": self._sent[j], "received": self._packets[j],
+            links[str(j)] = {"sent": self._sent[j], "published": self._published[j],
+                             "received": self._packets[j],
                              "samples": self._samples[j], "restarts": self._restarts[j],
                              "last_step": None if held is None else held.step,
                              "age_p50_steps": _nearest_rank(self._ages[j], 50),
-                             "age_p99_steps": _nearest_rank(self._ages[j], 99)}
+                             "age_p99_steps": _nearest_rank(self._ages[j], 99),
+                             **({"emulated_lost": self._emu_lost[j]} if j in self._emu else {})}
         out["links"] = links
         return out
 

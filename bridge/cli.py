@@ -97,6 +97,135 @@ def register(sub) -> None:
     p.set_defaults(func=_cmd_connect)
 
 
+    p = sub.add_parser(
+        "agent", help="run ONE agent's controller (per-vehicle process; talks only to its neighbours)",
+        description="Run agent I of a scenario as its own process: the paper's law for agent I "
+                    "only, on its vehicle (over MAVLink, as `connect` drives a vehicle) and on the "
+                    "samples its graph neighbours send over UDP (MAVLink 2 ODOMETRY + "
+                    "DEBUG_FLOAT_ARRAY for θ, signed with --key; endpoints from the scenario's "
+                    "[network] table). Neighbour data older than network.max_age are held for "
+                    "network.hold, then the agent fails safe (zero wrench) until fresh data come. "
+                    "Writes its own MCAP log and summary. Exit codes: 0 ok, 2 bad input, "
+                    f"{EXIT_NOT_CONNECTED} the vehicle never connected, {EXIT_LINK} lockstep: the "
+                    "vehicle or a neighbour stopped answering (or a late joiner heard no "
+                    "neighbour), 130 Ctrl-C, 143 SIGTERM (log and summary finished).")
+    p.add_argument("scenario", help="scenario TOML file")
+    p.add_argument("--id", type=int, required=True, metavar="I", help="the agent's number, 1..N")
+    p.add_argument("--start", type=float, metavar="UNIX_TIME",
+                   help="real time: wall-clock time (s since 1970) of the swarm's step 0; every "
+                        "agent of a swarm must get the same (`swarm` passes it); an agent "
+                        "started after it joins at the next whole second of the run. Default: "
+                        "0.5 s after the vehicle connects")
+    p.add_argument("--start-file", metavar="FILE",
+                   help="real time: once connected, create FILE.ready<I> and wait until FILE holds "
+                        "the start time (what `swarm` does: it starts the clock when every agent "
+                        "is ready)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="lockstep with the vehicle and the neighbours (deterministic: a swarm in "
+                        "lockstep equals `run` on the float32 reference plant)")
+    p.add_argument("--vehicle", metavar="ENDPOINT",
+                   help="the vehicle's bridge-side endpoint (udpin:HOST:PORT | udpout:HOST:PORT); "
+                        "default: vehicle I of the scenario's [bridge] table")
+    p.add_argument("--controller", choices=("hybrid", "gradient"), default="hybrid",
+                   help="the paper's law (default) or the gradient-only baseline")
+    p.add_argument("--log", metavar="OUT.mcap", help="write the agent's MCAP log here")
+    p.add_argument("--summary", metavar="OUT.json", help="write the agent's summary JSON here")
+    p.add_argument("--duration", type=float, metavar="S", help="duration in s (overrides "
+                   "simulation.duration; the swarm's run ends at step ⌈S/h⌉)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="override a scenario value; repeatable")
+    p.add_argument("--key", metavar="FILE", help="MAVLink 2 signing key file (vehicle and neighbours)")
+    p.add_argument("--connect-timeout", type=float, metavar="S", help="give up if the vehicle has not "
+                   "connected after S seconds (default: bridge.connect_timeout, 10)")
+    p.add_argument("--tlog", metavar="FILE", help="write the vehicle link's traffic to this tlog")
+    _security_options(p)
+    p.set_defaults(func=_cmd_agent)
+
+    p = sub.add_parser(
+        "swarm", help="run every agent of a scenario as its own process, then merge their outputs",
+        description="Start one `se3sync agent` process per agent (and, with --vehicles loopback, "
+                    "the loopback vehicles), wait for them, and merge their summaries into one "
+                    "with the fields of `run`'s (final, samples, jumps, n_jumps, jump_bound, "
+                    "design) plus per-link statistics; --log merges their logs into one that "
+                    "`se3sync plot` reads. Ctrl-C or SIGTERM stops every child and still writes "
+                    "the merged outputs. Exit codes: 0 ok, 2 bad input, 5 an agent failed (its "
+                    "last error line is shown), 130 Ctrl-C, 143 SIGTERM.")
+    p.add_argument("scenario", help="scenario TOML file")
+    p.add_argument("--vehicles", choices=("loopback", "external"), default="external",
+                   help="loopback: also start `se3sync vehicle` for the scenario; external "
+                        "(default): the vehicles are already there, at the [bridge] endpoints")
+    p.add_argument("--lockstep", action="store_true", help="agents and vehicles in lockstep")
+    p.add_argument("--log", metavar="OUT.mcap", help="merge the agents' logs into this MCAP")
+    p.add_argument("--summary", metavar="OUT.json", help="write the merged summary here")
+    p.add_argument("--dir", metavar="DIR",
+                   help="keep each agent's log, summary and stderr here (default: a temporary "
+                        "directory, removed at the end)")
+    p.add_argument("--duration", type=float, metavar="S", help="duration in s (overrides "
+                   "simulation.duration)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
+                   help="override a scenario value (passed to every process); repeatable")
+    p.add_argument("--controller", choices=("hybrid", "gradient"), default="hybrid",
+                   help="the law every agent runs")
+    p.add_argument("--key", metavar="FILE", help="MAVLink 2 signing key file for every link")
+    p.add_argument("--start-delay", type=float, default=None, metavar="S",
+                   help="real time: step 0 comes this long after every agent has connected to "
+                        "its vehicle and is waiting (default 1 s)")
+    p.add_argument("--insecure", action="store_true",
+                   help="allow sockets reachable from other machines without --key")
+    p.add_argument("--force", action="store_true",
+                   help="run even if the sampled loop is unstable at this step")
+    p.set_defaults(func=_cmd_swarm)
+
+
+def _cmd_agent(args) -> int:
+    from controller.errors import Se3SyncError
+    from cosim.scenario import load_scenario
+
+    from .agent import run_agent
+    from .plant import ConnectError, LinkError
+
+    _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None),
+             ("--tlog", args.tlog, None))
+    sc = load_scenario(args.scenario, args.set, duration=args.duration)
+    if args.start is not None and not (args.start == args.start and abs(args.start) < 1e11):
+        raise Se3SyncError(f"--start: must be a Unix time in seconds, got {args.start!r}")
+    try:
+        if args.start is not None and args.start_file is not None:
+            raise Se3SyncError("--start-file: give --start or --start-file, not both")
+        summary = run_agent(sc, args.id, law=args.controller, lockstep=args.lockstep,
+                            start=args.start, start_file=args.start_file, key_file=args.key,
+                            insecure=args.insecure,
+                            vehicle=args.vehicle, connect_timeout=args.connect_timeout,
+                            signing_state=args.signing_state, tlog=args.tlog,
+                            log_path=args.log, summary_path=args.summary,
+                            progress=sys.stderr.isatty())
+    except ConnectError as exc:
+        print(f"se3sync agent: error: {exc}", file=sys.stderr)
+        return EXIT_NOT_CONNECTED
+    except LinkError as exc:
+        print(f"se3sync agent: error: {exc}", file=sys.stderr)
+        return EXIT_LINK
+    f = summary.get("final") or {}
+    al = summary.get("link", {}).get("agent_link", {})
+    fs = summary["failsafe"]
+    print(f"agent {args.id}: {summary['steps']} steps from step {summary['first_step']} "
+          f"({'lockstep' if args.lockstep else 'real time'}) in {summary['wall_time_s']:.3g} s; "
+          f"{summary['n_jumps']} jumps; its edges' max rot_err {f.get('rot_err', float('nan')):.3g}; "
+          f"neighbour link: sent {al.get('sent')}, received {al.get('received')}, rejected "
+          f"{al.get('rejected')}; fail-safe {fs['steps']} steps ({fs['entries']} times)",
+          file=sys.stderr)
+    if summary.get("interrupted"):
+        return 130
+    return 0
+
+
+def _cmd_swarm(args) -> int:
+    from .swarm import run_swarm_cli
+
+    _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None))
+    return run_swarm_cli(args)
+
+
 def _outputs(*pairs) -> None:
     """Refuse unwritable outputs before waiting for any network peer."""
     from cosim.files import check_output

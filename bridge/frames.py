@@ -17,6 +17,8 @@ reference co-simulation (all bodies at once) round identically.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from controller import layout
@@ -31,6 +33,8 @@ WORLD_FRAMES = ("ned", "enu")
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
     """(n,4) quaternions (w, x, y, z), normalised here, -> (n,9) row-major rotation matrices."""
     q = np.asarray(q, dtype=np.float64)
+    if q.shape[0] == 1:   # one vehicle or one neighbour per call: Python floats, same operations
+        return np.array([_quat_to_rot1(*q[0].tolist())])
     w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
     s = 1.0 / np.sqrt(w * w + x * x + y * y + z * z)
     w, x, y, z = w * s, x * s, y * s, z * s
@@ -45,6 +49,16 @@ def quat_to_rot(q: np.ndarray) -> np.ndarray:
     out[:, 7] = 2.0 * (y * z + w * x)
     out[:, 8] = 1.0 - 2.0 * (x * x + y * y)
     return out
+
+
+def _quat_to_rot1(w, x, y, z) -> list:
+    """`quat_to_rot` of one quaternion in IEEE double arithmetic, operation for operation (so
+    the results are the same bits): numpy costs ~2 µs per operation on a one-element array."""
+    s = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w * s, x * s, y * s, z * s
+    return [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
+            2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
+            2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)]
 
 
 def quat_norm_error(q: np.ndarray) -> np.ndarray:

@@ -163,6 +163,11 @@ class MavlinkPlant:
             self.close()
             raise Se3SyncError(f"bridge: cannot open {vs.endpoint}: {exc.strerror or exc}") from None
         self._fds = [s.fileno() for s in self.socks]
+        # steps between the master's checks for Ctrl-C and SIGTERM: about 0.1 s of the wall
+        # clock (lockstep steps take at least a round trip, so the same count is shorter)
+        self.max_block = max(1, int(round(0.1 / self.h)))
+        self._readers: dict = {}     # other sockets serviced while waiting: fd -> callback()
+        self._paced_from = None      # real time: step 0's wall-clock deadline, if fixed
         self._next_hb = 0.0
         self.profiles = _output_profiles(cfg, scenario, self.lockstep)
 
@@ -265,12 +270,28 @@ class MavlinkPlant:
                 self._event(f"vehicle {v.i + 1} (system {v.sysid}): link recovered")
         return ok or mid in (ID_HEARTBEAT, ID_ACK, ID_STATUSTEXT)
 
+    def add_reader(self, fd: int, callback) -> None:
+        """Services another socket while this plant waits: ``callback()`` is called whenever
+        ``fd`` is readable (an agent process reads its neighbours' link this way)."""
+        self._readers[int(fd)] = callback
+        self._fds = [s.fileno() for s in self.socks] + list(self._readers)
+
+    def pace_from(self, t0: float) -> None:
+        """Real time: step k is due at ``t0 + k·h`` (time.monotonic()), instead of counting from
+        the first command: agents of a swarm keep one timeline."""
+        self._paced_from = float(t0)
+        self.t0 = float(t0)
+
     def poll(self, timeout: float) -> None:
         """Services the links for at most ``timeout`` seconds (returns after the first batch)."""
         r, _, _ = select.select(self._fds, [], [], max(0.0, timeout))
         now = time.monotonic()
         for fd in r:
-            self._receive(fd, now)
+            cb = self._readers.get(fd)
+            if cb is not None:
+                cb()
+            else:
+                self._receive(fd, now)
         if self.signing is not None:
             self.signing.tick(now)
 
@@ -307,9 +328,10 @@ class MavlinkPlant:
                     v.sysid, 1, M.MAV_CMD_SET_MESSAGE_INTERVAL, 0, ID_ODOMETRY,
                     1e6 / self.cfg.odometry_rate, 0, 0, 0, 0, 0))
         self._S = wire_to_state(self.wire, self.world)
-        self.t0 = time.monotonic()
+        now = time.monotonic()
+        self.t0 = now if self._paced_from is None else self._paced_from
         for v in self.vehicles:
-            v.hb = self.t0
+            v.hb = now
         self._event(f"{self.n} vehicle(s) connected ({'lockstep' if self.lockstep else 'real time'}, "
                     f"h = {self.h:g} s)")
         return self
@@ -325,7 +347,7 @@ class MavlinkPlant:
         c = self.transport.controls(u, S)
         self._controls[:] = c
         now = time.monotonic()
-        if self.k == 0 and not self.lockstep:
+        if self.k == 0 and not self.lockstep and self._paced_from is None:
             self.t0 = now  # pacing starts with the first command (not at connect)
         oldest = min((v.tracker.t_arrival or now) for v in self.vehicles)
         _hist_add(self.age_hist, now - oldest)

@@ -113,6 +113,17 @@ def rel_pose_rows(A, i, B, j):
     return R, p
 
 
+@jit
+def relative_pose(A, i, B, j, R, p):
+    """X̄ = X_j⁻¹ X_i into R (3, 3) and p (3,), X_i from row i of A and X_j from row j of B
+    (the products of `rel_pose_rows`, so the per-agent view sees the network step's X̄)."""
+    Rt, pt = rel_pose_rows(A, i, B, j)
+    for a in range(3):
+        p[a] = pt[a]
+        for b in range(3):
+            R[a, b] = Rt[3 * a + b]
+
+
 @jit(inline=True)
 def rel_pose(S, i, j):
     """X̄ = X_j⁻¹ X_i: (R̄ = R_jᵀ R_i as a 9-tuple, p̄ = R_jᵀ (p_i − p_j) as a 3-tuple)."""

@@ -198,29 +198,45 @@ class AgentStepper:
 
     @staticmethod
     def _split(Xk):
+        """X̄_k as a 4×4 pose, or already split as (R̄ (3, 3), p̄ (3,)) (`kernels.relative_pose`)."""
+        if isinstance(Xk, tuple):
+            return Xk
         Xk = np.asarray(Xk, float)
         return np.ascontiguousarray(Xk[:3, :3]), np.ascontiguousarray(Xk[:3, 3])
 
-    def jump(self, rel: dict) -> tuple:
-        """Phase 1: jump every owned edge in its jump set. rel: {k: X̄_k (4, 4)}."""
+    def jump(self, rel: dict, edges=None) -> tuple:
+        """Phase 1: jump every owned edge in its jump set. rel: {k: X̄_k (4, 4)}. ``edges``: only
+        these owned edges (an edge whose neighbour data are too old neither jumps nor flows).
+        ``last_mu`` keeps μ_U(X̄_k, θ_k) before the jump of each edge looked at."""
+        self.last_mu = {}
         if not self.hybrid:
             return ()
         events = []
-        for k in self.owned:
+        for k in (self.owned if edges is None else [k for k in self.owned if k in edges]):
             Rb, pb = self._split(rel[k])
             mu, jstar = K.edge_mu(Rb, pb, self.theta[k], self.P)
+            self.last_mu[k] = float(mu)
             if mu >= self.P[K.P_DELTA]:
                 before = self.theta[k]
                 self.theta[k] = float(self.P[K.P_THETA + jstar])
                 events.append(JumpEvent(k, before, self.theta[k], float(mu)))
         return tuple(events)
 
-    def wrench(self, rel: dict, xi_i, xi_nbrs: dict, theta_nbrs: dict) -> np.ndarray:
-        """Phase 2: u_i from X̄_k (k ∈ 𝓜_i), ξ_i, {j: ξ_j} and {k: θ_k} for k ∈ 𝓜_i⁻."""
+    def mu(self, k: int, Xk) -> float:
+        """μ_U(X̄_k, θ_k) of an owned edge k (`mu_U_def`)."""
+        Rb, pb = self._split(Xk)
+        return float(K.edge_mu(Rb, pb, self.theta[k], self.P)[0])
+
+    def terms(self, rel: dict, xi_i, xi_nbrs: dict, theta_nbrs: dict, edges=None) -> dict:
+        """Edge k's part of u_i, {k: (6,)}, for k in ``edges`` (default all of 𝓜_i):
+        −k_X ψ̄_∇(X̄_k, θ_k) − k_e(ξ_i − ξ_j) at the positive end, k_X Ad⁻ᵀ_{X̄_k} ψ̄_∇ + k_e(ξ_j − ξ_i)
+        at the negative end, θ_k being the neighbour's (``theta_nbrs``) for k ∈ 𝓜_i⁻."""
         P = self.P
         xi_i = np.asarray(xi_i, float)
-        u = -P[K.P_KXI] * xi_i
+        out = {}
         for k, (a, b) in self.local_edges.items():
+            if edges is not None and k not in edges:
+                continue
             Rb, pb = self._split(rel[k])
             if a == self.agent:
                 th = self.theta[k]
@@ -232,18 +248,29 @@ class AgentStepper:
             xi_j = np.asarray(xi_nbrs[other], float)
             if a == self.agent:
                 dxi = xi_i - xi_j
-                u = u + (-P[K.P_KX] * self._g - P[K.P_KE] * dxi)
+                out[k] = -P[K.P_KX] * self._g - P[K.P_KE] * dxi
             else:
                 K.Ad_inv_T_apply(Rb, pb, self._g, self._gn)
                 dxi = xi_j - xi_i
-                u = u + (P[K.P_KX] * self._gn + P[K.P_KE] * dxi)
+                out[k] = P[K.P_KX] * self._gn + P[K.P_KE] * dxi
+        return out
+
+    def wrench_of(self, xi_i, terms: dict) -> np.ndarray:
+        """u_i = −k_ξ ξ_i + Σ_k term_k, summed in ascending k (the network view's order)."""
+        u = -self.P[K.P_KXI] * np.asarray(xi_i, float)
+        for k in sorted(terms):
+            u = u + terms[k]
         return u
 
-    def flow(self, rel: dict, h: float):
-        """Phase 3: θ_k ← θ_k − h k_θ ∇_θU for every owned edge."""
+    def wrench(self, rel: dict, xi_i, xi_nbrs: dict, theta_nbrs: dict) -> np.ndarray:
+        """Phase 2: u_i from X̄_k (k ∈ 𝓜_i), ξ_i, {j: ξ_j} and {k: θ_k} for k ∈ 𝓜_i⁻."""
+        return self.wrench_of(xi_i, self.terms(rel, xi_i, xi_nbrs, theta_nbrs))
+
+    def flow(self, rel: dict, h: float, edges=None):
+        """Phase 3: θ_k ← θ_k − h k_θ ∇_θU for every owned edge (or those in ``edges``)."""
         if not self.hybrid:
             return
-        for k in self.owned:
+        for k in (self.owned if edges is None else [k for k in self.owned if k in edges]):
             Rb, pb = self._split(rel[k])
             grad = K.edge_gradient(Rb, pb, self.theta[k], self.P, self._g)
             self.theta[k] = self.theta[k] - h * self.P[K.P_KTH] * grad

@@ -22,7 +22,7 @@ from controller.kernels import metrics, network_U
 from . import signals
 from .controllers import law_name, make_controller
 
-__all__ = ["Master", "make_controller", "design_summary"]
+__all__ = ["Master", "NetworkMetrics", "make_controller", "design_summary"]
 
 MAX_BLOCK = 1000  # steps between two checks for Ctrl-C / progress updates
 
@@ -36,6 +36,43 @@ def design_summary(scenario) -> dict:
     return {k: d[k] for k in DESIGN_KEYS}
 
 
+class NetworkMetrics:
+    """The network's errors at one instant, as the summary and the log report them: per edge
+    ‖I − R̄_k‖_F (``rot``), ‖p̄_k‖ (``pos``) and U(X̄_k, θ_k) (``U``), the agents' quaternions
+    (``quat``, x y z w), V̄ and max|ξ|. U uses the scenario's hybrid design whatever the law.
+    The arrays are reused by every call."""
+
+    def __init__(self, scenario):
+        sc = scenario
+        N, M = sc.graph.n, sc.graph.M
+        self.M = M
+        self.edges = np.ascontiguousarray(sc.graph.edges)
+        self.P = LawParameters.of(sc.weighting, sc.design, sc.gains).P
+        self.kX = float(sc.gains.k_X)
+        self.masses = np.ascontiguousarray(sc.masses, float)
+        self.J = np.ascontiguousarray(sc.inertias, float)
+        self.rot = np.zeros(M)
+        self.pos = np.zeros(M)
+        self.U = np.zeros(M)
+        self.quat = np.zeros((N, 4))
+
+    def compute(self, S, theta) -> tuple:
+        """(V̄, max|ξ|) at state S (N, 18) and θ (M,); fills rot, pos, U and quat."""
+        network_U(S, theta, self.edges, self.P, self.U)
+        return metrics(S, self.edges, self.U, self.kX, self.masses, self.J, self.rot, self.pos,
+                       self.quat)
+
+    def sample(self, t: float, S, theta) -> dict:
+        """The summary's record {t, rot_err, pos_err, xi_max, theta, V}."""
+        V, ximax = self.compute(S, theta)
+        return {"t": t,
+                "rot_err": float(self.rot.max()) if self.M else 0.0,
+                "pos_err": float(self.pos.max()) if self.M else 0.0,
+                "xi_max": float(ximax),
+                "theta": np.asarray(theta).tolist(),
+                "V": float(V)}
+
+
 class Master:
     """``Master(scenario, plant, controller, logger=None, sample_dt=1.0)``: plant a
     `cosim.plants.Plant`, controller a `cosim.controllers.Controller` (or a registered law name),
@@ -44,12 +81,17 @@ class Master:
     end of the first block (one-time set-up is not held against a run), after which the run stops
     with ``"timed_out": true``. ``restart(S0)`` starts again from another initial state with a
     plant that can ``reset`` (sweeps reuse one plant and master for many samples).
+
+    ``first_step`` places step 0 of this run at step n₀ of a longer timeline (an agent process
+    that joins a running swarm): times in the log, the jumps and the summary are (n₀ + n)·h. The
+    log and sample ticks stay at multiples of their periods from step 0 of this run, so n₀
+    should be a multiple of them for the ticks to fall on the timeline's.
     """
 
     use_compiled = True  # False forces the Python reference loop (tests compare the two)
 
     def __init__(self, scenario, plant, controller, logger=None, sample_dt: float = 1.0,
-                 S0=None):
+                 S0=None, first_step: int = 0):
         self.scenario = sc = scenario
         self.plant = plant
         if isinstance(controller, str):
@@ -61,19 +103,15 @@ class Master:
             controller.write_wrench_into(buf)
         self.logger = logger
         self.h = float(sc.step)
+        self.first_step = int(first_step)
         self.sample_dt = float(sample_dt)
         N, M = sc.graph.n, sc.graph.M
         self.N, self.M = N, M
         self.edges = np.ascontiguousarray(sc.graph.edges)
-        # U in the metrics and the log uses the scenario's hybrid design even for another law
-        self._P = LawParameters.of(sc.weighting, sc.design, sc.gains).P
-        self._kX = float(sc.gains.k_X)
-        self._masses = np.ascontiguousarray(sc.masses, float)
-        self._J = np.ascontiguousarray(sc.inertias, float)
-        self._rot = np.zeros(M)
-        self._pos = np.zeros(M)
-        self._U = np.zeros(M)
-        self._quat = np.zeros((N, 4))
+        self.metrics = mx = NetworkMetrics(sc)
+        # the compiled loop reads these buffers and parameters directly
+        self._P, self._kX, self._masses, self._J = mx.P, mx.kX, mx.masses, mx.J
+        self._rot, self._pos, self._U, self._quat = mx.rot, mx.pos, mx.U, mx.quat
         self._stop = False
         self._start(sc.S0 if S0 is None else np.asarray(S0, float))
 
@@ -98,13 +136,10 @@ class Master:
 
     # -------------------------------------------------------------- slow path
     def _metrics(self, S, theta):
-        network_U(S, theta, self.edges, self._P, self._U)
-        V, ximax = metrics(S, self.edges, self._U, self._kX, self._masses, self._J, self._rot,
-                           self._pos, self._quat)
-        return V, ximax
+        return self.metrics.compute(S, theta)
 
     def _on_jumps(self, n, events):
-        t = n * self.h
+        t = (self.first_step + n) * self.h
         t_ns = round(t * 1e9)
         for e in events:
             self.jumps.append({"t": t, "edge": e.edge, "theta_before": e.theta_before,
@@ -113,20 +148,12 @@ class Master:
                 self.logger.jump(t_ns, t, e.edge, e.theta_before, e.theta_after, e.mu)
 
     def _sample(self, t, S, theta):
-        V, ximax = self._metrics(S, theta)
-        self.samples.append({
-            "t": t,
-            "rot_err": float(self._rot.max()) if self.M else 0.0,
-            "pos_err": float(self._pos.max()) if self.M else 0.0,
-            "xi_max": float(ximax),
-            "theta": theta.tolist(),
-            "V": float(V),
-        })
+        self.samples.append(self.metrics.sample(t, S, theta))
 
     def _tick(self, n, S, u, do_log, do_sample):
         ctrl = self.controller
         theta = ctrl.theta_jump  # θ at t_n after the jump stage
-        t = n * self.h
+        t = (self.first_step + n) * self.h
         if n == 0:
             self.u0 = np.array(u, copy=True)
         if do_sample:
@@ -167,6 +194,9 @@ class Master:
         catcher = signals.catching(self._on_signal).__enter__()
         if signals.pending():  # a signal arrived before the loop (and may have been swallowed)
             self._stop = True
+        # a plant paced by the wall clock says how many steps it may run between two checks
+        # for Ctrl-C (MavlinkPlant: ~0.1 s of steps), so a stop never waits for 1000 periods
+        block = max(1, min(MAX_BLOCK, int(getattr(plant, "max_block", MAX_BLOCK))))
         interrupted = False
         broken = False
         timed_out = False
@@ -174,7 +204,7 @@ class Master:
         n = 0
         t0 = time.perf_counter()
         fleet = None
-        if self.use_compiled:
+        if self.use_compiled and self.first_step == 0:
             from .fastloop import compiled_fleet
 
             fleet = compiled_fleet(plant, ctrl)
@@ -204,7 +234,7 @@ class Master:
                     interrupted = True
                     break
                 # the next tick
-                nxt = min(n_steps, n + MAX_BLOCK, -(-n // spl) * spl)
+                nxt = min(n_steps, n + block, -(-n // spl) * spl)
                 if logging:
                     nxt = min(nxt, -(-n // dec) * dec)
                 if bar is not None:
@@ -244,15 +274,12 @@ class Master:
     def _summary(self, n, wall, interrupted, broken=False, timed_out=False) -> dict:
         sc = self.scenario
         h = self.h
-        t_end = n * h
+        t_end = (self.first_step + n) * h
         S = self.plant.read() if not broken else None
         theta_end = self.controller.theta.copy()
         final = None
         if S is not None:
-            V, ximax = self._metrics(S, theta_end)
-            final = {"t": t_end, "rot_err": float(self._rot.max()) if self.M else 0.0,
-                     "pos_err": float(self._pos.max()) if self.M else 0.0,
-                     "xi_max": float(ximax), "theta": theta_end.tolist(), "V": float(V)}
+            final = self.metrics.sample(t_end, S, theta_end)
             if n > 0 and n % self._sample_every() == 0:
                 self.samples.append(dict(final))
         elif self.samples:
@@ -264,9 +291,10 @@ class Master:
             "controller": self.controller_kind,
             "step": h,
             "steps": n,
-            "sim_time_s": t_end,
+            **({"first_step": self.first_step} if self.first_step else {}),
+            "sim_time_s": n * h,
             "wall_time_s": wall,
-            "realtime_factor": (t_end / wall) if wall > 0 else None,
+            "realtime_factor": (n * h / wall) if wall > 0 else None,
             "us_per_step": (wall / n * 1e6) if n else None,
             "interrupted": bool(interrupted),
             **({"timed_out": True} if timed_out else {}),

@@ -7,6 +7,7 @@ output is written. See README.md ("Scenario format") for every key and its defau
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import warnings
 from dataclasses import dataclass, field
@@ -27,7 +28,8 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as _toml
 
 __all__ = ["ScenarioError", "Scenario", "load_scenario", "parse_scenario", "apply_overrides",
-           "parse_override", "SCHEMA", "DEFAULT_LOG_RATE", "MAX_DEFAULT_INTERNAL_STEP"]
+           "parse_override", "restrict", "SCHEMA", "DEFAULT_LOG_RATE",
+           "MAX_DEFAULT_INTERNAL_STEP"]
 
 DEFAULT_LOG_RATE = 100.0
 # Ranges that keep every product of the law and the plant far from overflow and underflow; they
@@ -244,6 +246,31 @@ class Scenario:
         d = self.duration if duration is None else float(duration)
         h = self.step if step is None else float(step)
         return max(0, int(math.ceil(d / h - 1e-9)))
+
+
+def restrict(scenario: Scenario, agents) -> tuple:
+    """The part of a scenario that a set of agents spans: ``(sub, edges)`` where ``sub`` is a
+    Scenario of those agents (numbered 1.. in the order given) with every edge joining two of
+    them, and ``edges`` lists those edges' numbers in the full graph (ascending, the order of
+    ``sub``'s edges). Masses, inertias, initial states and θ(0) follow; the design, gains and
+    timing are the scenario's. The agents must span a connected subtree (an agent with its
+    neighbours does). Tables owned by other packages (``[bridge]``, ``[network]``) describe the
+    full swarm and are dropped."""
+    agents = [int(a) for a in agents]
+    local = {g: r for r, g in enumerate(agents, start=1)}
+    if len(local) != len(agents) or not all(1 <= a <= scenario.graph.n for a in agents):
+        raise Se3SyncError(f"restrict: agents must be distinct numbers in 1..{scenario.graph.n}, "
+                           f"got {agents}")
+    edges = [k for k, (a, b) in enumerate(scenario.graph.edge_list, start=1)
+             if a in local and b in local]
+    graph = Graph(len(agents), [(local[scenario.graph.edge_list[k - 1][0]],
+                                 local[scenario.graph.edge_list[k - 1][1]]) for k in edges])
+    rows = [a - 1 for a in agents]
+    sub = dataclasses.replace(
+        scenario, graph=graph, masses=scenario.masses[rows].copy(),
+        inertias=scenario.inertias[rows].copy(), S0=scenario.S0[rows].copy(),
+        theta0=scenario.theta0[[k - 1 for k in edges]].copy(), tables={})
+    return sub, tuple(edges)
 
 
 def _check_inertia(J, agent: int) -> None:

@@ -47,7 +47,8 @@ def load_poses(path) -> dict:
         raise Se3SyncError(f"{path}: the log has no /tf or /edges messages to animate")
     meta = log["metadata"]
     N = int(meta.get("n_agents", len(tf[0][1]["transforms"])))
-    index = {f"agent_{i + 1}": i for i in range(N)}
+    ids = json.loads(meta["agent_ids"]) if "agent_ids" in meta else list(range(1, N + 1))
+    index = {f"agent_{a}": i for i, a in enumerate(ids)}
     T = len(tf)
     p = np.zeros((T, N, 3))
     q = np.zeros((T, N, 4))

@@ -94,9 +94,12 @@ class SceneBuilder:
     quat (N, 4) is (x, y, z, w); jumping a sequence of M booleans.
     """
 
-    def __init__(self, edges, inertias, masses, trail_len: int = 100):
+    def __init__(self, edges, inertias, masses, trail_len: int = 100, agent_ids=None,
+                 edge_ids=None):
         self.edges = [(int(a), int(b)) for a, b in edges]
         N = len(masses)
+        self.agent_ids = list(range(1, N + 1)) if agent_ids is None else list(agent_ids)
+        self.edge_ids = list(range(1, len(self.edges) + 1)) if edge_ids is None else list(edge_ids)
         self.N, self.M = N, len(self.edges)
         self.trail_len = int(trail_len)
         self._agents = []
@@ -113,7 +116,8 @@ class SceneBuilder:
                       f'"color":{{"r":{r},"g":{g},"b":{bb},"a":1}}}}'
                       for r, g, bb, q in _AXES]
             # the entity is constant apart from its time stamp: split the template there
-            pre, post = _entity("\0", f"agent_{i + 1}", f"agent_{i + 1}", True,
+            name = f"agent_{self.agent_ids[i]}"
+            pre, post = _entity("\0", name, name, True,
                                 {"cubes": [cube], "arrows": arrows}).split("\0")
             self._agents.append((pre, post))
         # edge line thickness: a tenth of the largest body
@@ -142,8 +146,8 @@ class SceneBuilder:
                 parts["texts"] = [f'{{"pose":{{"position":{{"x":{_f(mid[0])},"y":{_f(mid[1])},'
                                   f'"z":{_f(mid[2])}}},{_IDQ}}},"billboard":true,"font_size":14,'
                                   f'"scale_invariant":true,"color":{{"r":1,"g":1,"b":1,"a":1}},'
-                                  f'"text":"θ_{k + 1} jumps"}}']
-            ents.append(_entity(ts, "world", f"edge_{k + 1}", False, parts))
+                                  f'"text":"θ_{self.edge_ids[k]} jumps"}}']
+            ents.append(_entity(ts, "world", f"edge_{self.edge_ids[k]}", False, parts))
         return f'{{"deletions":[],"entities":[{",".join(ents)}]}}'
 
     def trails(self, ts: str, S, quat, keep: bool = True) -> list[str]:
@@ -180,14 +184,20 @@ def _plot(title: str, paths: list[tuple[str, str]]) -> dict:
         "isSynced": True}
 
 
-def layout(n_agents: int, n_edges: int) -> dict:
+def _ids(x) -> list:
+    return list(range(1, x + 1)) if isinstance(x, int) else [int(v) for v in x]
+
+
+def layout(agents, edges) -> dict:
     """A Foxglove layout: a 3D panel following ``world`` with /tf, /scene and the trails, beside
-    plots of ‖I − R̄_k‖_F per edge, θ_k per edge and V̄ (log time = simulated time)."""
+    plots of ‖I − R̄_k‖_F per edge, θ_k per edge and V̄ (log time = simulated time). ``agents``
+    and ``edges``: their numbers (lists), or their counts (numbered from 1)."""
+    agents, edges = _ids(agents), _ids(edges)
     topics = {SCENE: {"visible": True}}
-    for i in range(n_agents):
-        topics[f"{TRAIL_PREFIX}{i + 1}"] = {"visible": True, "type": "line", "lineWidth": 0.03,
-                                           "gradient": [_PALETTE[i % len(_PALETTE)] + "20",
-                                                        _PALETTE[i % len(_PALETTE)] + "ff"]}
+    for r, i in enumerate(agents):
+        topics[f"{TRAIL_PREFIX}{i}"] = {"visible": True, "type": "line", "lineWidth": 0.03,
+                                       "gradient": [_PALETTE[r % len(_PALETTE)] + "20",
+                                                    _PALETTE[r % len(_PALETTE)] + "ff"]}
     three_d = {
         "followTf": "world", "fixedFrame": "world", "followMode": "follow-none",
         "cameraState": {"perspective": True, "distance": 25, "phi": 60, "thetaOffset": 45,
@@ -202,9 +212,9 @@ def layout(n_agents: int, n_edges: int) -> dict:
     cfg = {
         "3D!se3sync": three_d,
         "Plot!rot_err": _plot("edge error ‖I − R̄_k‖_F",
-                              [(f"/edges.edges[{k}].rot_err", f"k={k + 1}") for k in range(n_edges)]),
+                              [(f"/edges.edges[{r}].rot_err", f"k={k}") for r, k in enumerate(edges)]),
         "Plot!theta": _plot("θ_k (rad)",
-                            [(f"/edges.edges[{k}].theta", f"k={k + 1}") for k in range(n_edges)]),
+                            [(f"/edges.edges[{r}].theta", f"k={k}") for r, k in enumerate(edges)]),
         "Plot!V": _plot("V̄", [("/lyapunov.V", "V̄")]),
     }
     return {
@@ -218,5 +228,5 @@ def layout(n_agents: int, n_edges: int) -> dict:
     }
 
 
-def layout_json(n_agents: int, n_edges: int) -> str:
-    return json.dumps(layout(n_agents, n_edges), indent=1, ensure_ascii=False)
+def layout_json(agents, edges) -> str:
+    return json.dumps(layout(agents, edges), indent=1, ensure_ascii=False)

@@ -168,13 +168,26 @@ class McapLogger:
     messages, ``trail_seconds`` the length of a trail and ``trail_rate`` (Hz) the spacing of its
     kept poses (each message adds the current pose); ``layout_path`` is where the Foxglove
     layout is written ("auto": beside the log as LOG.layout.json; None: not written).
+
+    ``agent_ids`` and ``edge_ids`` name the scenario's agents and edges in the messages (frames
+    ``agent_<id>``, ``"edge": <id>``, the scene's entities, the trails' topics and the jumps)
+    when they are part of a larger swarm (an agent process logs its own neighbourhood with the
+    swarm's numbers); by default they are 1..N and 1..M. `jump` takes the edge's position
+    (1..M) and writes its id.
     """
 
     def __init__(self, path, scenario, controller: str = "hybrid", model_description=None,
                  chunk_size: int = 256 * 1024, extra_metadata: dict | None = None,
                  scene_rate: float = 20.0, trail_seconds: float = 5.0, trail_rate: float = 5.0,
-                 layout_path="auto"):
+                 layout_path="auto", agent_ids=None, edge_ids=None):
         self.path = str(path)
+        n, M = scenario.graph.n, scenario.graph.M
+        aid = list(range(1, n + 1)) if agent_ids is None else [int(x) for x in agent_ids]
+        eid = list(range(1, M + 1)) if edge_ids is None else [int(x) for x in edge_ids]
+        if len(aid) != n or len(eid) != M:
+            raise Se3SyncError(f"McapLogger: {len(aid)} agent ids for {n} agents, {len(eid)} edge "
+                               f"ids for {M} edges")
+        self._aid, self._eid = aid, eid
         self._f = open(self.path, "wb")
         try:
             self._w = w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
@@ -202,6 +215,9 @@ class McapLogger:
                 "inertias": json.dumps(np.asarray(scenario.inertias, float).tolist()),
                 "scene_rate": repr(float(scene_rate)),
             }
+            if agent_ids is not None or edge_ids is not None:
+                meta["agent_ids"] = json.dumps(aid)
+                meta["edge_ids"] = json.dumps(eid)
             if extra_metadata:
                 meta.update({str(k): str(v) for k, v in extra_metadata.items()})
             w.add_metadata("se3sync", meta)
@@ -210,8 +226,7 @@ class McapLogger:
                 w.add_attachment(create_time=time.time_ns(), log_time=0,
                                  name="modelDescription.xml", media_type="application/xml",
                                  data=data)
-            n, M = scenario.graph.n, scenario.graph.M
-            self._layout = fg.layout_json(n, M)
+            self._layout = fg.layout_json(aid, eid)
             w.add_attachment(create_time=time.time_ns(), log_time=0, name="foxglove_layout.json",
                              media_type="application/json", data=self._layout.encode())
             self._scene = None
@@ -219,20 +234,20 @@ class McapLogger:
                 self._scene = fg.SceneBuilder(
                     [list(e) for e in scenario.graph.edge_list], np.asarray(scenario.inertias, float),
                     np.asarray(scenario.masses, float),
-                    trail_len=max(1, int(round(trail_seconds * min(trail_rate, scene_rate)))))
+                    trail_len=max(1, int(round(trail_seconds * min(trail_rate, scene_rate)))),
+                    agent_ids=aid, edge_ids=eid)
                 self._channel(fg.SCENE)
-                for i in range(n):
-                    self._channel(f"{fg.TRAIL_PREFIX}{i + 1}")
+                for i in aid:
+                    self._channel(f"{fg.TRAIL_PREFIX}{i}")
         except BaseException:
             self._f.close()
             raise
         self._seq = 0
         self._closed = False
-        n = scenario.graph.n
-        self._agent_names = [f"agent_{i + 1}" for i in range(n)]
-        self._tf_pre = [f'{{"timestamp":%s,"parent_frame_id":"world","child_frame_id":"agent_{i + 1}",'
-                        for i in range(n)]
-        self._edge_pre = [f'{{"edge":{k + 1},"positive":{a},"negative":{b},'
+        self._agent_names = [f"agent_{i}" for i in aid]
+        self._tf_pre = [f'{{"timestamp":%s,"parent_frame_id":"world","child_frame_id":"agent_{i}",'
+                        for i in aid]
+        self._edge_pre = [f'{{"edge":{eid[k]},"positive":{aid[a - 1]},"negative":{aid[b - 1]},'
                           for k, (a, b) in enumerate(scenario.graph.edge_list)]
         self._add = w.add_message
         self.counts = {}
@@ -242,7 +257,7 @@ class McapLogger:
         self._trail_dt = round(1e9 / trail_rate) if trail_rate and trail_rate > 0 else 0
         self._next_trail = 0
         self._jump_until = [-1] * scenario.graph.M  # edge k is drawn as jumping until this t_ns
-        self._trail_topics = [f"{fg.TRAIL_PREFIX}{i + 1}" for i in range(n)]
+        self._trail_topics = [f"{fg.TRAIL_PREFIX}{i}" for i in aid]
         self._layout_path = None
         if layout_path == "auto":
             p = Path(self.path)
@@ -266,6 +281,23 @@ class McapLogger:
             self._ch[topic] = self._w.register_channel(topic=topic, message_encoding="json",
                                                        schema_id=sid)
         return self._ch[topic]
+
+    def add_channel(self, topic: str, schema: dict) -> None:
+        """A channel of another kind of JSON message (``schema``: a JSON schema with a
+        ``title``), for `message`."""
+        if topic not in self._ch:
+            name = schema["title"]
+            sid = self._schema_ids.get(name)
+            if sid is None:
+                sid = self._schema_ids[name] = self._w.register_schema(
+                    name=name, encoding="jsonschema", data=json.dumps(schema).encode())
+            self._ch[topic] = self._w.register_channel(topic=topic, message_encoding="json",
+                                                       schema_id=sid)
+
+    def message(self, topic: str, t_ns: int, obj: dict) -> None:
+        """One JSON message (``obj`` plus its timestamp) on a channel made by `add_channel`."""
+        ts = {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
+        self._msg(topic, t_ns, _dumps(dict(obj, timestamp=ts), default=float))
 
     def _msg(self, topic, t_ns, payload: str):
         self._seq += 1
@@ -292,10 +324,10 @@ class McapLogger:
             for pre, a, b, c, d, e, j in zip(self._edge_pre, th, mul, rl, pl, Ul, jl))
         self._msg("/edges", t_ns, f'{{"timestamp":{ts},"edges":[{ed}]}}')
         ag = ",".join(
-            f'{{"agent":{i + 1},"omega":[{r(s[12])},{r(s[13])},{r(s[14])}],'
+            f'{{"agent":{i},"omega":[{r(s[12])},{r(s[13])},{r(s[14])}],'
             f'"v":[{r(s[15])},{r(s[16])},{r(s[17])}],'
             f'"torque":[{r(w[0])},{r(w[1])},{r(w[2])}],"force":[{r(w[3])},{r(w[4])},{r(w[5])}]}}'
-            for i, (s, w) in enumerate(zip(Sl, ul)))
+            for i, s, w in zip(self._aid, Sl, ul))
         self._msg("/agents", t_ns, f'{{"timestamp":{ts},"agents":[{ag}]}}')
         self._msg("/lyapunov", t_ns, f'{{"timestamp":{ts},"V":{r(V)},"kX_U":{r(kX_U)}}}')
         if self._scene is not None and t_ns >= self._next_scene:
@@ -319,17 +351,16 @@ class McapLogger:
         """%-format templates of the /tf, /edges (all edges flowing) and /agents messages with
         the timestamp as @TS@: one C-level format call per message instead of one Python
         call per value. %r of a Python float is float.__repr__, as in `record`."""
-        n = len(self._agent_names)
         tf = ",".join(
-            f'{{"timestamp":@TS@,"parent_frame_id":"world","child_frame_id":"agent_{i + 1}",'
+            f'{{"timestamp":@TS@,"parent_frame_id":"world","child_frame_id":"agent_{i}",'
             '"translation":{"x":%r,"y":%r,"z":%r},"rotation":{"x":%r,"y":%r,"z":%r,"w":%r}}'
-            for i in range(n))
+            for i in self._aid)
         ed = ",".join(
             pre.replace("%", "%%") + '"theta":%r,"mu_U":%r,"rot_err":%r,"pos_err":%r,"U":%r,'
             '"mode":"flow"}' for pre in self._edge_pre)
         ag = ",".join(
-            f'{{"agent":{i + 1},"omega":[%r,%r,%r],"v":[%r,%r,%r],'
-            '"torque":[%r,%r,%r],"force":[%r,%r,%r]}' for i in range(n))
+            f'{{"agent":{i},"omega":[%r,%r,%r],"v":[%r,%r,%r],'
+            '"torque":[%r,%r,%r],"force":[%r,%r,%r]}' for i in self._aid)
         self._tpl = (f'{{"transforms":[{tf}]}}', f'{{"timestamp":@TS@,"edges":[{ed}]}}',
                      f'{{"timestamp":@TS@,"agents":[{ag}]}}')
         return self._tpl
@@ -385,6 +416,7 @@ class McapLogger:
     def jump(self, t_ns: int, t: float, edge: int, theta_before: float, theta_after: float, mu: float):
         if 1 <= edge <= len(self._jump_until):
             self._jump_until[edge - 1] = t_ns + self._scene_dt
+            edge = self._eid[edge - 1]
         ts = {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
         self._msg("/jumps", t_ns, _dumps({"timestamp": ts, "t": t, "edge": edge,
                                           "theta_before": theta_before,
@@ -444,6 +476,7 @@ class McapLogger:
             return self.jump(t_ns, t, edge, theta_before, theta_after, mu)
         if 1 <= edge <= len(self._jump_until):  # as `jump`: the scene draws the edge jumping
             self._jump_until[edge - 1] = t_ns + self._scene_dt
+            edge = self._eid[edge - 1]
         self._msg("/jumps", t_ns, self._JUMP_TPL % (t_ns // 1_000_000_000, t_ns % 1_000_000_000,
                                                     t, edge, theta_before, theta_after, mu))
 

@@ -50,6 +50,10 @@ def load_series(path) -> dict:
         "V": np.array([m[1]["V"] if m[1].get("V") is not None else np.nan for m in lyap], float),
         "jumps": [m[1] for m in log["messages"].get("/jumps", [])],
         "metadata": log["metadata"],
+        # the numbers the log gives its edges and agents (an agent process's log of its
+        # neighbourhood uses the swarm's)
+        "edge_ids": [e.get("edge", k + 1) for k, e in enumerate(edges[0][1]["edges"])],
+        "agent_ids": [a.get("agent", i + 1) for i, a in enumerate(agents[0][1]["agents"])],
     }
     return out
 
@@ -91,6 +95,7 @@ def make_figure(paths, labels=None, *, linear=False, tmin=None, tmax=None):
         t, ta = d["t"], d["t_agents"]
         M = d["rot_err"].shape[1]
         N = d["omega"].shape[1]
+        eid, aid = d["edge_ids"], d["agent_ids"]
         pre = f"{lab}: " if multi else ""
 
         def style(k):
@@ -99,21 +104,21 @@ def make_figure(paths, labels=None, *, linear=False, tmin=None, tmax=None):
 
         tr = _positive if not linear else np.asarray
         for k in range(M):
-            ax_R.plot(t, tr(d["rot_err"][:, k]), label=f"{pre}k={k + 1}", **style(k))
-            ax_p.plot(t, tr(d["pos_err"][:, k]), label=f"{pre}k={k + 1}", **style(k))
-            ax_th.plot(t, d["theta"][:, k], label=f"{pre}k={k + 1}", **style(k))
+            ax_R.plot(t, tr(d["rot_err"][:, k]), label=f"{pre}k={eid[k]}", **style(k))
+            ax_p.plot(t, tr(d["pos_err"][:, k]), label=f"{pre}k={eid[k]}", **style(k))
+            ax_th.plot(t, d["theta"][:, k], label=f"{pre}k={eid[k]}", **style(k))
             ins.plot(t, d["theta"][:, k], **style(k))
         for i in range(N):
-            ax_w.plot(ta, tr(np.linalg.norm(d["omega"][:, i], axis=1)), label=f"{pre}i={i + 1}",
+            ax_w.plot(ta, tr(np.linalg.norm(d["omega"][:, i], axis=1)), label=f"{pre}i={aid[i]}",
                       **style(i))
-            ax_v.plot(ta, tr(np.linalg.norm(d["v"][:, i], axis=1)), label=f"{pre}i={i + 1}",
+            ax_v.plot(ta, tr(np.linalg.norm(d["v"][:, i], axis=1)), label=f"{pre}i={aid[i]}",
                       **style(i))
         if len(d["V"]):
             ax_V.plot(d["t_V"], tr(d["V"]), label=f"{lab}" if multi else r"$\bar V$",
                       color=colors[r % len(colors)], ls=LINESTYLES[r % len(LINESTYLES)])
         # the jumps: a vertical segment from θ⁻ to θ⁺ and a marker at θ⁺, per edge
         for k in range(M):
-            js = [j for j in d["jumps"] if j.get("edge") == k + 1]
+            js = [j for j in d["jumps"] if j.get("edge") == eid[k]]
             if not js:
                 continue
             tj = np.array([j["t"] for j in js], float)
@@ -124,7 +129,7 @@ def make_figure(paths, labels=None, *, linear=False, tmin=None, tmax=None):
                 a.vlines(tj, before, after, color=st["color"], lw=0.8, alpha=0.7)
                 a.plot(tj, after, ls="none", marker=_MARKERS[k % len(_MARKERS)], ms=5,
                        mfc="none", color=st["color"],
-                       label=f"{pre}jump k={k + 1} ({len(js)})" if a is ax_th else None)
+                       label=f"{pre}jump k={eid[k]} ({len(js)})" if a is ax_th else None)
             early = tj[tj <= 1.0 + (tmin or 0.0)]
             if len(early):
                 early_end = max(early_end, float(early.max()))

@@ -1,0 +1,606 @@
+"""One agent of the swarm in its own process (`se3sync agent`): the paper's law for agent i only,
+on its own vehicle and on what its graph neighbours send it, driven by cosim's one master loop.
+
+Agent i knows what `ex_controller` lets it know: its own state (from its vehicle, over MAVLink as
+`se3sync connect` reads a vehicle), and from each neighbour j the samples j publishes over the
+inter-agent link (`bridge.agent_link`: X_j, ξ_j and θ_k of the edges j owns). `AgentNode` holds the
+three parts (a one-vehicle `MavlinkPlant`, an `AgentLink`, a `controller.AgentStepper`) and shows
+them to `cosim.master.Master` as a plant and a controller of agent i's neighbourhood: the
+scenario restricted to i and its neighbours (`cosim.scenario.restrict`), whose row 0 is the
+vehicle and whose other rows are the neighbours as received. The master's log and summary are
+then those of the neighbourhood, in the swarm's numbers.
+
+Timeline. Step n of the swarm is due at ``start + n·h`` (wall clock, ``--start``, Unix time);
+samples are stamped with n, so ages are counted in steps. An agent that starts late (or is
+restarted) joins at the next whole sample period (``first_step``), after it has heard from
+every neighbour. Lockstep has no clock: step n happens when the data of step n are there.
+
+Per step n (real time):
+    1. own row S_i(n) from the vehicle; each neighbour's newest sample and its age a = n − s;
+    2. the age rule of ``[network]`` per neighbour: fresh (a ≤ max_age), hold (the edge's term
+       and an owned θ_k are held), fail-safe (zero wrench) past max_age + hold;
+    3. jumps of the owned edges on fresh data, then the sample (S_i(n), θ after the jump) goes to
+       every neighbour in one datagram;
+    4. u_i = −k_ξ ξ_i + Σ_k term_k (ascending k), sent to the vehicle; owned θ_k flow.
+Lockstep splits 3 in two rounds, since θ after the jump needs the neighbours' poses of step n:
+the pose goes out and every neighbour's pose of step n is awaited, then the jumps, then θ goes
+out and every neighbour's θ of step n is awaited. That is the network step exactly, so a lockstep
+swarm equals `se3sync run` on the float32 reference plant (`bridge.transport.QuantizedPlant`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+import time
+
+import numpy as np
+
+from controller import AgentStepper, JumpEvent, LawParameters, layout
+from controller.errors import Se3SyncError
+from controller.kernels import relative_pose
+from cosim import signals
+from cosim.network import parse_network
+from cosim.scenario import restrict
+
+from .agent_link import AgentLink
+from .config import check_endpoint, default_config, read_key_file
+from .link import require_key_or_insecure
+from .plant import LinkError, MavlinkPlant
+
+__all__ = ["AgentNode", "DEFAULT_MAX_AGE_STEPS", "LAWS", "join_step"]
+
+# Without a max_age in [network], an agent process still never runs on data of unbounded age: the
+# co-simulation's default (inf) is for studies; a vehicle's controller holds after this many steps.
+DEFAULT_MAX_AGE_STEPS = 10
+LAWS = ("hybrid", "gradient")
+RESEND_S = 0.02          # lockstep: a step's messages go out again after this long without progress
+
+
+def join_step(start: float, now: float, h: float, period: int, lead: float = 0.5) -> int:
+    """The first step an agent takes part in: 0 if it is there before the start (with ``lead``
+    seconds to spare), else the first multiple of ``period`` steps at least ``lead`` ahead (so
+    that its log and summary ticks fall on the swarm's)."""
+    ahead = now + lead - start
+    if ahead <= 0:
+        return 0
+    n = int(math.ceil(ahead / h))
+    return -(-n // period) * period
+
+
+class _NeighbourhoodPlant:
+    """The cosim Plant face: the neighbourhood's state (row 0: the vehicle; rows 1..: the
+    neighbours as received), the wrench of row 0 to the vehicle."""
+
+    def __init__(self, node: "AgentNode"):
+        self.node = node
+        self.n = len(node.agents)
+        self.max_block = node.vehicle.max_block
+
+    def read(self):
+        return self.node._read()
+
+    def apply(self, u) -> None:
+        self.node.vehicle.apply(np.asarray(u)[0:1])
+
+    def advance(self, h: float) -> None:
+        self.node._advance(h)
+
+    def stats(self) -> dict:
+        return self.node.stats()
+
+    def close(self) -> None:
+        pass
+
+
+class _AgentLaw:
+    """The cosim Controller face: agent i's wrench (row 0) and θ of its edges (the owned ones as
+    it runs them, the others as received)."""
+
+    def __init__(self, node: "AgentNode"):
+        self.node = node
+        self.name = node.law
+        self.hybrid = node.stepper.hybrid
+        self.params = node.stepper.params
+        M = len(node.edge_ids)
+        self.theta = node.local.theta0.copy() if self.hybrid else np.zeros(M)
+        self.theta_jump = self.theta.copy()
+        self.theta_prev = self.theta.copy()
+        self.mu = np.full(M, np.nan)
+        self.jumped = np.zeros(M, dtype=bool)
+        self.u = np.zeros((len(node.agents), 6))
+
+    def step_state(self, S, h: float):
+        return self.node._step(S, float(h))
+
+    def reset(self, theta0=None) -> None:
+        raise Se3SyncError("an agent process cannot restart its run (start a new process)")
+
+
+class AgentNode:
+    """Agent ``agent_id`` of ``scenario`` (see the module docstring).
+
+    ``AgentNode(scenario, i, law="hybrid", lockstep=False, key_file=None, insecure=False,
+    vehicle=None, connect_timeout=None, signing_state=None, tlog=None, on_event=None)``; then
+    ``connect()``, then drive ``plant`` and ``controller`` with `cosim.master.Master` (``run``
+    does it all), then ``close()``. ``vehicle`` overrides the vehicle's bridge-side endpoint
+    (default: vehicle i of the scenario's ``[bridge]`` table).
+    """
+
+    def __init__(self, scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = False,
+                 key_file=None, insecure: bool = False, vehicle: str | None = None,
+                 connect_timeout: float | None = None, signing_state=None, tlog=None,
+                 on_event=None):
+        sc = scenario
+        N = sc.graph.n
+        if isinstance(agent_id, bool) or not isinstance(agent_id, (int, np.integer)) \
+                or not 1 <= agent_id <= N:
+            raise Se3SyncError(f"--id: must be an agent number in 1..{N}, got {agent_id!r}")
+        if law not in LAWS:
+            raise Se3SyncError(f"--controller: an agent process runs one of {', '.join(LAWS)} "
+                               f"(the laws with a per-agent view), got {law!r}")
+        self.sc = sc
+        self.i = i = int(agent_id)
+        self.law = law
+        self.lockstep = bool(lockstep)
+        self.h = h = float(sc.step)
+        self.on_event = on_event or (lambda s: print(f"se3sync agent {i}: {s}", file=sys.stderr,
+                                                     flush=True))
+        self.neighbours = tuple(sc.graph.neighbours(i))
+        self.agents = (i, *self.neighbours)
+        self.row = {j: r for r, j in enumerate(self.agents)}
+        self.local, self.edge_ids = restrict(sc, self.agents)
+        self.ends = {k: sc.graph.edge_list[k - 1] for k in self.edge_ids}
+        self.other = {k: (b if a == i else a) for k, (a, b) in self.ends.items()}
+        self.owned = tuple(k for k in self.edge_ids if self.ends[k][0] == i)
+
+        net = sc.tables.get("network") or parse_network({}, N)
+        if not math.isfinite(net.max_age):
+            net = dataclasses.replace(net, max_age=DEFAULT_MAX_AGE_STEPS * h)
+        if self.lockstep:
+            lossy = [(f"network.{k}", v) for k, v in (("delay", net.default.delay),
+                                                      ("jitter", net.default.jitter),
+                                                      ("loss", net.default.loss)) if v]
+            lossy += [(f"network.link ({a} → {b})", "delay, jitter or loss")
+                      for (a, b), s in net.links.items() if s.delay or s.jitter or s.loss]
+            if lossy:
+                raise Se3SyncError(f"{lossy[0][0]}: lockstep exchanges every step's data exactly; "
+                                   f"an emulated delay, jitter or loss ({lossy[0][1]}) contradicts it")
+        self.net = net
+        key = read_key_file(key_file) if key_file is not None else None
+        cfg = sc.bridge or default_config(N)
+        vs = cfg.vehicles[i - 1]
+        if vehicle is not None:
+            vs = dataclasses.replace(vs, endpoint=check_endpoint("--vehicle", vehicle))
+        cfg = dataclasses.replace(cfg, n_agents=1, vehicles=[vs], tlog=None)
+        host, port = net.endpoints[i - 1]
+        require_key_or_insecure([f"udpin:{host}:{port}"], key, insecure, "se3sync agent")
+        if key_file is not None and signing_state is None:
+            signing_state = f"{key_file}.agent{i}.signing.json"
+        one, _ = restrict(sc, [i])
+        self.vehicle = MavlinkPlant(one, cfg, lockstep=self.lockstep, key=key, tlog=tlog,
+                                    connect_timeout=connect_timeout, on_event=self.on_event,
+                                    insecure=insecure, signing_state=signing_state)
+        try:
+            self.link = AgentLink(i, net, sc.graph, step=h, key=key,
+                                  world=cfg.world_frame, signing_state=self.vehicle.signing,
+                                  history=4 if self.lockstep else 0,
+                                  emulate=not self.lockstep)
+        except BaseException:
+            self.vehicle.close()
+            raise
+        self.vehicle.add_reader(self.link.sock.fileno(), self.link.poll)
+        self.lockstep_timeout = float(cfg.lockstep_timeout)
+        design = sc.design if law == "hybrid" else None
+        self.stepper = AgentStepper(i, sc.graph.local_edges(i), sc.weighting, design, sc.gains,
+                                    theta0={k: float(sc.theta0[k - 1]) for k in self.owned})
+        self.params = LawParameters.of(sc.weighting, design, sc.gains)
+        self.first_step = 0
+        self.n_steps = None
+        self._S = self.local.S0.copy()
+        self._term = {k: np.zeros(6) for k in self.edge_ids}
+        self._relbuf = {k: (np.zeros((3, 3)), np.zeros(3)) for k in self.edge_ids}
+        self._state = {j: "fresh" for j in self.neighbours}   # the age rule's last verdict
+        self._theta_rx = {k: float(sc.theta0[k - 1]) if design is not None else 0.0
+                          for k in self.edge_ids if k not in self.owned}
+        self.failsafe = False
+        self.failsafe_steps = 0
+        self.failsafe_entries = 0
+        self.hold_steps = 0
+        self.transitions: list = []        # (step, neighbour, new verdict of the age rule)
+        self.used: dict = {j: (None, None) for j in self.neighbours}   # (sample step, age)
+        self.own_samples: list = []
+        self.plant = _NeighbourhoodPlant(self)
+        self.controller = _AgentLaw(self)
+        self.sample_every = None
+        self._closed = False
+
+    # ------------------------------------------------------------------ set-up
+    @property
+    def k(self) -> int:
+        """Steps done by this process."""
+        return self.vehicle.k
+
+    @property
+    def n(self) -> int:
+        """The swarm's step number of the current step."""
+        return self.first_step + self.vehicle.k
+
+    def connect(self) -> "AgentNode":
+        """Waits for the vehicle (HEARTBEAT and a first state; lockstep: the state at t = 0)."""
+        self.vehicle.connect()
+        return self
+
+    def join(self, start: float | None, sample_every: int, timeout: float = 10.0) -> None:
+        """Real time: picks the first step (`join_step`) and paces the vehicle from it; a late
+        joiner first waits for a sample from every neighbour (it must not start on S0)."""
+        self.sample_every = int(sample_every)
+        if self.lockstep:
+            return
+        if start is None:
+            start = time.time() + 0.5
+        self.first_step = join_step(start, time.time(), self.h, self.sample_every)
+        if self.first_step > 0:
+            # heard by the neighbours meanwhile (its pose now and its θ(0)), so that agents that
+            # are all late wait for each other only once
+            t_end = time.monotonic() + timeout
+            next_pub = 0.0
+            while any(self.link.neighbour(j) is None for j in self.neighbours):
+                now = time.monotonic()
+                if now > t_end:
+                    missing = [j for j in self.neighbours if self.link.neighbour(j) is None]
+                    raise LinkError(f"joining at step {self.first_step}: no sample from "
+                                    f"neighbour(s) {missing} within {timeout:g} s")
+                if now >= next_pub:
+                    n_now = max(0, int((time.time() - start) / self.h))
+                    self.link.publish(n_now, self.vehicle.read()[0], self.stepper.theta_owned)
+                    next_pub = now + self.h
+                self._check_stop()
+                self.vehicle.poll(min(0.01, self.h))
+            self.first_step = join_step(start, time.time(), self.h, self.sample_every)
+        t_first = start + self.first_step * self.h
+        mono = time.monotonic() + (t_first - time.time())
+        self.vehicle.pace_from(mono)
+        while time.monotonic() < mono:   # service both links until step n₀ is due
+            self._check_stop()
+            self.vehicle.poll(min(0.05, mono - time.monotonic()))
+        if self.first_step:
+            self.on_event(f"joined the swarm at step {self.first_step} (t = "
+                          f"{self.first_step * self.h:g} s)")
+
+    def wait_start(self, path, timeout: float = 300.0) -> float:
+        """The swarm's start time from a file (`se3sync swarm` writes it once every agent is
+        connected): announces this agent ready (``PATH.ready<i>``), then services both links
+        until PATH holds a Unix time."""
+        from pathlib import Path
+
+        p = Path(path)
+        Path(f"{p}.ready{self.i}").write_text(f"{time.time()!r}\n", encoding="utf-8")
+        t_end = time.monotonic() + timeout
+        while True:
+            try:
+                return float(p.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                pass
+            if time.monotonic() > t_end:
+                raise LinkError(f"--start-file: {p} did not appear within {timeout:g} s")
+            self._check_stop()
+            self.vehicle.poll(0.02)
+
+    @staticmethod
+    def _check_stop() -> None:
+        if signals.requested():
+            raise KeyboardInterrupt
+
+    # ------------------------------------------------------------------ the step
+    def _wait(self, ready, what: str, resend) -> None:
+        """Lockstep: services both links until ``ready()`` (re-sending this step's messages
+        every RESEND_S); LinkError after the lockstep timeout."""
+        t_start = last = time.monotonic()
+        while not ready():
+            now = time.monotonic()
+            if now - t_start > self.lockstep_timeout:
+                missing = [j for j in self.neighbours if not ready(j)]
+                raise LinkError(f"lockstep: agent {self.i} waited {self.lockstep_timeout:g} s for "
+                                f"the {what} of step {self.n} from neighbour(s) {missing}")
+            if now - last > RESEND_S:
+                resend()
+                last = now
+            self._check_stop()
+            self.vehicle.poll(0.005)
+
+    def _read(self):
+        """S of the neighbourhood at step n (row 0 fresh from the vehicle)."""
+        S = self._S
+        own = self.vehicle.read()[0]
+        S[0] = own
+        n = self.n
+        if self.lockstep:
+            if self.n_steps is not None and self.k >= self.n_steps:
+                return S   # the end (the master's final read): no step n, the last data stay
+            pub = lambda: self.link.publish(n, own, None)  # noqa: E731
+            pub()
+
+            def ready(j=None):
+                js = self.neighbours if j is None else (j,)
+                return all(self.link.pose_at(x, n) is not None for x in js)
+
+            self._wait(ready, "pose", lambda: (pub(), self._resend_theta()))
+            for j in self.neighbours:
+                S[self.row[j]] = self.link.pose_at(j, n)
+                self.used[j] = (n, 0)
+            return S
+        for j in self.neighbours:
+            smp = self.link.neighbour(j)
+            if smp is not None:
+                S[self.row[j]] = smp.S
+        return S
+
+    def _resend_theta(self) -> None:
+        last = getattr(self, "_last_theta", None)
+        if last is not None:
+            self.link.publish(last[0], None, last[1])
+
+    def _rel(self, S, k):
+        """X̄_k = X_b⁻¹X_a from the neighbourhood's rows, as (R̄, p̄) (the network step's products)."""
+        a, b = self.ends[k]
+        R, p = self._relbuf[k]
+        relative_pose(S, self.row[a], S, self.row[b], R, p)
+        return R, p
+
+    def _step(self, S, h: float):
+        n = self.n
+        st = self.stepper
+        ctl = self.controller
+        link = self.link
+        # 1. the age rule per neighbour (lockstep data are always of this step)
+        mode = {}
+        for j in self.neighbours:
+            if self.lockstep:
+                mode[j] = "fresh"
+                continue
+            age = link.age_steps(j, n)
+            smp = link.neighbour(j)
+            self.used[j] = (None if smp is None else smp.step, n if age is None else age)
+            mode[j] = link.freshness(j, n)
+            if mode[j] != self._state[j]:
+                self._state[j] = mode[j]
+                self.transitions.append((n, j, mode[j]))
+                if len(self.transitions) > 1000:
+                    del self.transitions[:500]
+        fresh_edges = {k for k in self.edge_ids if mode[self.other[k]] == "fresh"}
+        rel = {k: self._rel(S, k) for k in fresh_edges}
+        # 2. jump stage (owned edges on fresh data)
+        for r, k in enumerate(self.edge_ids):
+            ctl.theta_prev[r] = ctl.theta[r]
+        owned_fresh = [k for k in self.owned if k in fresh_edges]
+        events = st.jump(rel, owned_fresh)
+        mu = st.last_mu
+        jumped = {e.edge for e in events}
+        theta_owned = st.theta_owned
+        # 3. publish, and (lockstep) the neighbours' θ of this step
+        if self.lockstep:
+            self._last_theta = (n, theta_owned)
+            if self.owned:
+                link.publish(n, None, theta_owned)
+
+            def ready(j=None):
+                js = self.neighbours if j is None else (j,)
+                return all(link.theta_at(x, n) is not None for x in js)
+
+            self._wait(ready, "θ", lambda: (self._resend_theta(),
+                                           link.publish(n, S[0], None)))
+            for j in self.neighbours:
+                self._theta_rx.update(link.theta_at(j, n))
+                link.age_steps(j, n)   # 0 in lockstep: counted for the link statistics
+        else:
+            link.publish(n, S[0], theta_owned)
+            for j in self.neighbours:
+                smp = link.neighbour(j)
+                if smp is not None:
+                    self._theta_rx.update({k: v for k, v in smp.theta.items()
+                                           if k in self._theta_rx})
+        # 4. the wrench: fresh terms computed, stale ones held; fail-safe past max_age + hold
+        xi_i = S[0, layout.XI]
+        xi = {j: S[self.row[j], layout.XI] for j in self.neighbours}
+        self._term.update(st.terms(rel, xi_i, xi, self._theta_rx, fresh_edges))
+        fs = any(m == "failsafe" for m in mode.values())
+        if fs:
+            self.failsafe_steps += 1
+            if not self.failsafe:
+                self.failsafe_entries += 1
+                self.on_event(f"fail-safe at step {n}: no fresh data from neighbour(s) "
+                              f"{[j for j in self.neighbours if mode[j] == 'failsafe']}")
+        elif self.failsafe:
+            self.on_event(f"rejoined at step {n}: fresh data from every neighbour")
+        self.failsafe = fs
+        if any(m == "hold" for m in mode.values()):
+            self.hold_steps += 1
+        u = ctl.u
+        u[:] = 0.0
+        if not fs:
+            u[0] = st.wrench_of(xi_i, self._term)
+        # θ of the neighbourhood's edges after the jump stage, then the flow of the owned ones
+        for r, k in enumerate(self.edge_ids):
+            ctl.theta_jump[r] = theta_owned[k] if k in theta_owned else self._theta_rx[k]
+            ctl.mu[r] = mu.get(k, np.nan) if k in self.owned else np.nan
+            ctl.jumped[r] = k in jumped
+        st.flow(rel, h, owned_fresh)
+        for r, k in enumerate(self.edge_ids):
+            ctl.theta[r] = st.theta[k] if k in st.theta else self._theta_rx[k]
+        if self.sample_every and self.k % self.sample_every == 0:
+            self.own_samples.append({"step": n, "S": S[0].tolist(),
+                                     "theta": {str(k): theta_owned[k] for k in self.owned}})
+        if not events:
+            return u, ()
+        r_of = {k: r for r, k in enumerate(self.edge_ids)}
+        return u, tuple(JumpEvent(r_of[e.edge] + 1, e.theta_before, e.theta_after, e.mu)
+                        for e in events)
+
+    def _advance(self, h: float) -> None:
+        self.vehicle.advance(h)
+
+    # ------------------------------------------------------------------ results
+    def stats(self) -> dict:
+        d = self.vehicle.stats()
+        d["agent_link"] = self.link.stats()
+        d["failsafe"] = self.failsafe
+        return d
+
+    def own_final(self) -> dict:
+        """The agent's own row and θ of its owned edges at the end (what the swarm merges)."""
+        return {"step": self.n, "S": self.vehicle.read()[0].tolist(),
+                "theta": {str(k): v for k, v in self.stepper.theta_owned.items()}}
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.link.close()
+        finally:
+            self.vehicle.close()
+
+
+# ---------------------------------------------------------------------------------- the log
+NEIGHBOURS = {
+    "title": "se3sync.Neighbours",
+    "description": "What an agent process used of its neighbours at a communication point",
+    "type": "object",
+    "properties": {
+        "timestamp": {"type": "object"},
+        "agent": {"type": "integer"},
+        "failsafe": {"type": "boolean", "description": "zero wrench: a neighbour's data too old"},
+        "neighbours": {"type": "array", "items": {"type": "object", "properties": {
+            "agent": {"type": "integer"},
+            "sample_step": {"type": ["integer", "null"],
+                            "description": "swarm step of the newest sample used (null: S0)"},
+            "age_steps": {"type": "integer", "description": "n − sample_step"},
+            "state": {"type": "string", "enum": ["fresh", "hold", "failsafe"]},
+        }}},
+    },
+}
+
+
+def _agent_logger(path, node: AgentNode, extra_metadata: dict):
+    """The neighbourhood's McapLogger (the swarm's numbers) with a /neighbours channel written
+    at every record: the sample of each neighbour used, its age and the age rule's verdict."""
+    from cosim.log.mcap import McapLogger
+
+    class AgentLogger(McapLogger):
+        def record(self, t_ns, *args):
+            super().record(t_ns, *args)
+            nb = []
+            for j in node.neighbours:
+                s, age = node.used[j]
+                state = node._state[j]
+                nb.append({"agent": j, "sample_step": s, "age_steps": age, "state": state})
+            self.message("/neighbours", t_ns, {"agent": node.i, "failsafe": node.failsafe,
+                                               "neighbours": nb})
+
+    lg = AgentLogger(path, node.local, controller=node.law, agent_ids=node.agents,
+                     edge_ids=node.edge_ids, extra_metadata=extra_metadata)
+    lg.add_channel("/neighbours", NEIGHBOURS)
+    return lg
+
+
+def _warm_up(node: AgentNode) -> None:
+    """The compiled kernels the steps use, loaded (or compiled) now rather than while the vehicle
+    and the neighbours wait for the first step."""
+    from controller.kernels import metrics, network_U
+
+    AgentStepper(node.i, node.sc.graph.local_edges(node.i), node.sc.weighting,
+                 node.sc.design if node.stepper.hybrid else None, node.sc.gains).wrench(
+        {k: node._rel(node.local.S0, k) for k in node.edge_ids}, np.zeros(6),
+        {j: np.zeros(6) for j in node.neighbours}, {k: 0.0 for k in node.edge_ids})
+    loc = node.local
+    N, M = loc.graph.n, loc.graph.M
+    U = np.zeros(M)
+    network_U(loc.S0, loc.theta0.copy(), loc.graph.edges, node.params.P, U)
+    metrics(loc.S0, loc.graph.edges, U, float(loc.gains.k_X), np.ascontiguousarray(loc.masses),
+            np.ascontiguousarray(loc.inertias), np.zeros(M), np.zeros(M), np.zeros((N, 4)))
+
+
+def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = False,
+              start: float | None = None, start_file=None, key_file=None, insecure: bool = False,
+              vehicle: str | None = None, connect_timeout: float | None = None,
+              signing_state=None, tlog=None, log_path=None, summary_path=None,
+              progress: bool = False, on_event=None) -> dict:
+    """Agent ``agent_id`` from its vehicle's connection to its summary (see the module
+    docstring); the library entry point of `se3sync agent`. Raises ConnectError (the vehicle
+    never connected) and LinkError (lockstep: a vehicle or neighbour stopped answering; a late
+    joiner heard nothing). A run that fails removes its log; an interrupted one keeps it."""
+    from cosim.files import write_json_atomic
+    from cosim.master import Master
+
+    node = AgentNode(scenario, agent_id, law=law, lockstep=lockstep, key_file=key_file,
+                     insecure=insecure, vehicle=vehicle, connect_timeout=connect_timeout,
+                     signing_state=signing_state, tlog=tlog, on_event=on_event)
+    logger = None
+    failed = False
+    sc = scenario
+    h = node.h
+    try:
+        _warm_up(node)
+        node.connect()
+        if start_file is not None and not lockstep:
+            start = node.wait_start(start_file)
+        spl = max(1, int(round(1.0 / h)))
+        dec = max(1, int(round(1.0 / (sc.log_rate * h))))
+        node.join(start, math.lcm(spl, dec))
+        n_steps = sc.n_steps() - node.first_step
+        if n_steps <= 0:
+            raise Se3SyncError(f"--start: the swarm's run ({sc.n_steps()} steps from "
+                               f"{start}) is over")
+        node.n_steps = n_steps
+        requested = []
+        with signals.catching(lambda: requested.append(True)):
+            if log_path is not None:
+                logger = _agent_logger(log_path, node, {
+                    "plant": "mavlink", "agent": node.i,
+                    "time_base": "simulated (lockstep)" if lockstep else
+                                 "wall (paced: t = n·h from the swarm's start)",
+                    "first_step": node.first_step, "start_unix": "" if start is None else repr(start)})
+            master = Master(node.local, node.plant, node.controller, logger,
+                            first_step=node.first_step)
+        if requested:
+            master.request_stop()
+        cpu0 = time.process_time()
+        summary = master.run(n_steps, progress=progress)
+        cpu = time.process_time() - cpu0
+    except BaseException as exc:
+        failed = not isinstance(exc, KeyboardInterrupt)
+        raise
+    finally:
+        try:
+            if logger is not None:
+                logger.close(discard=failed)
+        finally:
+            try:
+                own = node.own_final() if not failed else None
+            except Exception:  # noqa: BLE001 - the vehicle may be gone
+                own = None
+            node.close()
+    pos = dict(enumerate(node.edge_ids, start=1))
+    for j in summary["jumps"]:
+        j["edge"] = pos[j["edge"]]
+    summary.update({
+        "plant": "mavlink", "lockstep": bool(lockstep), "agent": node.i,
+        "agents": list(node.agents), "neighbours": list(node.neighbours),
+        "edges": list(node.edge_ids), "owned_edges": list(node.owned),
+        "first_step": node.first_step, "start": start, "duration_steps": sc.n_steps(),
+        "cpu_s": cpu, "cpu_fraction": cpu / summary["wall_time_s"] if summary["wall_time_s"] else None,
+        "own": {"samples": node.own_samples, "final": own},
+        "failsafe": {"steps": node.failsafe_steps, "entries": node.failsafe_entries,
+                     "hold_steps": node.hold_steps,
+                     "transitions": [{"step": s, "neighbour": j, "state": m}
+                                     for s, j, m in node.transitions]},
+        "network": {"max_age": node.net.max_age, "hold": node.net.hold,
+                    "max_age_steps": node.link.max_age_steps, "hold_steps": node.link.hold_steps},
+    })
+    if log_path is not None:
+        summary["log"] = str(log_path)
+        summary["log_messages"] = dict(logger.counts)
+    if summary_path is not None:
+        write_json_atomic(summary_path, summary)
+    return summary

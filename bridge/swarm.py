@@ -1,0 +1,453 @@
+"""`se3sync swarm`: every agent of a scenario as its own process (`se3sync agent`), and the merge
+of what they wrote into the outputs of one run.
+
+The launcher starts N agent processes (and, with ``vehicles="loopback"``, one `se3sync vehicle`
+process serving the N vehicles) with the same scenario, overrides and start time, writes each
+one's log, summary and stderr into a work directory, waits, and merges:
+
+* `merge_summaries`: the agents' own rows and θ of the edges they own, at the 1 s samples and
+  at the end, give the network's state S (N, 18) and θ (M,) at those instants; the network's
+  errors come from `cosim.master.NetworkMetrics`, as in `run`. Jumps are the owners'. Per
+  directed link j → i: messages sent by j, samples taken by i, lost = the difference, and the
+  ages of the data i used.
+* `merge_logs`: the agents' logged own rows (/tf, /agents) and owned edges (/edges, /jumps) at
+  the log instants all of them recorded become one log written by `cosim.log.mcap.McapLogger`
+  for the whole scenario, so `se3sync plot`, `animate` and Foxglove read it as a `run` log.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from controller import V_bar, jump_bound, layout
+from controller.errors import Se3SyncError
+from cosim import signals
+from cosim.master import NetworkMetrics, design_summary
+
+from . import frames
+
+__all__ = ["merge_summaries", "merge_logs", "run_swarm", "run_swarm_cli", "EXIT_AGENT_FAILED"]
+
+EXIT_AGENT_FAILED = 5
+STOP_GRACE_S = 10.0    # after SIGTERM, how long the children get to finish their outputs
+
+
+# ------------------------------------------------------------------------------ merging
+def _full_state(scenario, rows: dict, thetas: dict):
+    """S (N, 18) and θ (M,) from each agent's own row and the θ of the edges it owns."""
+    N, M = scenario.graph.n, scenario.graph.M
+    S = np.zeros((N, layout.S_WIDTH))
+    for i in range(1, N + 1):
+        S[i - 1] = rows[i]
+    theta = np.zeros(M)
+    for k in range(1, M + 1):
+        theta[k - 1] = thetas[k]
+    return S, theta
+
+
+def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: float | None = None,
+                    interrupted: bool = False, lockstep: bool = False) -> dict:
+    """One summary of the swarm from {agent id: its summary} (missing agents: listed, and the
+    network's errors left out where they need them)."""
+    sc = scenario
+    N, M = sc.graph.n, sc.graph.M
+    h = float(sc.step)
+    owner = {k: a for k, (a, _) in enumerate(sc.graph.edge_list, start=1)}
+    mx = NetworkMetrics(sc)
+    present = sorted(summaries)
+    missing = [i for i in range(1, N + 1) if i not in summaries]
+
+    def at(records_of):
+        """{step: (rows, θ)} for the steps every agent recorded."""
+        per = {i: {r["step"]: r for r in records_of(summaries[i]) if r} for i in present}
+        if missing or not per:
+            return {}
+        common = set.intersection(*(set(p) for p in per.values()))
+        out = {}
+        for n in sorted(common):
+            rows = {i: np.asarray(per[i][n]["S"], float) for i in present}
+            th = {}
+            for i in present:
+                th.update({int(k): float(v) for k, v in per[i][n]["theta"].items()})
+            if len(th) == M:
+                out[n] = _full_state(sc, rows, th)
+        return out
+
+    samples = [mx.sample(n * h, S, th) for n, (S, th) in at(lambda s: s["own"]["samples"]).items()]
+    finals = at(lambda s: [s["own"]["final"]])
+    final = None
+    if finals:
+        n_end = max(finals)
+        final = mx.sample(n_end * h, *finals[n_end])
+        if samples and round(samples[-1]["t"] / h) != n_end and n_end % max(1, round(1 / h)) == 0:
+            samples.append(dict(final))
+    elif samples:
+        final = dict(samples[-1])
+    jumps = sorted((j for i in present for j in summaries[i]["jumps"]),
+                   key=lambda j: (j["t"], j["edge"]))
+    V0 = V_bar(sc.graph, sc.weighting, sc.design, sc.gains, sc.S0,
+               sc.theta0 if law == "hybrid" else np.zeros(M), sc.inertia6)
+    links = []
+    for i in present:
+        st = summaries[i].get("link", {}).get("agent_link", {})
+        for j_str, ln in sorted(st.get("links", {}).items(), key=lambda x: int(x[0])):
+            j = int(j_str)
+            sent = None
+            if j in summaries:   # samples j published to i
+                sent = summaries[j].get("link", {}).get("agent_link", {}).get(
+                    "links", {}).get(str(i), {}).get("published")
+            lost = None if sent is None else max(0, sent - ln["samples"])
+            entry = {"from": j, "to": i, "sent": sent, "received": ln["samples"], "lost": lost,
+                     "loss": (lost / sent) if sent else None,
+                     "age_p50_steps": ln["age_p50_steps"], "age_p99_steps": ln["age_p99_steps"],
+                     "age_p50_s": None if ln["age_p50_steps"] is None else ln["age_p50_steps"] * h,
+                     "age_p99_s": None if ln["age_p99_steps"] is None else ln["age_p99_steps"] * h}
+            if j in summaries:
+                emu = summaries[j].get("link", {}).get("agent_link", {}).get("links", {}).get(
+                    str(i), {}).get("emulated_lost")
+                if emu is not None:
+                    entry["emulated_lost"] = emu
+            links.append(entry)
+    agents = []
+    for i in range(1, N + 1):
+        s = summaries.get(i)
+        if s is None:
+            agents.append({"agent": i, "summary": None})
+            continue
+        ln = s.get("link", {})
+        agents.append({"agent": i, "steps": s["steps"], "first_step": s.get("first_step", 0),
+                       "interrupted": s["interrupted"], "wall_time_s": s["wall_time_s"],
+                       "cpu_fraction": s.get("cpu_fraction"), "failsafe": s["failsafe"],
+                       "late_steps": ln.get("late_steps"),
+                       "vehicle_latency_ms_p99": ln.get("latency_ms_p99"),
+                       "vehicle_failsafes": ln.get("vehicle_failsafes")})
+    steps = max((s["first_step"] + s["steps"] for s in summaries.values()), default=0)
+    return {
+        "scenario": sc.name, "scenario_path": str(sc.path), "controller": law,
+        "plant": "mavlink (one agent process per vehicle)", "lockstep": bool(lockstep),
+        "step": h, "steps": steps, "sim_time_s": steps * h, "wall_time_s": wall,
+        "interrupted": bool(interrupted or any(s["interrupted"] for s in summaries.values())),
+        "agents_missing": missing,
+        "design": design_summary(sc), "V0": V0,
+        "jump_bound": jump_bound(V0, sc.gains.k_X, sc.design.delta),
+        "n_jumps": len(jumps), "jumps": jumps, "final": final, "samples": samples,
+        "links": links,
+        "link_total": _link_total(links),
+        "agents": agents,
+    }
+
+
+def _link_total(links) -> dict:
+    sent = sum(ln["sent"] or 0 for ln in links)
+    lost = sum(ln["lost"] or 0 for ln in links)
+    p99 = [ln["age_p99_steps"] for ln in links if ln["age_p99_steps"] is not None]
+    return {"sent": sent, "lost": lost, "loss": (lost / sent) if sent else None,
+            "age_p99_steps_max": max(p99) if p99 else None}
+
+
+def _own_records(path, agent: int, owned: set) -> dict:
+    """{t_ns: {"S": row, "u": wrench, "theta"/"mu"/"jumped": {k: …}}} of agent's own log, and
+    its jumps."""
+    from cosim.log.mcap import read_log
+
+    log = read_log(path)
+    msgs = log["messages"]
+    frame = f"agent_{agent}"
+    rec: dict = {}
+    for t, m in msgs.get("/tf", []):
+        for x in m["transforms"]:
+            if x["child_frame_id"] == frame:
+                tr, ro = x["translation"], x["rotation"]
+                rec.setdefault(t, {})["pq"] = ([tr["x"], tr["y"], tr["z"]],
+                                               [ro["w"], ro["x"], ro["y"], ro["z"]])
+    for t, m in msgs.get("/agents", []):
+        for a in m["agents"]:
+            if a["agent"] == agent and t in rec:
+                rec[t]["xi"] = a["omega"] + a["v"]
+                rec[t]["u"] = a["torque"] + a["force"]
+    for t, m in msgs.get("/edges", []):
+        if t not in rec:
+            continue
+        e = rec[t]
+        e["edges"] = {x["edge"]: x for x in m["edges"] if x["edge"] in owned}
+    jumps = [(t, m) for t, m in msgs.get("/jumps", [])]
+    return {t: r for t, r in rec.items() if {"pq", "xi", "u", "edges"} <= set(r)}, jumps
+
+
+def merge_logs(scenario, logs: dict, out_path, *, law: str = "hybrid",
+               extra_metadata: dict | None = None) -> dict:
+    """One log of the swarm from {agent id: [its log paths]} (a restarted agent has several);
+    returns {"records": …, "jumps": …}. Records are kept at the log instants every agent
+    recorded."""
+    from cosim.log.mcap import McapLogger
+
+    sc = scenario
+    N, M = sc.graph.n, sc.graph.M
+    owned = {i: set(sc.graph.M_plus(i)) for i in range(1, N + 1)}
+    recs, jumps = {}, []
+    for i in range(1, N + 1):
+        recs[i] = {}
+        for p in logs.get(i, []):
+            r, js = _own_records(p, i, owned[i])
+            recs[i].update(r)
+            jumps += js
+    common = sorted(set.intersection(*(set(r) for r in recs.values()))) if recs else []
+    mx = NetworkMetrics(sc)
+    logger = McapLogger(out_path, sc, controller=law, extra_metadata={
+        "plant": "mavlink (one agent process per vehicle)",
+        "merged_from": json.dumps({str(i): [str(p) for p in logs.get(i, [])] for i in logs}),
+        **(extra_metadata or {})})
+    failed = True
+    try:
+        jumps.sort(key=lambda x: (x[0], x[1]["edge"]))
+        ji = 0
+        S = np.zeros((N, layout.S_WIDTH))
+        u = np.zeros((N, 6))
+        theta, mu = np.zeros(M), np.zeros(M)
+        jumped = np.zeros(M, dtype=bool)
+        for t in common:
+            while ji < len(jumps) and jumps[ji][0] <= t:
+                tj, m = jumps[ji]
+                logger.jump(tj, m["t"], m["edge"], m["theta_before"], m["theta_after"], m["mu"])
+                ji += 1
+            for i in range(1, N + 1):
+                r = recs[i][t]
+                p, q = r["pq"]
+                S[i - 1, layout.P] = p
+                S[i - 1, layout.R] = frames.quat_to_rot(np.array([q]))[0]
+                S[i - 1, layout.XI] = r["xi"]
+                u[i - 1] = r["u"]
+                for k, e in r["edges"].items():
+                    theta[k - 1] = e["theta"]
+                    mu[k - 1] = e["mu_U"] if e["mu_U"] is not None else np.nan
+                    jumped[k - 1] = e["mode"] == "jump"
+            V, _ = mx.compute(S, theta)
+            logger.record(t, S, u, theta, mu, jumped, mx.rot, mx.pos, mx.U, mx.quat, float(V),
+                          float(mx.kX * mx.U.sum()))
+        for tj, m in jumps[ji:]:
+            logger.jump(tj, m["t"], m["edge"], m["theta_before"], m["theta_after"], m["mu"])
+        failed = False
+    finally:
+        logger.close(discard=failed)
+    return {"records": len(common), "jumps": len(jumps)}
+
+
+# ------------------------------------------------------------------------------ launching
+READY_TIMEOUT_S = 120.0   # every agent imports, loads its kernels and connects before the start
+START_LEAD_S = 1.0        # from "all ready" to step 0: the start file reaches every agent
+
+
+class _Children:
+    """The child processes, stopped together (SIGTERM, then SIGKILL after a grace period)."""
+
+    def __init__(self):
+        self.procs: dict = {}   # name -> (Popen, stderr path)
+
+    def start(self, name: str, argv: list, err_path: Path) -> subprocess.Popen:
+        f = open(err_path, "wb")
+        try:
+            p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+        finally:
+            f.close()
+        self.procs[name] = (p, err_path)
+        return p
+
+    def stop(self, names=None, grace: float = STOP_GRACE_S) -> None:
+        names = list(self.procs) if names is None else names
+        live = [self.procs[n][0] for n in names if self.procs[n][0].poll() is None]
+        for p in live:
+            try:
+                p.send_signal(signal.SIGTERM)
+            except OSError:
+                pass
+        t_end = time.monotonic() + grace
+        for p in live:
+            try:
+                p.wait(timeout=max(0.0, t_end - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+    def last_line(self, name: str) -> str:
+        try:
+            lines = [ln for ln in Path(self.procs[name][1]).read_text(
+                encoding="utf-8", errors="replace").splitlines() if ln.strip()]
+        except OSError:
+            return ""
+        return lines[-1] if lines else ""
+
+
+def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockstep: bool = False,
+              log_path=None, summary_path=None, workdir=None, duration=None, law: str = "hybrid",
+              key_file=None, start_delay=None, insecure: bool = False, progress: bool = False,
+              python=None, on_event=None) -> tuple:
+    """Launches the swarm and merges its outputs; returns (merged summary, exit status): 0 all
+    agents finished, EXIT_AGENT_FAILED an agent failed (the others are stopped), 130/143 a
+    signal stopped everything. The merged outputs are written in every case."""
+    from cosim.files import write_json_atomic
+    from cosim.scenario import load_scenario
+
+    say = on_event or (lambda s: print(f"se3sync swarm: {s}", file=sys.stderr, flush=True))
+    sc = load_scenario(scenario_path, overrides, duration=duration)
+    N = sc.graph.n
+    py = python or sys.executable
+    own_dir = workdir is None
+    wd = Path(tempfile.mkdtemp(prefix="se3sync-swarm-") if own_dir else workdir)
+    wd.mkdir(parents=True, exist_ok=True)
+    sets = [x for o in overrides for x in ("--set", o)]
+    common = [str(Path(scenario_path)), *sets]
+    if duration is not None:
+        common += ["--duration", repr(float(duration))]
+    sec = (["--key", str(key_file)] if key_file else []) + (["--insecure"] if insecure else [])
+    kids = _Children()
+    rc = 0
+    interrupted = False
+    stop_requested = []
+    t0 = time.monotonic()
+    bar = None
+    try:
+        with signals.catching(lambda: stop_requested.append(True)):
+            if vehicles == "loopback":
+                kids.start("vehicle", [py, "-m", "cosim.cli", "vehicle", "--scenario",
+                                       str(Path(scenario_path)), *sets,
+                                       "--aux-rate", "0", "--stats", str(wd / "vehicle.json"),
+                                       *(["--lockstep"] if lockstep else []), *sec],
+                           wd / "vehicle.err")
+            start = None
+            start_file = wd / "start"
+            for old in [start_file, *wd.glob("start.ready*")]:   # a previous run's, in --dir
+                old.unlink(missing_ok=True)
+            for i in range(1, N + 1):
+                kids.start(f"agent {i}", [
+                    py, "-m", "cosim.cli", "agent", *common, "--id", str(i),
+                    "--controller", law, "--summary", str(wd / f"agent_{i}.json"),
+                    *(["--log", str(wd / f"agent_{i}.mcap")] if log_path is not None else []),
+                    *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec],
+                    wd / f"agent_{i}.err")
+            say(f"{N} agent processes{' and the loopback vehicles' if vehicles == 'loopback' else ''}"
+                f" started ({'lockstep' if lockstep else 'real time'}); outputs in {wd}")
+            agents = [f"agent {i}" for i in range(1, N + 1)]
+            if not lockstep:
+                # the clock starts when every agent is connected and waiting (ready files)
+                t_ready = time.monotonic() + READY_TIMEOUT_S
+                while not stop_requested:
+                    ready = [i for i in range(1, N + 1) if Path(f"{start_file}.ready{i}").exists()]
+                    dead = [a for a in agents if kids.procs[a][0].poll() is not None]
+                    if len(ready) == N or dead or time.monotonic() > t_ready:
+                        break
+                    time.sleep(0.05)
+                delay = START_LEAD_S if start_delay is None else float(start_delay)
+                start = time.time() + delay
+                tmp = start_file.with_suffix(".tmp")
+                tmp.write_text(repr(start), encoding="utf-8")
+                os.replace(tmp, start_file)
+            if progress:
+                from tqdm import tqdm
+
+                bar = tqdm(total=sc.n_steps() * sc.step, unit="s", desc=f"{sc.name} (swarm)",
+                           bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s")
+            while True:
+                codes = {a: kids.procs[a][0].poll() for a in agents}
+                if stop_requested:
+                    interrupted = True
+                    say("stopping every process (signal)")
+                    kids.stop()
+                    break
+                failed = [a for a, c in codes.items() if c not in (None, 0)]
+                if failed:
+                    a = failed[0]
+                    say(f"{a} failed (exit status {codes[a]}): {kids.last_line(a)}; stopping the others")
+                    kids.stop()
+                    rc = EXIT_AGENT_FAILED
+                    break
+                if all(c == 0 for c in codes.values()):
+                    break
+                if "vehicle" in kids.procs and kids.procs["vehicle"][0].poll() is not None:
+                    say(f"the vehicle process ended (status {kids.procs['vehicle'][0].returncode}): "
+                        f"{kids.last_line('vehicle')}; stopping the agents")
+                    kids.stop()
+                    rc = EXIT_AGENT_FAILED
+                    break
+                if bar is not None and start is not None:
+                    bar.update(min(bar.total, max(0.0, time.time() - start)) - bar.n)
+                time.sleep(0.1)
+            if "vehicle" in kids.procs:
+                kids.stop(["vehicle"])
+    finally:
+        if bar is not None:
+            bar.close()
+        kids.stop()
+    wall = time.monotonic() - t0
+    summaries = {}
+    for i in range(1, N + 1):
+        p = wd / f"agent_{i}.json"
+        try:
+            summaries[i] = json.loads(p.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            pass
+    merged = merge_summaries(sc, summaries, law=law, wall=wall, interrupted=interrupted,
+                             lockstep=lockstep)
+    merged["exit_status"] = {name: p.returncode for name, (p, _) in kids.procs.items()}
+    merged["workdir"] = None if own_dir else str(wd)
+    if log_path is not None:
+        logs = {i: [wd / f"agent_{i}.mcap"] for i in range(1, N + 1)
+                if (wd / f"agent_{i}.mcap").exists()}
+        if len(logs) == N:
+            merged["log"] = str(log_path)
+            merged["log_merge"] = merge_logs(sc, logs, log_path, law=law, extra_metadata={
+                "time_base": "simulated (lockstep)" if lockstep else
+                             "wall (paced: t = n·h from the swarm's start)"})
+        else:
+            say(f"no merged log: agent log(s) missing for {[i for i in range(1, N + 1) if i not in logs]}")
+    if summary_path is not None:
+        write_json_atomic(summary_path, merged)
+    if own_dir:
+        shutil.rmtree(wd, ignore_errors=True)
+    if interrupted:
+        rc = signals.exit_status()
+    return merged, rc
+
+
+def run_swarm_cli(args) -> int:
+    """Handler of ``se3sync swarm``."""
+    from cosim.scenario import ScenarioError, load_scenario
+
+    sc = load_scenario(args.scenario, args.set, duration=args.duration)   # bad input: exit 2 now
+    if args.start_delay is not None and not (math.isfinite(args.start_delay)
+                                             and 0 <= args.start_delay <= 3600):
+        raise Se3SyncError(f"--start-delay: must be a number of seconds in [0, 3600], got "
+                           f"{args.start_delay!r}")
+    if args.dir is not None and Path(args.dir).exists() and not Path(args.dir).is_dir():
+        raise Se3SyncError(f"--dir: {args.dir} exists and is not a directory")
+    if not args.force:
+        from cosim.analysis.stability import analyse
+
+        st = analyse(sc, law=args.controller, bisect=False)
+        if not st["stable"]:
+            raise ScenarioError("simulation.step", f"h = {sc.step:g} s makes the sampled loop "
+                                f"unstable (spectral radius {st['spectral_radius']:.6f} >= 1); "
+                                "use --force to run anyway", sc.path)
+    merged, rc = run_swarm(args.scenario, args.set, vehicles=args.vehicles, lockstep=args.lockstep,
+                           log_path=args.log, summary_path=args.summary, workdir=args.dir,
+                           duration=args.duration, law=args.controller, key_file=args.key,
+                           start_delay=args.start_delay, insecure=args.insecure,
+                           progress=sys.stderr.isatty())
+    f = merged.get("final") or {}
+    tot = merged["link_total"]
+    print(f"{sc.name}: {len(merged['agents']) - len(merged['agents_missing'])} agents, "
+          f"{merged['steps']} steps ({'lockstep' if args.lockstep else 'real time'}) in "
+          f"{merged['wall_time_s']:.3g} s; {merged['n_jumps']} jumps; final rot_err "
+          f"{f.get('rot_err', float('nan')):.3g}, pos_err {f.get('pos_err', float('nan')):.3g}; "
+          f"inter-agent messages {tot['sent']}, lost {tot['lost']}, age p99 "
+          f"{tot['age_p99_steps_max']} steps", file=sys.stderr)
+    return rc
