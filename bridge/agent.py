@@ -190,6 +190,7 @@ class AgentNode:
             self.vehicle.close()
             raise
         self.vehicle.add_reader(self.link.sock.fileno(), self.link.poll)
+        self.vehicle.drain_per_step = True
         self.lockstep_timeout = float(cfg.lockstep_timeout)
         design = sc.design if law == "hybrid" else None
         self.stepper = AgentStepper(i, sc.graph.local_edges(i), sc.weighting, design, sc.gains,

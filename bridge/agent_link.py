@@ -51,6 +51,7 @@ import numpy as np
 
 from controller import layout
 from controller.errors import Se3SyncError
+from controller.kernels import rot_to_quat_rows
 
 from . import frames
 from .link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlink2, packet_ids,
@@ -93,11 +94,16 @@ def encode_sample(mav, n: int, h_us: int, S_row, theta, world: str = "ned") -> l
     t = stamp_us(n, h_us)
     out = []
     if S_row is not None:
-        S = frames.state_world_to_ned(np.asarray(S_row, float).reshape(1, layout.S_WIDTH), world)
-        q = frames.rot_to_quat(S[:, layout.R])[0]
-        p, w, v = S[0, layout.P], S[0, layout.OMEGA], S[0, layout.V]
+        S = np.asarray(S_row, float).reshape(1, layout.S_WIDTH)
+        if world != "ned":
+            S = frames.state_world_to_ned(S, world)
+        # one row, every step: the compiled conversion (numpy's per-call cost is most of it)
+        q = np.empty((1, 4))
+        rot_to_quat_rows(np.ascontiguousarray(S[:, layout.R]), q)
+        p, w, v, q = S[0, layout.P].tolist(), S[0, layout.OMEGA].tolist(), \
+            S[0, layout.V].tolist(), q[0].tolist()
         out.append(mav.odometry_encode(t, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD,
-                                       p[0], p[1], p[2], [q[0], q[1], q[2], q[3]], v[0], v[1],
+                                       p[0], p[1], p[2], q, v[0], v[1],
                                        v[2], w[0], w[1], w[2], NAN21, NAN21, 0,
                                        mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, 100))
     theta = [float(x) for x in (theta if theta is not None else ())]
