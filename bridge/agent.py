@@ -164,8 +164,9 @@ class AgentNode:
             lossy += [(f"network.link ({a} → {b})", "delay, jitter or loss")
                       for (a, b), s in net.links.items() if s.delay or s.jitter or s.loss]
             if lossy:
-                raise Se3SyncError(f"{lossy[0][0]}: lockstep exchanges every step's data exactly; "
-                                   f"an emulated delay, jitter or loss ({lossy[0][1]}) contradicts it")
+                raise Se3SyncError(f"{sc.path}: {lossy[0][0]}: lockstep exchanges every step's "
+                                   f"data exactly; an emulated delay, jitter or loss "
+                                   f"({lossy[0][1]}) contradicts it")
         self.net = net
         key = read_key_file(key_file) if key_file is not None else None
         cfg = sc.bridge or default_config(N)
@@ -174,7 +175,8 @@ class AgentNode:
             vs = dataclasses.replace(vs, endpoint=check_endpoint("--vehicle", vehicle))
         cfg = dataclasses.replace(cfg, n_agents=1, vehicles=[vs], tlog=None)
         host, port = net.endpoints[i - 1]
-        require_key_or_insecure([f"udpin:{host}:{port}"], key, insecure, "se3sync agent")
+        require_key_or_insecure([f"udpin:{host}:{port}"], key, insecure,
+                                "feed this agent false neighbour states")
         if key_file is not None and signing_state is None:
             signing_state = f"{key_file}.agent{i}.signing.json"
         one, _ = restrict(sc, [i])

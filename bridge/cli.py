@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 __all__ = ["register", "EXIT_NOT_CONNECTED", "EXIT_LINK"]
 
@@ -186,6 +187,10 @@ def _cmd_agent(args) -> int:
 
     _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None),
              ("--tlog", args.tlog, None))
+    _timeout("--connect-timeout", args.connect_timeout)
+    if args.start_file is not None and not Path(args.start_file).parent.is_dir():
+        raise Se3SyncError(f"--start-file: {args.start_file!r}: directory "
+                           f"{str(Path(args.start_file).parent)!r} does not exist")
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
     if args.start is not None and not (args.start == args.start and abs(args.start) < 1e11):
         raise Se3SyncError(f"--start: must be a Unix time in seconds, got {args.start!r}")
@@ -224,6 +229,16 @@ def _cmd_swarm(args) -> int:
 
     _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None))
     return run_swarm_cli(args)
+
+
+def _timeout(option: str, value) -> None:
+    """A waiting time from the command line: a finite number of seconds > 0."""
+    import math
+
+    if value is not None and not (math.isfinite(value) and 0 < value <= 86400):
+        from controller.errors import Se3SyncError
+
+        raise Se3SyncError(f"{option}: must be a number of seconds in (0, 86400], got {value!r}")
 
 
 def _outputs(*pairs) -> None:
@@ -282,14 +297,14 @@ def _cmd_connect(args) -> int:
 
     _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None),
              ("--tlog", args.tlog, None))
+    _timeout("--connect-timeout", args.connect_timeout)
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
     cfg = sc.bridge or default_config(sc.n_agents)
     if args.vehicle:
         cfg = cfg.with_endpoints(args.vehicle)
     from .link import require_key_or_insecure  # before the slow stability check and warm-up
 
-    require_key_or_insecure([v.endpoint for v in cfg.vehicles], args.key or cfg.key_file, args.insecure,
-                            "se3sync connect")
+    require_key_or_insecure([v.endpoint for v in cfg.vehicles], args.key or cfg.key_file, args.insecure)
     if not args.force:
         from cosim.analysis.stability import analyse
 

@@ -299,16 +299,18 @@ def binds_non_loopback(endpoint: str) -> bool:
     return not is_loopback(host)
 
 
-def require_key_or_insecure(endpoints, key, insecure: bool, what: str) -> None:
-    """Refuses (Se3SyncError) a non-loopback socket without a signing key unless --insecure."""
+def require_key_or_insecure(endpoints, key, insecure: bool,
+                            what: str = "command the vehicles") -> None:
+    """Refuses (Se3SyncError) a non-loopback socket without a signing key unless --insecure;
+    ``what`` says what a stranger could then do."""
     if key is not None or insecure:
         return
     bad = [e for e in endpoints if binds_non_loopback(e)]
     if bad:
         from controller.errors import Se3SyncError
 
-        raise Se3SyncError(f"{what}: {bad[0]} accepts datagrams from other machines and there is no "
-                           "signing key (--key): anyone on the network could command the vehicles; "
+        raise Se3SyncError(f"{bad[0]} accepts datagrams from other machines and there is no "
+                           f"signing key (--key): anyone on the network could {what}; "
                            "give --key, or --insecure to run unauthenticated")
 
 

@@ -14,6 +14,7 @@ import time
 import numpy as np
 
 from controller.errors import Se3SyncError
+from cosim import signals
 
 from .config import default_config, read_key_file
 from .link import (Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2, receive_datagrams,
@@ -138,7 +139,7 @@ class MavlinkPlant:
             key_path = key
             key = read_key_file(key)
         self.key = key
-        require_key_or_insecure([vs.endpoint for vs in cfg.vehicles], key, insecure, "se3sync connect")
+        require_key_or_insecure([vs.endpoint for vs in cfg.vehicles], key, insecure)
         self.signing = open_signing_state(key, signing_state or getattr(cfg, "signing_state", None), key_path)
         tl = tlog if tlog is not None else cfg.tlog
         self.tlog = TLog(tl) if tl else None
@@ -445,6 +446,10 @@ class MavlinkPlant:
             if now - t_start > self.cfg.lockstep_timeout:
                 raise LinkError(f"lockstep: vehicle(s) {', '.join(str(v.i + 1) for v in waiting[:6])} did not "
                                 f"answer step {self.k} within {self.cfg.lockstep_timeout:g} s")
+            if signals.requested():
+                # Ctrl-C or SIGTERM while a vehicle is awaited (it may be the one stopping):
+                # stop now, as the master would between two steps, not after the timeout
+                raise KeyboardInterrupt
             for v in waiting:
                 if now - v.t_sent > self.cfg.lockstep_resend and v.last_buf is not None \
                         and self.profiles[v.i].resend_ok:

@@ -303,7 +303,12 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
     py = python or sys.executable
     own_dir = workdir is None
     wd = Path(tempfile.mkdtemp(prefix="se3sync-swarm-") if own_dir else workdir)
-    wd.mkdir(parents=True, exist_ok=True)
+    wd.mkdir(exist_ok=True)
+    # a previous run's outputs in --dir must not be merged as this run's
+    for pattern in ("agent_*.json", "agent_*.mcap", "agent_*.err", "agent_*.layout.json",
+                    "vehicle.json", "vehicle.err", "start", "start.*"):
+        for old in wd.glob(pattern):
+            old.unlink(missing_ok=True)
     sets = [x for o in overrides for x in ("--set", o)]
     common = [str(Path(scenario_path)), *sets]
     if duration is not None:
@@ -325,8 +330,6 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                            wd / "vehicle.err")
             start = None
             start_file = wd / "start"
-            for old in [start_file, *wd.glob("start.ready*")]:   # a previous run's, in --dir
-                old.unlink(missing_ok=True)
             for i in range(1, N + 1):
                 kids.start(f"agent {i}", [
                     py, "-m", "cosim.cli", "agent", *common, "--id", str(i),
@@ -361,13 +364,13 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                 if stop_requested:
                     interrupted = True
                     say("stopping every process (signal)")
-                    kids.stop()
+                    kids.stop(agents)   # the agents first: they finish their step and outputs
                     break
                 failed = [a for a, c in codes.items() if c not in (None, 0)]
                 if failed:
                     a = failed[0]
                     say(f"{a} failed (exit status {codes[a]}): {kids.last_line(a)}; stopping the others")
-                    kids.stop()
+                    kids.stop(agents)
                     rc = EXIT_AGENT_FAILED
                     break
                 if all(c == 0 for c in codes.values()):
@@ -422,13 +425,30 @@ def run_swarm_cli(args) -> int:
     """Handler of ``se3sync swarm``."""
     from cosim.scenario import ScenarioError, load_scenario
 
-    sc = load_scenario(args.scenario, args.set, duration=args.duration)   # bad input: exit 2 now
+    from cosim.files import check_output_dir
+    from cosim.network import parse_network
+
+    from .config import default_config, read_key_file
+    from .link import require_key_or_insecure
+
+    # everything an agent would refuse is refused here, once, before a process starts
+    if args.dir is not None:
+        check_output_dir("--dir", args.dir)
     if args.start_delay is not None and not (math.isfinite(args.start_delay)
                                              and 0 <= args.start_delay <= 3600):
         raise Se3SyncError(f"--start-delay: must be a number of seconds in [0, 3600], got "
                            f"{args.start_delay!r}")
-    if args.dir is not None and Path(args.dir).exists() and not Path(args.dir).is_dir():
-        raise Se3SyncError(f"--dir: {args.dir} exists and is not a directory")
+    sc = load_scenario(args.scenario, args.set, duration=args.duration)
+    key = read_key_file(args.key) if args.key else None
+    net = sc.tables.get("network") or parse_network({}, sc.n_agents)
+    cfg = sc.bridge or default_config(sc.n_agents)
+    require_key_or_insecure([f"udpin:{h}:{p}" for h, p in net.endpoints], key, args.insecure,
+                            "feed the agents false neighbour states")
+    require_key_or_insecure([v.endpoint for v in cfg.vehicles], key, args.insecure)
+    if args.lockstep and (net.default.delay or net.default.jitter or net.default.loss
+                          or any(x.delay or x.jitter or x.loss for x in net.links.values())):
+        raise ScenarioError("network.delay", "lockstep exchanges every step's data exactly; an "
+                            "emulated delay, jitter or loss contradicts it", sc.path)
     if not args.force:
         from cosim.analysis.stability import analyse
 

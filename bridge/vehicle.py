@@ -408,7 +408,7 @@ class VehicleServer:
                 eps.append(f"udpout:{host}:{base_port}")
             else:
                 eps.append(f"udpout:{host}:{base_port + sids[i] - 1}")
-        require_key_or_insecure(eps, key, insecure, "se3sync vehicle")
+        require_key_or_insecure(eps, key, insecure, "send this vehicle commands")
         self.signing = open_signing_state(key, signing_state, key_file, "vehicle")
         try:
             for i in range(self.count):

@@ -43,6 +43,26 @@ def check_output(option: str, path, suffixes=None) -> Path:
     return p
 
 
+def check_output_dir(option: str, path) -> Path:
+    """Refuses, before any work starts, a directory option that cannot hold outputs: a file, a
+    missing parent (the directory itself is created when missing, its parent never), or a
+    place where no file can be created. Raises Se3SyncError naming the option and the path."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise Se3SyncError(f"{option}: {str(path)!r} exists and is not a directory")
+    d = p if p.is_dir() else (p.parent if str(p.parent) else Path("."))
+    if not d.is_dir():
+        raise Se3SyncError(f"{option}: {str(path)!r}: directory {str(d)!r} does not exist")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".se3sync.", suffix=".check", dir=d)
+    except OSError as exc:
+        raise Se3SyncError(f"{option}: {str(path)!r}: cannot write in {str(d)!r}: "
+                           f"{exc.strerror or exc}") from None
+    os.close(fd)
+    os.unlink(tmp)
+    return p
+
+
 @contextmanager
 def atomic_path(path):
     """Yield a temporary path beside `path`; on success it replaces `path`, else it is removed."""

@@ -68,6 +68,9 @@ def _is_num(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+MAX_SECONDS = 1e6   # a delay, jitter, max_age or hold of more than ~11 days is a typo
+
+
 def _seconds(key, v, *, allow_inf=False, positive=False) -> float:
     if not _is_num(v) or math.isnan(v) or (math.isinf(v) and not allow_inf):
         raise ConfigError(key, f"must be a {'number' if allow_inf else 'finite number'} of "
@@ -75,6 +78,9 @@ def _seconds(key, v, *, allow_inf=False, positive=False) -> float:
     v = float(v)
     if v < 0 or (positive and v == 0):
         raise ConfigError(key, f"must be {'> 0' if positive else '≥ 0'}, got {v!r}")
+    if MAX_SECONDS < v < math.inf:
+        raise ConfigError(key, f"must be at most {MAX_SECONDS:g} s"
+                               f"{' (or inf)' if allow_inf else ''}, got {v!r}")
     return v
 
 

@@ -362,6 +362,16 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
     (["swarm", HIL, "--dir", HIL], "--dir"),
     (["swarm", HIL, "--log", "/nonexistent/x.mcap"], "--log"),
     (["swarm", str(ROOT / "scenarios")], "is a directory"),
+    (["swarm", HIL, "--dir", "/nonexistent-se3sync/d"], "--dir"),
+    (["swarm", HIL, "--set", "network.host=0.0.0.0"], "--insecure"),
+    (["swarm", HIL, "--key", "/nonexistent-se3sync/k"], "key file"),
+    (["swarm", HIL, "--lockstep", "--set", "network.loss=0.1"], "network.delay"),
+    (["swarm", HIL, "--set", "network.max_age=1e308"], "network.max_age"),
+    (["run", HIL, "--set", "network.delay=1e308"], "network.delay"),
+    (["agent", HIL, "--id", "1", "--start-file", "/nonexistent-se3sync/sf"], "--start-file"),
+    (["agent", HIL, "--id", "1", "--connect-timeout", "nan"], "--connect-timeout"),
+    (["connect", HIL, "--connect-timeout", "-1"], "--connect-timeout"),
+    (["agent", HIL, "--id", "1", "--set", "network.host=0.0.0.0"], "--insecure"),
 ])
 def test_agent_and_swarm_bad_input_is_one_line_exit_2(argv, needle, capsys, tmp_path):
     from cosim.cli import main
@@ -372,3 +382,39 @@ def test_agent_and_swarm_bad_input_is_one_line_exit_2(argv, needle, capsys, tmp_
         rc = exc.code
     err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert rc == 2 and len(err) == 1 and needle in err[0], err
+    assert not os.path.exists("/nonexistent-se3sync")   # nothing made
+
+
+# ------------------------------------------------------------------------------ signals
+@pytest.mark.timeout(300)
+def test_sigterm_stops_every_child_and_still_writes_the_merged_outputs(tmp_path):
+    sets, _, _ = _ports()
+    out, log = tmp_path / "swarm.json", tmp_path / "swarm.mcap"
+    argv = [sys.executable, "-m", "cosim.cli", "swarm", HIL, "--vehicles", "loopback", "--lockstep",
+            "--duration", "600", "--summary", str(out), "--log", str(log), "--dir",
+            str(tmp_path / "work")]
+    for s in sets:
+        argv += ["--set", s]
+    p = subprocess.Popen(argv, cwd=str(ROOT), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                         text=True)
+    t_end = time.monotonic() + 120
+    err = tmp_path / "work" / "agent_6.err"
+    while not (err.exists() and "connected" in err.read_text()):   # the agents are stepping
+        assert time.monotonic() < t_end and p.poll() is None
+        time.sleep(0.1)
+    time.sleep(2.0)
+    p.send_signal(signal.SIGTERM)
+    rc = p.wait(timeout=120)
+    assert rc == 143, p.stderr.read()
+    merged = json.loads(out.read_text())
+    assert merged["interrupted"] and merged["agents_missing"] == []
+    assert 0 < merged["steps"] < 600 / H and merged["final"] is not None
+    # every child got the signal and finished its outputs; the merged log is complete
+    assert all(c in (130, 143) for c in merged["exit_status"].values()), merged["exit_status"]
+    from mcap.reader import make_reader
+
+    with open(log, "rb") as f:
+        assert make_reader(f).get_summary() is not None
+    from cosim.log.plot import load_series
+
+    assert len(load_series(log)["t"]) > 10

@@ -69,8 +69,8 @@ def register(sub) -> None:
 
     p = sub.add_parser(
         "plot", help="plot a run log like the paper's Fig. 2",
-        description="Plot ‖I − R̄_k‖, ‖p̄_k‖, ‖ω_i‖, ‖v_i‖ and θ_k against simulated time from an "
-                    "se3sync MCAP log (matplotlib, Agg backend).")
+        description="Plot ‖I − R̄_k‖, ‖p̄_k‖, ‖ω_i‖, ‖v_i‖, V̄ and θ_k against simulated time from "
+                    "an se3sync MCAP log (matplotlib, Agg backend).")
     p.add_argument("log", nargs="+", help="MCAP log(s) written by `se3sync run --log`; "
                    "several are overlaid")
     p.add_argument("-o", "--output", required=True, metavar="FIG.png",

@@ -72,7 +72,7 @@ def load_poses(path) -> dict:
                     for m in ed], float)
     return {"t": np.array([m[0] for m in tf]) * 1e-9, "p": p, "R": _quat_to_R(q),
             "t_e": np.array([m[0] for m in ed]) * 1e-9, "rot_err": rot, "edges": edges,
-            "box": box, "name": meta.get("scenario_name", Path(path).stem),
+            "box": box, "ids": ids, "name": meta.get("scenario_name", Path(path).stem),
             "controller": meta.get("controller", "")}
 
 
@@ -146,7 +146,7 @@ def animate_log(path, out, *, duration: float = 10.0, fps: float = 20.0, tmin=No
     # set the limits after adding them
     ax.set(xlim=(c[0] - r, c[0] + r), ylim=(c[1] - r, c[1] + r), zlim=(c[2] - r, c[2] + r),
            xlabel="x (m)", ylabel="y (m)", zlabel="z (m)")
-    labels = [ax.text(0, 0, 0, f"{i + 1}", fontsize=8) for i in range(N)]
+    labels = [ax.text(0, 0, 0, f"{d['ids'][i]}", fontsize=8) for i in range(N)]
     title = ax.set_title("")
     L = 0.75 * float(d["box"].max())
     ax_cols = [(1, .2, .2), (.2, .8, .2), (.2, .4, 1)] * N

@@ -133,8 +133,11 @@ def make_figure(paths, labels=None, *, linear=False, tmin=None, tmax=None):
             early = tj[tj <= 1.0 + (tmin or 0.0)]
             if len(early):
                 early_end = max(early_end, float(early.max()))
-    t_lo = tmin if tmin is not None else min(float(d["t"][0]) for d in runs)
-    t_hi = tmax if tmax is not None else max(float(d["t"][-1]) for d in runs)
+    first, last = min(float(d["t"][0]) for d in runs), max(float(d["t"][-1]) for d in runs)
+    if (tmin is not None and tmin >= last) or (tmax is not None and tmax <= first):
+        raise Se3SyncError(f"--tmin/--tmax: the window is outside the log ({first:g}..{last:g} s)")
+    t_lo = tmin if tmin is not None else first
+    t_hi = tmax if tmax is not None else last
     if t_hi > t_lo:
         for a in axes:
             a.set_xlim(t_lo, t_hi)
