@@ -33,13 +33,17 @@ import dataclasses
 import math
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from controller import AgentStepper, JumpEvent, LawParameters, layout
 from controller.errors import Se3SyncError
-from controller.kernels import relative_pose
+from controller.kernels import metrics, network_U, relative_pose
 from cosim import signals
+from cosim.files import write_json_atomic
+from cosim.log.mcap import McapLogger
+from cosim.master import Master
 from cosim.network import parse_network
 from cosim.scenario import restrict
 
@@ -275,7 +279,6 @@ class AgentNode:
         """The swarm's start time from a file (`se3sync swarm` writes it once every agent is
         connected): announces this agent ready (``PATH.ready<i>``), then services both links
         until PATH holds a Unix time."""
-        from pathlib import Path
 
         p = Path(path)
         Path(f"{p}.ready{self.i}").write_text(f"{time.time()!r}\n", encoding="utf-8")
@@ -488,8 +491,6 @@ NEIGHBOURS = {
 def _agent_logger(path, node: AgentNode, extra_metadata: dict):
     """The neighbourhood's McapLogger (the swarm's numbers) with a /neighbours channel written
     at every record: the sample of each neighbour used, its age and the age rule's verdict."""
-    from cosim.log.mcap import McapLogger
-
     class AgentLogger(McapLogger):
         def record(self, t_ns, *args):
             super().record(t_ns, *args)
@@ -510,8 +511,6 @@ def _agent_logger(path, node: AgentNode, extra_metadata: dict):
 def _warm_up(node: AgentNode) -> None:
     """The compiled kernels the steps use, loaded (or compiled) now rather than while the vehicle
     and the neighbours wait for the first step."""
-    from controller.kernels import metrics, network_U
-
     AgentStepper(node.i, node.sc.graph.local_edges(node.i), node.sc.weighting,
                  node.sc.design if node.stepper.hybrid else None, node.sc.gains).wrench(
         {k: node._rel(node.local.S0, k) for k in node.edge_ids}, np.zeros(6),
@@ -533,9 +532,6 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
     docstring); the library entry point of `se3sync agent`. Raises ConnectError (the vehicle
     never connected) and LinkError (lockstep: a vehicle or neighbour stopped answering; a late
     joiner heard nothing). A run that fails removes its log; an interrupted one keeps it."""
-    from cosim.files import write_json_atomic
-    from cosim.master import Master
-
     node = AgentNode(scenario, agent_id, law=law, lockstep=lockstep, key_file=key_file,
                      insecure=insecure, vehicle=vehicle, connect_timeout=connect_timeout,
                      signing_state=signing_state, tlog=tlog, on_event=on_event)

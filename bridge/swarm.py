@@ -28,13 +28,21 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from controller import V_bar, jump_bound, layout
 from controller.errors import Se3SyncError
 from cosim import signals
+from cosim.analysis.stability import analyse
+from cosim.files import check_output_dir, write_json_atomic
+from cosim.log.mcap import McapLogger, read_log
 from cosim.master import NetworkMetrics, design_summary
+from cosim.network import parse_network
+from cosim.scenario import ScenarioError, load_scenario
 
 from . import frames
+from .config import default_config, read_key_file
+from .link import require_key_or_insecure
 
 __all__ = ["merge_summaries", "merge_logs", "run_swarm", "run_swarm_cli", "EXIT_AGENT_FAILED"]
 
@@ -158,8 +166,6 @@ def _link_total(links) -> dict:
 def _own_records(path, agent: int, owned: set) -> dict:
     """{t_ns: {"S": row, "u": wrench, "theta"/"mu"/"jumped": {k: …}}} of agent's own log, and
     its jumps."""
-    from cosim.log.mcap import read_log
-
     log = read_log(path)
     msgs = log["messages"]
     frame = f"agent_{agent}"
@@ -189,8 +195,6 @@ def merge_logs(scenario, logs: dict, out_path, *, law: str = "hybrid",
     """One log of the swarm from {agent id: [its log paths]} (a restarted agent has several);
     returns {"records": …, "jumps": …}. Records are kept at the log instants every agent
     recorded."""
-    from cosim.log.mcap import McapLogger
-
     sc = scenario
     N, M = sc.graph.n, sc.graph.M
     owned = {i: set(sc.graph.M_plus(i)) for i in range(1, N + 1)}
@@ -294,9 +298,6 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
     """Launches the swarm and merges its outputs; returns (merged summary, exit status): 0 all
     agents finished, EXIT_AGENT_FAILED an agent failed (the others are stopped), 130/143 a
     signal stopped everything. The merged outputs are written in every case."""
-    from cosim.files import write_json_atomic
-    from cosim.scenario import load_scenario
-
     say = on_event or (lambda s: print(f"se3sync swarm: {s}", file=sys.stderr, flush=True))
     sc = load_scenario(scenario_path, overrides, duration=duration)
     N = sc.graph.n
@@ -355,8 +356,6 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                 tmp.write_text(repr(start), encoding="utf-8")
                 os.replace(tmp, start_file)
             if progress:
-                from tqdm import tqdm
-
                 bar = tqdm(total=sc.n_steps() * sc.step, unit="s", desc=f"{sc.name} (swarm)",
                            bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s")
             while True:
@@ -423,14 +422,6 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
 
 def run_swarm_cli(args) -> int:
     """Handler of ``se3sync swarm``."""
-    from cosim.scenario import ScenarioError, load_scenario
-
-    from cosim.files import check_output_dir
-    from cosim.network import parse_network
-
-    from .config import default_config, read_key_file
-    from .link import require_key_or_insecure
-
     # everything an agent would refuse is refused here, once, before a process starts
     if args.dir is not None:
         check_output_dir("--dir", args.dir)
@@ -450,8 +441,6 @@ def run_swarm_cli(args) -> int:
         raise ScenarioError("network.delay", "lockstep exchanges every step's data exactly; an "
                             "emulated delay, jitter or loss contradicts it", sc.path)
     if not args.force:
-        from cosim.analysis.stability import analyse
-
         st = analyse(sc, law=args.controller, bisect=False)
         if not st["stable"]:
             raise ScenarioError("simulation.step", f"h = {sc.step:g} s makes the sampled loop "

@@ -24,6 +24,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from test_bridge_helpers import HIL, ROOT, VehicleProcess, free_base_port, load  # noqa: E402
 
 from bridge.link import Counters, Peer, mavlink2, split_datagram  # noqa: E402
+from controller import layout  # noqa: E402
 
 H = 0.004
 
@@ -117,9 +118,9 @@ class _Forger(threading.Thread):
 
         wrong = Peer(1, 191, Counters(), key=bytes(range(1, 33)))
         plain = Peer(1, 191, Counters())
-        S = np.zeros(18)
-        S[3:12] = [0, -1, 0, 1, 0, 0, 0, 0, 1]
-        S[0:3] = [40.0, -7.0, 3.0]
+        S = np.zeros(layout.S_WIDTH)
+        S[layout.R] = [0, -1, 0, 1, 0, 0, 0, 0, 1]
+        S[layout.P] = [40.0, -7.0, 3.0]
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         n = 0
         while not self.stop.is_set():
