@@ -161,7 +161,8 @@ def test_run_stopped_by_a_signal_leaves_complete_outputs(sig, status, tmp_path):
     assert s is not None and s.statistics.message_count > 0
 
 
-def test_sweep_stopped_by_sigterm_keeps_its_rows(tmp_path):
+@pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_sweep_stopped_by_a_signal_keeps_its_rows(sig, status, tmp_path):
     pytest.importorskip("pyarrow")
     out = tmp_path / "r.csv"
     p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "sweep", SMALL, "--samples", "400",
@@ -171,9 +172,9 @@ def test_sweep_stopped_by_sigterm_keeps_its_rows(tmp_path):
     while not out.exists() and time.monotonic() - t < 60:
         time.sleep(0.05)
     time.sleep(0.3)
-    p.send_signal(signal.SIGTERM)
+    p.send_signal(sig)
     _, err = p.communicate(timeout=60)
-    assert p.returncode == 143, err
+    assert p.returncode == status, err
     rows = out.read_text().strip().splitlines()
     assert 1 < len(rows) < 1 + 2 * (400 + 18)
 
@@ -222,7 +223,8 @@ def test_sigint_during_start_up_is_never_lost(delay, tmp_path):
         assert json.loads(summ.read_text())["interrupted"] is True
 
 
-def test_vehicle_ctrl_c_exits_130_with_its_stats(tmp_path):
+@pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_vehicle_stopped_by_a_signal_exits_with_its_status_and_stats(sig, status, tmp_path):
     pytest.importorskip("pymavlink")
     from bridge.link import free_base_port
 
@@ -234,15 +236,16 @@ def test_vehicle_ctrl_c_exits_130_with_its_stats(tmp_path):
     line = p.stderr.readline()  # printed once the vehicles are up
     assert "vehicle(s)" in line and time.monotonic() - t < 60
     time.sleep(0.3)
-    p.send_signal(signal.SIGINT)
+    p.send_signal(sig)
     _, err = p.communicate(timeout=30)
-    assert p.returncode == 130, err
+    assert p.returncode == status, err
     assert "sent" in json.loads(stats.read_text())
 
 
-def test_connect_stopped_by_sigterm_leaves_complete_outputs(tmp_path):
-    """`connect` against the loopback vehicles, stopped by SIGTERM mid-run: exit 143, finished
-    MCAP, summary with "interrupted": true."""
+@pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_connect_stopped_by_a_signal_leaves_complete_outputs(sig, status, tmp_path):
+    """`connect` against the loopback vehicles, stopped by SIGTERM or SIGINT mid-run: exit 143
+    or 130, finished MCAP, summary with "interrupted": true."""
     pytest.importorskip("pymavlink")
     from mcap.reader import make_reader
 
@@ -264,9 +267,9 @@ def test_connect_stopped_by_sigterm_leaves_complete_outputs(tmp_path):
                 break
             time.sleep(0.1)
         time.sleep(0.5)
-        p.send_signal(signal.SIGTERM)
+        p.send_signal(sig)
         _, err = p.communicate(timeout=60)
-        assert p.returncode == 143, err
+        assert p.returncode == status, err
         d = json.loads(summ.read_text())
         assert d["interrupted"] is True and d["steps"] > 0
         with open(log, "rb") as f:
