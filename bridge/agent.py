@@ -41,10 +41,10 @@ from controller import AgentStepper, JumpEvent, LawParameters, layout
 from controller.errors import Se3SyncError
 from controller.kernels import metrics, network_U, relative_pose
 from cosim import signals
-from cosim.files import write_json_atomic
 from cosim.log.mcap import McapLogger
 from cosim.master import Master
 from cosim.network import parse_network
+from cosim.run import finish_summary
 from cosim.scenario import restrict
 
 from .agent_link import AgentLink
@@ -597,9 +597,4 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
         "network": {"max_age": node.net.max_age, "hold": node.net.hold,
                     "max_age_steps": node.link.max_age_steps, "hold_steps": node.link.hold_steps},
     })
-    if log_path is not None:
-        summary["log"] = str(log_path)
-        summary["log_messages"] = dict(logger.counts)
-    if summary_path is not None:
-        write_json_atomic(summary_path, summary)
-    return summary
+    return finish_summary(summary, logger, log_path, summary_path)

@@ -30,27 +30,12 @@ def check_output(option: str, path, suffixes=None) -> Path:
         raise Se3SyncError(f"{option}: {str(path)!r} must end in {' or '.join(suffixes)}")
     if p.is_dir():
         raise Se3SyncError(f"{option}: {str(path)!r} is a directory")
-    d = p.parent if str(p.parent) else Path(".")
-    if not d.is_dir():
-        raise Se3SyncError(f"{option}: {str(path)!r}: directory {str(d)!r} does not exist")
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".check", dir=d)
-    except OSError as exc:
-        raise Se3SyncError(f"{option}: {str(path)!r}: cannot write in {str(d)!r}: "
-                           f"{exc.strerror or exc}") from None
-    os.close(fd)
-    os.unlink(tmp)
+    _writable_in(option, path, p.parent if str(p.parent) else Path("."))
     return p
 
 
-def check_output_dir(option: str, path) -> Path:
-    """Refuses, before any work starts, a directory option that cannot hold outputs: a file, a
-    missing parent (the directory itself is created when missing, its parent never), or a
-    place where no file can be created. Raises Se3SyncError naming the option and the path."""
-    p = Path(path)
-    if p.exists() and not p.is_dir():
-        raise Se3SyncError(f"{option}: {str(path)!r} exists and is not a directory")
-    d = p if p.is_dir() else (p.parent if str(p.parent) else Path("."))
+def _writable_in(option: str, path, d: Path) -> None:
+    """d exists and a file can be created in it (tried for real)."""
     if not d.is_dir():
         raise Se3SyncError(f"{option}: {str(path)!r}: directory {str(d)!r} does not exist")
     try:
@@ -60,6 +45,16 @@ def check_output_dir(option: str, path) -> Path:
                            f"{exc.strerror or exc}") from None
     os.close(fd)
     os.unlink(tmp)
+
+
+def check_output_dir(option: str, path) -> Path:
+    """Refuses, before any work starts, a directory option that cannot hold outputs: a file, a
+    missing parent (the directory itself is created when missing, its parent never), or a
+    place where no file can be created. Raises Se3SyncError naming the option and the path."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise Se3SyncError(f"{option}: {str(path)!r} exists and is not a directory")
+    _writable_in(option, path, p if p.is_dir() else (p.parent if str(p.parent) else Path(".")))
     return p
 
 

@@ -14,7 +14,7 @@ from .network import networked
 from .plants import make_plant
 from .scenario import MAX_DEFAULT_INTERNAL_STEP, Scenario, ScenarioError, load_scenario
 
-__all__ = ["run_scenario", "with_timing", "write_json_atomic"]
+__all__ = ["run_scenario", "with_timing", "finish_summary", "write_json_atomic"]
 
 
 def with_timing(scenario, duration=None, step=None):
@@ -93,6 +93,11 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
     if net_stats is not None:
         summary["network"] = net_stats()
     summary.update(summary_extra or {})
+    return finish_summary(summary, logger, log_path, summary_path)
+
+
+def finish_summary(summary: dict, logger, log_path, summary_path) -> dict:
+    """Adds the log's name and message counts to a run's summary and writes it (atomically)."""
     if log_path is not None:
         summary["log"] = str(log_path)
         summary["log_messages"] = dict(logger.counts)
