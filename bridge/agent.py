@@ -322,8 +322,10 @@ class AgentNode:
         S[0] = own
         n = self.n
         if self.lockstep:
-            if self.n_steps is not None and self.k >= self.n_steps:
-                return S   # the end (the master's final read): no step n, the last data stay
+            if (self.n_steps is not None and self.k >= self.n_steps) or signals.requested():
+                # the end (the master's final read, or a stop was asked for): no step n to
+                # exchange, the last data stay
+                return S
             pub = lambda: self.link.publish(n, own, None)  # noqa: E731
             pub()
 

@@ -10,13 +10,30 @@ installs it (`require`, and the ModuleNotFoundError handler in `main`).
 """
 from __future__ import annotations
 
-import argparse
-import importlib
-import json
-import os
-import sys
+import signal as _signal
 
-from .. import plugins, signals
+
+def _interrupted_while_loading(signum, frame):
+    # Ctrl-C while the command line itself loads: nothing has been written yet, so leave as a
+    # Ctrl-C does (status 130), without the traceback of an interrupted import
+    raise SystemExit(130)
+
+
+try:   # only while this module's imports load (restored after them); `main` installs the real ones
+    _before = _signal.signal(_signal.SIGINT, _interrupted_while_loading)
+except ValueError:   # not the main thread: leave signals alone
+    _before = None
+
+import argparse  # noqa: E402
+import importlib  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import sys  # noqa: E402
+
+from .. import plugins, signals  # noqa: E402
+
+if _before is not None:
+    _signal.signal(_signal.SIGINT, _before)
 
 __all__ = ["main", "entry", "build_parser", "require", "install_hint"]
 
