@@ -70,7 +70,6 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
     sc = scenario
     N, M = sc.graph.n, sc.graph.M
     h = float(sc.step)
-    owner = {k: a for k, (a, _) in enumerate(sc.graph.edge_list, start=1)}
     mx = NetworkMetrics(sc)
     present = sorted(summaries)
     missing = [i for i in range(1, N + 1) if i not in summaries]
