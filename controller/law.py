@@ -222,11 +222,6 @@ class AgentStepper:
                 events.append(JumpEvent(k, before, self.theta[k], float(mu)))
         return tuple(events)
 
-    def mu(self, k: int, Xk) -> float:
-        """μ_U(X̄_k, θ_k) of an owned edge k (`mu_U_def`)."""
-        Rb, pb = self._split(Xk)
-        return float(K.edge_mu(Rb, pb, self.theta[k], self.P)[0])
-
     def terms(self, rel: dict, xi_i, xi_nbrs: dict, theta_nbrs: dict, edges=None) -> dict:
         """Edge k's part of u_i, {k: (6,)}, for k in ``edges`` (default all of 𝓜_i):
         −k_X ψ̄_∇(X̄_k, θ_k) − k_e(ξ_i − ξ_j) at the positive end, k_X Ad⁻ᵀ_{X̄_k} ψ̄_∇ + k_e(ξ_j − ξ_i)
