@@ -40,6 +40,7 @@ import numpy as np
 from controller import AgentStepper, JumpEvent, LawParameters, layout
 from controller.errors import Se3SyncError
 from controller.kernels import metrics, network_U, relative_pose
+from cosim.registry import AGENT_LAWS
 from cosim import signals
 from cosim.log.mcap import McapLogger
 from cosim.master import Master
@@ -57,7 +58,7 @@ __all__ = ["AgentNode", "DEFAULT_MAX_AGE_STEPS", "LAWS", "join_step"]
 # Without a max_age in [network], an agent process still never runs on data of unbounded age: the
 # co-simulation's default (inf) is for studies; a vehicle's controller holds after this many steps.
 DEFAULT_MAX_AGE_STEPS = 10
-LAWS = ("hybrid", "gradient")
+LAWS = AGENT_LAWS
 RESEND_S = 0.02          # lockstep: a step's messages go out again after this long without progress
 
 

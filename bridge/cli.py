@@ -4,6 +4,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from controller.errors import Se3SyncError
+from cosim.registry import AGENT_LAWS, LAWS
+
 __all__ = ["register", "EXIT_NOT_CONNECTED", "EXIT_LINK"]
 
 EXIT_NOT_CONNECTED = 3
@@ -127,8 +130,8 @@ def register(sub) -> None:
     p.add_argument("--vehicle", metavar="ENDPOINT",
                    help="the vehicle's bridge-side endpoint (udpin:HOST:PORT | udpout:HOST:PORT); "
                         "default: vehicle I of the scenario's [bridge] table")
-    p.add_argument("--controller", choices=("hybrid", "gradient"), default="hybrid",
-                   help="the paper's law (default) or the gradient-only baseline")
+    p.add_argument("--controller", choices=AGENT_LAWS, default="hybrid",
+                   help="the law (default hybrid); " + "; ".join(f"{k}: {LAWS[k][1]}" for k in AGENT_LAWS))
     p.add_argument("--log", metavar="OUT.mcap", help="write the agent's MCAP log here")
     p.add_argument("--summary", metavar="OUT.json", help="write the agent's summary JSON here")
     p.add_argument("--duration", type=float, metavar="S", help="duration in s (overrides "
@@ -165,8 +168,8 @@ def register(sub) -> None:
                    "simulation.duration)")
     p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
                    help="override a scenario value (passed to every process); repeatable")
-    p.add_argument("--controller", choices=("hybrid", "gradient"), default="hybrid",
-                   help="the law every agent runs")
+    p.add_argument("--controller", choices=AGENT_LAWS, default="hybrid",
+                   help="the law every agent runs (default hybrid)")
     p.add_argument("--key", metavar="FILE", help="MAVLink 2 signing key file for every link")
     p.add_argument("--start-delay", type=float, default=None, metavar="S",
                    help="real time: step 0 comes this long after every agent has connected to "
@@ -179,7 +182,6 @@ def register(sub) -> None:
 
 
 def _cmd_agent(args) -> int:
-    from controller.errors import Se3SyncError
     from cosim.scenario import load_scenario
 
     from .agent import run_agent
@@ -236,8 +238,6 @@ def _timeout(option: str, value) -> None:
     import math
 
     if value is not None and not (math.isfinite(value) and 0 < value <= 86400):
-        from controller.errors import Se3SyncError
-
         raise Se3SyncError(f"{option}: must be a number of seconds in (0, 86400], got {value!r}")
 
 
@@ -274,8 +274,6 @@ def _commander(text: str):
 
 
 def _cmd_vehicle(args) -> int:
-    from controller.errors import Se3SyncError
-
     if args.count is not None and args.count < 1:
         raise Se3SyncError(f"--count: must be >= 1, got {args.count}")
     _outputs(("--tlog", args.tlog, None), ("--stats", args.stats, None))
@@ -289,7 +287,6 @@ def _cmd_vehicle(args) -> int:
 
 
 def _cmd_connect(args) -> int:
-    from controller.errors import Se3SyncError
     from cosim.scenario import ScenarioError, load_scenario
 
     from .config import default_config
@@ -341,7 +338,6 @@ def _cmd_connect(args) -> int:
           f"{_ms(ln.get('latency_ms_p99'))} ms, link losses {ln.get('link_losses')}", file=sys.stderr)
     if summary.get("interrupted"):
         return 130
-    del Se3SyncError
     return 0
 
 

@@ -17,11 +17,11 @@ reference co-simulation (all bodies at once) round identically.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from controller import layout
+from controller.se3 import quat_to_rot as _q2r
+from controller.se3 import quat_to_rot_row
 from controller.se3 import rot_to_quat as _r2q
 
 P_W = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
@@ -31,34 +31,12 @@ WORLD_FRAMES = ("ned", "enu")
 
 
 def quat_to_rot(q: np.ndarray) -> np.ndarray:
-    """(n,4) quaternions (w, x, y, z), normalised here, -> (n,9) row-major rotation matrices."""
+    """(n,4) quaternions (w, x, y, z), normalised here, -> (n,9) row-major rotation matrices
+    (`controller.se3.quat_to_rot`; one row through its scalar form, the same bits)."""
     q = np.asarray(q, dtype=np.float64)
-    if q.shape[0] == 1:   # one vehicle or one neighbour per call: Python floats, same operations
-        return np.array([_quat_to_rot1(*q[0].tolist())])
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    s = 1.0 / np.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w * s, x * s, y * s, z * s
-    out = np.empty((q.shape[0], 9))
-    out[:, 0] = 1.0 - 2.0 * (y * y + z * z)
-    out[:, 1] = 2.0 * (x * y - w * z)
-    out[:, 2] = 2.0 * (x * z + w * y)
-    out[:, 3] = 2.0 * (x * y + w * z)
-    out[:, 4] = 1.0 - 2.0 * (x * x + z * z)
-    out[:, 5] = 2.0 * (y * z - w * x)
-    out[:, 6] = 2.0 * (x * z - w * y)
-    out[:, 7] = 2.0 * (y * z + w * x)
-    out[:, 8] = 1.0 - 2.0 * (x * x + y * y)
-    return out
-
-
-def _quat_to_rot1(w, x, y, z) -> list:
-    """`quat_to_rot` of one quaternion in IEEE double arithmetic, operation for operation (so
-    the results are the same bits): numpy costs ~2 µs per operation on a one-element array."""
-    s = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w * s, x * s, y * s, z * s
-    return [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y),
-            2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x),
-            2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)]
+    if q.shape[0] == 1:   # one vehicle or one neighbour per call
+        return np.array([quat_to_rot_row(*q[0].tolist())])
+    return _q2r(q).reshape(q.shape[0], 9)
 
 
 def quat_norm_error(q: np.ndarray) -> np.ndarray:

@@ -30,6 +30,8 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
+from controller.errors import Se3SyncError  # noqa: E402
+
 MAGIC_V2 = 0xFD
 MAGIC_V1 = 0xFE
 HEADER_LEN = 10
@@ -307,8 +309,6 @@ def require_key_or_insecure(endpoints, key, insecure: bool,
         return
     bad = [e for e in endpoints if binds_non_loopback(e)]
     if bad:
-        from controller.errors import Se3SyncError
-
         raise Se3SyncError(f"{bad[0]} accepts datagrams from other machines and there is no "
                            f"signing key (--key): anyone on the network could {what}; "
                            "give --key, or --insecure to run unauthenticated")

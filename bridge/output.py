@@ -304,13 +304,3 @@ class OutputProfile:
             return manual_control_controls(*manual_control_axes(c))
         q_d, tb = self.att.encode(c, wire)
         return self.att.decode([f32(x) for x in q_d], [f32(x) for x in tb], wire)
-
-
-def profiles_for(config, scenario) -> list:
-    """One OutputProfile per vehicle of a BridgeConfig (J in FRD: `transport.vehicle_setup`)."""
-    from .transport import vehicle_setup
-
-    _, J, _, _ = vehicle_setup(scenario, config.world_frame)
-    return [OutputProfile(v.output, h=scenario.step, J=J[i], max_wrench=v.mapping.max_wrench,
-                          group_mlx=config.group_mlx, actuator_index_offset=config.actuator_index_offset)
-            for i, v in enumerate(config.vehicles)]

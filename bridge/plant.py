@@ -21,7 +21,8 @@ from .link import (Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2, receive_da
                    require_key_or_insecure)
 from .signing_state import open_signing_state
 from .state import StateTracker
-from .transport import WIRE, Transport, wire_to_state
+from .output import PX4_ATTITUDE_THRUST
+from .transport import WIRE, Transport, profiles_for, wire_to_state
 
 M = mavlink2
 ID_HEARTBEAT = M.MAVLINK_MSG_ID_HEARTBEAT
@@ -71,7 +72,6 @@ def _hist_pct(hist, q: float):
 
 def _output_profiles(cfg, scenario, lockstep: bool) -> list:
     """Each vehicle's output profile (bridge.output); lockstep stamps must be exact."""
-    from .output import PX4_ATTITUDE_THRUST, profiles_for
 
     profiles = profiles_for(cfg, scenario)
     if lockstep and any(p.name == PX4_ATTITUDE_THRUST for p in profiles) \

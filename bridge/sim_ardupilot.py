@@ -32,6 +32,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from controller import layout
+
 from .config import default_config
 from .mapping import ALLOCATION
 from .sim_body import Noise, bodies_from_scenario
@@ -119,7 +121,7 @@ class ArduPilotJsonServer:
         d = {"timestamp": b.t,
              "imu": {"gyro": [float(x) for x in nz.add(b.omega, nz.gyro)],
                      "accel_body": [float(x) for x in nz.add(b.specific_force(), nz.accel)]},
-             "position": [float(x) for x in b.S[0:3]],
+             "position": [float(x) for x in b.S[layout.P]],
              "velocity": [float(x) for x in b.v_ned],
              "quaternion": [float(x) for x in b.q]}
         return ("\n" + json.dumps(d, separators=(",", ":")) + "\n").encode()

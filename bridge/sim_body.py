@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from controller import layout
 from plant_fmu.fast import FleetFMU
 
 from .config import default_config
@@ -74,7 +75,7 @@ class SimBody:
         self.g = np.asarray(g_ned, float)
         self.mapping = FleetMapping([mapping_spec])
         self.fmu = FleetFMU(1, instance_name=name)
-        S0 = np.asarray(S0_ned, float).reshape(1, 18)
+        S0 = np.asarray(S0_ned, float).reshape(1, layout.S_WIDTH)
         self.fmu.set_initial_state(S0, mass=[self.mass], J=np.asarray(J, float).reshape(1, 3, 3),
                                    gravity=self.g, h_internal=h_internal)
         self.fmu.initialize(0.0)
@@ -92,15 +93,15 @@ class SimBody:
 
     @property
     def R(self) -> np.ndarray:
-        return self.S[3:12].reshape(3, 3)
+        return layout.rotations(self.S)
 
     @property
     def omega(self) -> np.ndarray:
-        return self.S[12:15] if not self.held else np.zeros(3)
+        return self.S[layout.OMEGA] if not self.held else np.zeros(3)
 
     @property
     def v_ned(self) -> np.ndarray:
-        return self.R @ self.S[15:18] if not self.held else np.zeros(3)
+        return self.R @ self.S[layout.V] if not self.held else np.zeros(3)
 
     def specific_force(self) -> np.ndarray:
         """What an accelerometer at the centre of mass reads (body FRD): f/m when free, −Rᵀg held."""

@@ -6,10 +6,10 @@ import json
 import signal
 import sys
 
+from controller.errors import Se3SyncError
+
 
 def run_sim_cli(args) -> int:
-    from controller.errors import Se3SyncError
-
     if not args.scenario:
         raise Se3SyncError("--sim-protocol: needs --scenario (the bodies' masses, inertias, poses and mapping)")
     if args.sim_step is not None and not args.sim_step > 0:

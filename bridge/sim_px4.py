@@ -33,6 +33,9 @@ import time
 
 import numpy as np
 
+from controller.errors import Se3SyncError
+from controller import layout
+
 from .link import mavlink2
 from .sim_body import G0, B_NED, Noise, bodies_from_scenario, isa_pressure_hpa, isa_temperature_c, ned_to_geodetic
 
@@ -74,8 +77,6 @@ class Px4SimServer:
         self.h_us = int(round(self.h * 1e6))
         g = gps_period / self.h
         if abs(g - round(g)) > 1e-9 or round(g) < 1:
-            from controller.errors import Se3SyncError
-
             raise Se3SyncError(f"--sim-gps-period: must be a whole number of steps of {self.h:g} s, got {gps_period:g}")
         self.gps_every = int(round(g))
         self.noise = Noise(self.h, noise, seed)
@@ -111,7 +112,7 @@ class Px4SimServer:
         acc = nz.add(b.specific_force(), nz.accel)
         gyro = nz.add(b.omega, nz.gyro)
         mag = nz.add(R.T @ B_NED, nz.mag)
-        p = b.S[0:3]
+        p = b.S[layout.P]
         lat, lon, alt = ned_to_geodetic(p)
         pres = float(nz.add(isa_pressure_hpa(alt), nz.baro))
         sensor = mav.hil_sensor_encode(t_us, acc[0], acc[1], acc[2], gyro[0], gyro[1], gyro[2], mag[0], mag[1],

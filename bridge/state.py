@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 
+from controller.se3 import quat_to_rot_row
+
 from .link import mavlink2
 from .transport import WIRE
 
@@ -34,13 +36,8 @@ ID_LOCAL_POSITION_NED = mavlink2.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 
 def _rot_T_apply(q, v):
     """Rᵀ v for the unit quaternion q (w, x, y, z), fixed operation order."""
-    w, x, y, z = q
-    s = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w * s, x * s, y * s, z * s
-    R = ((1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)),
-         (2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)),
-         (2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)))
-    return [R[0][i] * v[0] + R[1][i] * v[1] + R[2][i] * v[2] for i in range(3)]
+    R = quat_to_rot_row(*q)
+    return [R[i] * v[0] + R[3 + i] * v[1] + R[6 + i] * v[2] for i in range(3)]
 
 
 class StateTracker:

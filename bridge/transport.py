@@ -20,7 +20,9 @@ from controller import layout
 from plant_fmu.fast import FleetFMU
 
 from . import frames
+from .config import default_config
 from .mapping import FleetMapping
+from .output import WRENCH_PROFILES, OutputProfile
 
 WIRE = 13
 
@@ -43,7 +45,7 @@ def state_to_wire(S_ned: np.ndarray, q: np.ndarray) -> np.ndarray:
 def wire_to_state(wire: np.ndarray, world: str) -> np.ndarray:
     """The bridge side: (n,13) wire values -> (n,18) [p, R, ξ] in the scenario's frames."""
     wire = np.asarray(wire, dtype=np.float64)
-    S = np.empty((wire.shape[0], 18))
+    S = np.empty((wire.shape[0], layout.S_WIDTH))
     S[:, layout.P] = wire[:, 0:3]
     S[:, layout.R] = frames.quat_to_rot(wire[:, 3:7])
     S[:, layout.XI] = wire[:, 7:13]
@@ -135,8 +137,6 @@ class QuantizedPlant:
     """
 
     def __init__(self, scenario, config=None, fmu_path=None):
-        from .config import default_config
-
         cfg = config if config is not None else (scenario.bridge or default_config(scenario.n_agents))
         self.config = cfg
         self.n = scenario.n_agents
@@ -149,8 +149,6 @@ class QuantizedPlant:
         self._wire = self.fleet.wire()
         self._S = wire_to_state(self._wire, self.world)
         self._w = np.zeros((self.n, 6))
-        from .output import WRENCH_PROFILES, profiles_for
-
         # each vehicle's output profile quantises its command its own way (bridge.output)
         self.profiles = profiles_for(cfg, scenario)
         self._per_profile = any(p.name in WRENCH_PROFILES for p in self.profiles)
@@ -177,3 +175,11 @@ class QuantizedPlant:
 
     def close(self) -> None:
         self.fleet.close()
+
+
+def profiles_for(config, scenario) -> list:
+    """One OutputProfile per vehicle of a BridgeConfig (J in FRD: `transport.vehicle_setup`)."""
+    _, J, _, _ = vehicle_setup(scenario, config.world_frame)
+    return [OutputProfile(v.output, h=scenario.step, J=J[i], max_wrench=v.mapping.max_wrench,
+                          group_mlx=config.group_mlx, actuator_index_offset=config.actuator_index_offset)
+            for i, v in enumerate(config.vehicles)]

@@ -23,16 +23,19 @@ import time
 
 import numpy as np
 
+from controller import layout
 from cosim import signals
 from cosim.files import write_json_atomic
+from cosim.scenario import load_scenario
 from plant_fmu.fast import FleetFMU
 
 from .link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
                    receive_datagrams, require_key_or_insecure)
 from .signing_state import open_signing_state
 from .mapping import FleetMapping, MappingSpec
-from .output import PX4_ATTITUDE_THRUST, profiles_for
-from .transport import state_to_wire
+from .config import default_config, read_key_file
+from .output import PX4_ATTITUDE_THRUST
+from .transport import profiles_for, state_to_wire, vehicle_setup
 
 M = mavlink2
 ID_HEARTBEAT = M.MAVLINK_MSG_ID_HEARTBEAT
@@ -62,7 +65,7 @@ class SimVehicle:
         self.mass = float(mass)
         self.g = np.asarray(g_ned, float)
         self.fmu = FleetFMU(1, instance_name=f"vehicle{system_id}")
-        S0 = np.asarray(S0_ned, float).reshape(1, 18)
+        S0 = np.asarray(S0_ned, float).reshape(1, layout.S_WIDTH)
         self.fmu.set_initial_state(S0, mass=[mass], J=np.asarray(J, float).reshape(1, 3, 3),
                                    gravity=self.g, h_internal=h_internal)
         self.fmu.initialize(0.0)
@@ -83,7 +86,7 @@ class SimVehicle:
                          ID_ATTQ: server.aux_period, ID_LPOS: server.aux_period}
         self.due = {k: now for k in self.interval}
         self.wire = np.zeros(13)
-        self.S = np.zeros(18)
+        self.S = np.zeros(layout.S_WIDTH)
         self.profile = None             # OutputProfile for MANUAL_CONTROL / SET_ATTITUDE_TARGET (scenario)
         self._refresh()
 
@@ -97,7 +100,7 @@ class SimVehicle:
     def hover_wrench(self) -> np.ndarray:
         w = np.zeros(6)
         if self.g.any():
-            R = self.S[3:12]
+            R = self.S[layout.R]
             for i in range(3):
                 w[3 + i] = -self.mass * (R[i] * self.g[0] + R[3 + i] * self.g[1] + R[6 + i] * self.g[2])
         return w
@@ -150,7 +153,7 @@ class SimVehicle:
             self.send(mav.attitude_quaternion_encode(tb, x[3], x[4], x[5], x[6], x[7], x[8], x[9]))
         elif msgid == ID_LPOS:
             # LOCAL_POSITION_NED carries the velocity in NED: v_ned = R v_frd
-            R = self.S[3:12]
+            R = self.S[layout.R]
             v = x[10:13]
             vn = [R[3 * i] * v[0] + R[3 * i + 1] * v[1] + R[3 * i + 2] * v[2] for i in range(3)]
             self.send(mav.local_position_ned_encode(tb, x[0], x[1], x[2], vn[0], vn[1], vn[2]))
@@ -346,8 +349,6 @@ class VehicleServer:
                  insecure: bool = False, signing_state=None, key_file=None):
         cfg = None
         if scenario is not None:
-            from .config import default_config
-
             cfg = scenario.bridge or default_config(scenario.n_agents)
             count = scenario.n_agents
         base_port = base_port if base_port is not None else (cfg.base_port if cfg else 14540)
@@ -384,8 +385,6 @@ class VehicleServer:
         self.vehicles: list[SimVehicle] = []
 
         if scenario is not None:
-            from .transport import vehicle_setup
-
             masses, Js, S0, g = vehicle_setup(scenario, cfg.world_frame)
             specs = cfg.mappings
             sids = [v.system_id for v in cfg.vehicles]
@@ -393,9 +392,9 @@ class VehicleServer:
         else:
             masses = np.ones(self.count)
             Js = np.tile(np.diag([0.01, 0.01, 0.02]), (self.count, 1, 1))
-            S0 = np.zeros((self.count, 18))
-            S0[:, 0] = np.arange(self.count, dtype=float)
-            S0[:, 3:12] = np.eye(3).ravel()
+            S0 = np.zeros((self.count, layout.S_WIDTH))
+            S0[:, layout.S_P] = np.arange(self.count, dtype=float)
+            S0[:, layout.R] = np.eye(3).ravel()
             g = np.asarray(gravity_ned, float)
             specs = [MappingSpec()] * self.count
             sids = list(range(first_system_id, first_system_id + self.count))
@@ -565,12 +564,8 @@ class VehicleServer:
 
 def run_vehicle_cli(args) -> int:
     """Handler of ``se3sync vehicle``."""
-    from .config import read_key_file
-
     scenario = None
     if args.scenario:
-        from cosim.scenario import load_scenario
-
         scenario = load_scenario(args.scenario, args.set or [])
     key = read_key_file(args.key) if args.key else None
     g = [float(x) for x in args.gravity.split(",")] if args.gravity else (0.0, 0.0, 0.0)

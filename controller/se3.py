@@ -9,6 +9,8 @@ the identity and recover the axis near a half turn.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from . import _kernels as K
@@ -16,7 +18,7 @@ from . import _kernels as K
 __all__ = [
     "skew", "unskew", "hat", "vee", "psi", "psi_bar", "Ad", "ad", "Ad_inv_T",
     "exp_so3", "log_so3", "exp_se3", "log_se3", "R_a", "T", "inverse", "split",
-    "random_rotation", "random_pose", "quat_to_rot", "rot_to_quat",
+    "random_rotation", "random_pose", "quat_to_rot", "quat_to_rot_row", "rot_to_quat",
 ]
 
 # Below this angle the trigonometric coefficients are evaluated by their Taylor series:
@@ -260,6 +262,17 @@ def quat_to_rot(q):
     out[..., 2, 1] = 2 * (y * z + w * x)
     out[..., 2, 2] = 1 - 2 * (x * x + y * y)
     return out
+
+
+def quat_to_rot_row(w, x, y, z) -> list:
+    """`quat_to_rot` of one quaternion as a row-major list of 9 Python floats, the same operations
+    in the same order, so the same bits. For per-packet paths: numpy costs ~2 µs per operation on
+    a one-element array."""
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]
 
 
 def rot_to_quat(R):

@@ -25,9 +25,15 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
+from controller import HybridController
+from controller import layout
 from controller.kernels import metrics, network_step, network_U
+from plant_fmu.fast import FleetFMU
 
 from . import signals
+from .plants import FmuPlant
+
+MAX_BLOCK = 1000  # steps between two checks for Ctrl-C / progress updates
 
 __all__ = ["compiled_fleet", "run_compiled"]
 
@@ -165,11 +171,6 @@ def compiled_fleet(plant, controller):
     """The FleetFMU under ``plant`` when the pair can run the compiled loop, else None:
     a `cosim.plants.FmuPlant` (one FMI 2.0 instance for all bodies) and the network
     `HybridController`/`GradientController` stepping through `network_step`."""
-    from controller import HybridController
-    from plant_fmu.fast import FleetFMU
-
-    from .plants import FmuPlant
-
     if type(plant) is not FmuPlant or not isinstance(controller, HybridController):
         return None
     if type(controller).step_state is not HybridController.step_state:
@@ -228,8 +229,6 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
     TARGET_BLOCK_S): Ctrl-C / SIGTERM / `Master.request_stop` (master._stop) and the wall-clock
     budget, counted from the end of the first block as in the reference loop.
     """
-    from .master import MAX_BLOCK
-
     ctrl, plant = master.controller, master.plant
     h = master.h
     N, M = master.N, master.M
@@ -246,7 +245,7 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
     # a sweep sampling every few steps still runs up to MAX_BLOCK steps per compiled call)
     scap = MAX_BLOCK // spl + 2
     smp_step = np.zeros(scap, np.int64)
-    smp_S = np.zeros((scap, N, 18))
+    smp_S = np.zeros((scap, N, layout.S_WIDTH))
     smp_theta = np.zeros((scap, M))
     smp_u = np.zeros((N, 6))
     out = np.zeros(6, dtype=np.int64)
@@ -324,7 +323,7 @@ def _addresses(fmu):
 class _RecordBuffers:
     def __init__(self, cap, N, M):
         self.step = np.empty(cap, np.int64)
-        self.S = np.empty((cap, N, 18))
+        self.S = np.empty((cap, N, layout.S_WIDTH))
         self.u = np.empty((cap, N, 6))
         self.theta = np.empty((cap, M))
         self.mu = np.empty((cap, M))

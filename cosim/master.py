@@ -21,10 +21,10 @@ from controller.kernels import metrics, network_U
 
 from . import signals
 from .controllers import law_name, make_controller
+from .fastloop import MAX_BLOCK, compiled_fleet, run_compiled
 
 __all__ = ["Master", "NetworkMetrics", "make_controller", "design_summary"]
 
-MAX_BLOCK = 1000  # steps between two checks for Ctrl-C / progress updates
 
 DESIGN_KEYS = ("case", "u_c1", "u_c2", "delta_star", "gamma", "delta", "gamma_bound",
                "delta_bound", "exact_gap", "warnings", "Theta", "eigenvalues_W")
@@ -205,15 +205,11 @@ class Master:
         t0 = time.perf_counter()
         fleet = None
         if self.use_compiled and self.first_step == 0:
-            from .fastloop import compiled_fleet
-
             fleet = compiled_fleet(plant, ctrl)
         try:
             if fleet is not None:
                 # the plant and controller support the compiled loop (cosim/fastloop.py): the
                 # same steps, ticks and events, blocks of steps without returning to Python
-                from .fastloop import run_compiled
-
                 n, interrupted, timed_out = run_compiled(self, fleet, n_steps, bar, spl, dec,
                                                          budget)
             # else: the reference loop in Python

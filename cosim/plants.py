@@ -13,6 +13,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from controller.errors import Se3SyncError
+from controller import layout
 from plant_fmu.fast import FleetFMU
 
 from .registry import PLANTS, resolve
@@ -137,7 +138,7 @@ class PerBodyFmuPlant:
         except BaseException:
             self.close()
             raise
-        self._S = np.zeros((n, 18))
+        self._S = np.zeros((n, layout.S_WIDTH))
         self._rows = [self._S[i:i + 1] for i in range(n)]
         self._u = np.zeros((n, 6))
         self._urows = [self._u[i:i + 1] for i in range(n)]

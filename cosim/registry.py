@@ -14,7 +14,7 @@ import importlib
 
 from controller.errors import Se3SyncError
 
-__all__ = ["LAWS", "PLANTS", "resolve"]
+__all__ = ["AGENT_LAWS", "LAWS", "PLANTS", "resolve"]
 
 # name -> ("module:attribute" of a factory(scenario) -> Controller, one-line description)
 LAWS = {
@@ -22,6 +22,10 @@ LAWS = {
                                            "(ex_controller)"),
     "gradient": ("cosim.controllers:gradient", "the gradient-only baseline (θ ≡ 0, no jumps)"),
 }
+
+# the laws of LAWS that also have a per-agent view (`controller.AgentStepper`), which the agent
+# processes (`se3sync agent`, `se3sync swarm`) run; a law without one runs in `run` and `connect`
+AGENT_LAWS = ("hybrid", "gradient")
 
 # name -> ("module:attribute" of a Plant class with from_scenario(scenario, fmu_path), description)
 PLANTS = {

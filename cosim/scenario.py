@@ -21,6 +21,7 @@ from controller.errors import ConfigError, DesignError, GraphError, Se3SyncError
 
 from . import plugins
 from .initial import paper_state, random_state
+from .registry import PLANTS
 
 try:  # Python 3.11+
     import tomllib as _toml
@@ -483,8 +484,9 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
                                  f"{sub:.3g} body-substeps per step, above the plant's "
                                  f"{MAX_BODY_SUBSTEPS:.0e}")
     mode = pl.get("mode", "fleet")
-    if mode not in ("fleet", "per-body"):
-        raise ScenarioError("plant.mode", f"must be \"fleet\" or \"per-body\", got {_fmtv(mode)}")
+    if mode not in PLANTS:
+        raise ScenarioError("plant.mode", "must be " + " or ".join(f'"{k}"' for k in PLANTS)
+                            + f", got {_fmtv(mode)}")
 
     # [initial]
     S0, theta0 = _initial(data["initial"], N, graph, weighting)

@@ -4,10 +4,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from controller.errors import Se3SyncError
+
 
 def _cmd_build(args: argparse.Namespace) -> int:
-    from controller.errors import Se3SyncError
-
     from . import build, layout
 
     n = args.bodies

@@ -83,12 +83,42 @@ def find_cycles(edges: dict) -> list:
 
 
 def test_no_import_cycle_between_modules():
-    # import-time edges: module-level imports (a package's __init__ importing its own
-    # submodules is how a package exposes them, not a cycle of the data flow)
-    edges = {m: {d for d, top in deps if top and d != m and not m.startswith(d + ".")}
+    # every import, at the top or inside a function (a function-local import is still a
+    # dependency; hiding it in a function would only hide the cycle). A package's __init__
+    # importing its own submodules is how a package exposes them, not a cycle of the data flow.
+    edges = {m: {d for d, _ in deps if d != m and not m.startswith(d + ".")}
              for m, deps in GRAPH.items()}
     cycles = find_cycles(edges)
     assert not cycles, "import cycles: " + "; ".join(" -> ".join(c) for c in cycles)
+
+
+def is_cli(module: str) -> bool:
+    """The command-line modules (README "Layout"), which import the job they run in its handler."""
+    last = module.split(".")
+    return "cli" in last[1:] or last[-1].endswith("_cli")
+
+
+def test_project_modules_are_imported_at_the_top():
+    """README "Layout": modules import the project's modules at the top; only the command-line
+    modules import the job they run inside its handler (start-up of `se3sync --help`)."""
+    bad = sorted({f"{m} imports {d} inside a function" for m, deps in GRAPH.items()
+                  if not is_cli(m) for d, top in deps if not top})
+    assert not bad, "\n".join(bad)
+
+
+def test_controller_errors_do_not_load_the_kernels():
+    """The one lazy import of the project's own code (controller/__init__): the error classes and
+    the state layout load without numba, so `se3sync --help` and error paths stay light."""
+    import subprocess
+    import sys
+
+    code = ("import sys, controller, controller.errors, controller.layout; "
+            "assert 'numba' not in sys.modules, 'numba loaded'; "
+            "from controller import HybridController, se3, kernels; "
+            "assert 'numba' in sys.modules and controller.se3 is se3; "
+            "assert set(controller.__all__) <= set(dir(controller))")
+    r = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
 
 
 def test_layering():
@@ -127,3 +157,8 @@ def test_the_checks_see_a_cycle_and_a_private_import():
            "cosim.sweep": {"cosim.sweep_report"}, "cosim.sweep_report": {"cosim.sweep"},
            "cosim.master": {"controller.kernels"}}
     assert len(find_cycles(old)) == 2
+    # the checks see function-local imports: the two cycles that hid in functions before
+    hidden = {"cosim.master": {"cosim.fastloop"}, "cosim.fastloop": {"cosim.master"}}
+    assert len(find_cycles(hidden)) == 1
+    assert is_cli("cosim.cli.run") and is_cli("bridge.sim_cli") and is_cli("plant_fmu.cli")
+    assert not is_cli("cosim.master") and not is_cli("controller.kernels")

@@ -18,6 +18,8 @@ import types
 
 import numpy as np
 
+from controller import layout
+
 from .stability_sparse import (
     DENSE_MAX,
     Linearisation,
@@ -40,8 +42,8 @@ def initial_error(scenario) -> float:
     E = np.asarray(scenario.graph.edges)
     if E.size == 0:
         return 0.0
-    R = S[:, 3:12].reshape(-1, 3, 3)
-    p = S[:, 0:3]
+    R = layout.rotations(S)
+    p = layout.positions(S)
     i, j = E[:, 0], E[:, 1]
     Rb = np.einsum("kea,kec->kac", R[j], R[i])                 # R_jᵀ R_i
     pb = np.einsum("kea,ke->ka", R[j], p[i] - p[j])            # R_jᵀ (p_i − p_j)

@@ -22,6 +22,9 @@ import math
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as sla
+
+from controller.errors import Se3SyncError
 
 from .stability_sparse import Linearisation
 
@@ -131,7 +134,6 @@ def _rigid_basis_aug(N, C, d):
 
 def delay_radius(lin: Linearisation, h: float, d: int, loop=None) -> float:
     """Spectral radius of the delayed loop without the rigid motion's six eigenvalues 1."""
-    import scipy.sparse.linalg as sla
     Phi0, B, C = loop if loop is not None else delayed_parts(lin, h)
     A = augmented(Phi0, B, C, d)
     Q = _rigid_basis_aug(lin.N, C, d)
@@ -155,7 +157,6 @@ def delay_radius(lin: Linearisation, h: float, d: int, loop=None) -> float:
         lam = sla.eigs(op, k=6, which="LM", tol=1e-12, ncv=60, maxiter=20000,
                        return_eigenvectors=False)
     except sla.ArpackNoConvergence as exc:
-        from controller.errors import Se3SyncError
         raise Se3SyncError(f"delay margin: ARPACK did not converge at d = {d} ({exc})") from None
     return float(np.abs(lam).max())
 

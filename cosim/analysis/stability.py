@@ -14,6 +14,7 @@ import numpy as np
 import scipy.linalg
 
 from controller import LawParameters, se3
+from controller.layout import pack_state
 from controller.kernels import network_step
 
 from ..controllers import make_controller
@@ -28,11 +29,7 @@ def _S_of(x, N):
     d = x[:6 * N].reshape(N, 6)
     xi = x[6 * N:12 * N].reshape(N, 6)
     X = se3.exp_se3(d)
-    S = np.empty((N, 18))
-    S[:, 0:3] = X[:, :3, 3]
-    S[:, 3:12] = X[:, :3, :3].reshape(N, 9)
-    S[:, 12:18] = xi
-    return np.ascontiguousarray(S)
+    return pack_state(X, xi)
 
 
 def linearise(scenario, hybrid: bool = True, eps: float = 1e-6):

@@ -29,9 +29,14 @@ from __future__ import annotations
 # the inertia counts are compiled, like the kernels (numba, on-disk cache)
 import numba
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
+import scipy.sparse.linalg as sla
 
 from controller import LawParameters
+from controller import se3
+from controller.errors import Se3SyncError
+from controller.layout import pack_state
 from controller.kernels import network_step
 
 __all__ = ["edge_jacobian", "modal_blocks", "laplacian_eigenvalues", "sparse_loop",
@@ -51,7 +56,6 @@ def params_of(scenario, gains=None):
 def edge_jacobian(P, k_xi: float, hybrid: bool = True, eps: float = 1e-6) -> np.ndarray:
     """J (13 × 25): rows u_pos (6), u_neg (6), θ̇ = −k_θ∇_θU (1); columns δ_pos, δ_neg, ξ_pos,
     ξ_neg (6 each), θ. The edge's part only: the agents' own −k_ξ ξ is not in it."""
-    from controller import se3
     edges = np.array([[0, 1]], dtype=np.int64)
     u = np.zeros((2, 6))
     mu = np.zeros(1)
@@ -61,10 +65,7 @@ def edge_jacobian(P, k_xi: float, hybrid: bool = True, eps: float = 1e-6) -> np.
 
     def f(x):
         X = se3.exp_se3(x[:12].reshape(2, 6))
-        S = np.empty((2, 18))
-        S[:, 0:3] = X[:, :3, 3]
-        S[:, 3:12] = X[:, :3, :3].reshape(2, 9)
-        S[:, 12:18] = x[12:24].reshape(2, 6)
+        S = pack_state(X, x[12:24].reshape(2, 6))
         th = np.array([x[24]])
         network_step(S, th, edges, P, 1.0, hybrid, u, mu, jumped, tp, tj)
         return np.concatenate([u.ravel(), th - x[24:25]])
@@ -207,7 +208,6 @@ def _laplacian_eigenvalues(N, edges, rel_tol):
         L[edges[:, 0], edges[:, 1]] = L[edges[:, 1], edges[:, 0]] = -1.0
         return np.linalg.eigvalsh(L)
     if deg.max() <= 2:   # a path: tridiagonal in path order, LAPACK's stemr does it in O(N²)
-        import scipy.linalg
         order, _ = _tree_order(N, edges, root=int(np.argmin(deg)))
         return scipy.linalg.eigvalsh_tridiagonal(deg[order], -np.ones(N - 1))
     order, parent = _tree_order(N, edges)
@@ -349,7 +349,6 @@ def _rigid_basis(N, n):
 def _sparse_radius(Phi, lin, k=6):
     """ρ of Φ with the rigid subspace projected out: Q spans ΦQ = Q, so in the basis [Q, Q⊥]
     Φ is block triangular and (I − QQᵀ)Φ(I − QQᵀ) has the remaining eigenvalues (plus six 0)."""
-    import scipy.sparse.linalg as sla
     n = Phi.shape[0]
     Q = _rigid_basis(lin.N, n)
     if np.abs(Phi @ Q - Q).max() > 1e-9:
@@ -371,7 +370,6 @@ def _sparse_radius(Phi, lin, k=6):
         lam = sla.eigs(op, k=k, which="LM", tol=1e-13, ncv=max(4 * k, 60), maxiter=20000,
                        return_eigenvectors=False)
     except sla.ArpackNoConvergence as exc:
-        from controller.errors import Se3SyncError
         raise Se3SyncError(f"stability: ARPACK did not converge on the {n}-state loop of "
                            f"heterogeneous agents ({exc})") from None
     return float(np.abs(lam).max())

@@ -30,6 +30,8 @@ import json  # noqa: E402
 import os  # noqa: E402
 import sys  # noqa: E402
 
+from controller.errors import Se3SyncError  # noqa: E402
+
 from .. import plugins, signals  # noqa: E402
 
 if _before is not None:
@@ -120,8 +122,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _dispatch(args) -> int:
-    from controller.errors import Se3SyncError
-
     try:
         rc = args.func(args)
         sys.stdout.flush()  # a closed pipe surfaces here, inside the handlers below

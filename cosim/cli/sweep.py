@@ -6,10 +6,10 @@ import os
 import sys
 from pathlib import Path
 
+from ..registry import LAWS
 from . import require
 
 __all__ = ["register"]
-
 
 
 def _bad(option: str, reason: str):
@@ -103,9 +103,8 @@ def _cmd_sweep(args) -> int:
                          position_box=args.position_box, velocity_ball=args.velocity_ball,
                          rot_tol=args.rot_tol, pos_tol=args.pos_tol, sample_dt=args.sample_dt,
                          timeout=args.timeout)
-    from ..sweep.runner import CONTROLLERS
 
-    ctrls = ("hybrid",) if args.no_baseline else CONTROLLERS
+    ctrls = ("hybrid",) if args.no_baseline else tuple(LAWS)
     # refuse a mismatching existing file before starting a cluster
     if out.exists():
         read_results(out, spec=spec)

@@ -13,6 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from controller.errors import Se3SyncError
+from controller.se3 import quat_to_rot
 
 from ..files import atomic_path
 from .foxglove import box_size, error_color
@@ -23,15 +24,6 @@ __all__ = ["load_poses", "animate_log"]
 # box corners (±1/2) and its 6 faces as corner indices
 _CORNERS = np.array([[x, y, z] for x in (-.5, .5) for y in (-.5, .5) for z in (-.5, .5)])
 _FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5))
-
-
-def _quat_to_R(q):
-    """(…, 4) quaternions (x, y, z, w) -> (…, 3, 3) rotation matrices."""
-    x, y, z, w = np.moveaxis(np.asarray(q, float), -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1)], -2)
 
 
 def load_poses(path) -> dict:
@@ -70,7 +62,7 @@ def load_poses(path) -> dict:
         box = np.full((N, 3), 0.3)
     rot = np.array([[e["rot_err"] if e["rot_err"] is not None else np.nan for e in m[1]["edges"]]
                     for m in ed], float)
-    return {"t": np.array([m[0] for m in tf]) * 1e-9, "p": p, "R": _quat_to_R(q),
+    return {"t": np.array([m[0] for m in tf]) * 1e-9, "p": p, "R": quat_to_rot(np.asarray(q, float)[..., [3, 0, 1, 2]]),
             "t_e": np.array([m[0] for m in ed]) * 1e-9, "rot_err": rot, "edges": edges,
             "box": box, "ids": ids, "name": meta.get("scenario_name", Path(path).stem),
             "controller": meta.get("controller", "")}

@@ -34,6 +34,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from controller import __version__
+from controller import layout
 from controller.errors import Se3SyncError
 
 from ..files import atomic_path
@@ -383,9 +384,9 @@ class McapLogger:
         to the same values bit for bit, but the text of some numbers differs (0.00001 for
         1e-05); without it they are the same bytes as `record`'s. A record with a jump in it
         or a non-finite value goes through `record` (rare)."""
-        tf_v = np.concatenate((S[:, 0:3], quat), axis=1)
+        tf_v = np.concatenate((S[:, layout.P], quat), axis=1)
         ed_v = np.stack((theta, mu, rot_err, pos_err, U), axis=1)
-        ag_v = np.concatenate((S[:, 12:18], u), axis=1)
+        ag_v = np.concatenate((S[:, layout.XI], u), axis=1)
         if (jumped.any() or not (np.isfinite(tf_v).all() and np.isfinite(ed_v).all()
                                  and np.isfinite(ag_v).all())):
             return self.record(t_ns, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V,
@@ -434,9 +435,9 @@ class McapLogger:
                 self.record_fast(t_ns[r], S[r], u[r], theta[r], mu[r], jumped[r], rot_err[r],
                                  pos_err[r], U[r], quat[r], V[r], kX_U[r])
             return
-        tf_v = np.concatenate((S[:, :, 0:3], quat), axis=2)
+        tf_v = np.concatenate((S[:, :, layout.P], quat), axis=2)
         ed_v = np.stack((theta, mu, rot_err, pos_err, U), axis=2)
-        ag_v = np.concatenate((S[:, :, 12:18], u), axis=2)
+        ag_v = np.concatenate((S[:, :, layout.XI], u), axis=2)
         plain = ~jumped.any(axis=1)
         for v in (tf_v, ed_v, ag_v):
             plain &= np.isfinite(v).all(axis=(1, 2))

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 
 from ..files import write_json_atomic
+from ..registry import LAWS
 from .runner import read_results
 
 __all__ = ["wilson", "summarise", "report", "GROUP_KINDS"]
@@ -41,7 +42,8 @@ def summarise(rows) -> dict:
     status = {}
     for r in rows:
         status[r["status"]] = status.get(r["status"], 0) + 1
-    controllers = [c for c in ("hybrid", "gradient") if any(r["controller"] == c for r in rows)]
+    seen = list(dict.fromkeys(r["controller"] for r in rows))
+    controllers = [c for c in LAWS if c in seen] + [c for c in seen if c not in LAWS]
     groups = []
     for c in controllers:
         for kind in GROUP_KINDS:
@@ -107,7 +109,8 @@ def report(results, output, json_path=None) -> dict:
     s["settings"] = meta.get("settings", {})
     s["text"] = _text(results, s)
 
-    colors = {"hybrid": "tab:blue", "gradient": "tab:red"}
+    palette = ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:orange", "tab:brown")
+    colors = {c: palette[k % len(palette)] for k, c in enumerate(s["controllers"])}
     fig, ax = plt.subplots(2, 2, figsize=(12, 8.5))
     title = meta.get("scenario_name", Path(results).stem)
     fig.suptitle(f"se3sync sweep: {title} ({s['n_rows']} runs)")

@@ -35,6 +35,7 @@ import numpy as np
 from controller import layout
 
 from ..controllers import make_controller
+from ..registry import LAWS
 from ..initial import critical_pose as _critical_pose
 from ..initial import poses_from_relative, random_state
 from ..master import Master
@@ -257,8 +258,8 @@ def _run(spec: SweepSpec, sc, index: int, controller: str, t_wall: float) -> dic
         raise RuntimeError(f"injected fault in sample {index}")
     if fault == "exit":  # kills the worker process (tests the executor's isolation)
         os._exit(3)
-    if controller not in ("hybrid", "gradient"):
-        raise ValueError(f"controller must be \"hybrid\" or \"gradient\", got {controller!r}")
+    if controller not in LAWS:
+        raise ValueError(f"controller must be one of {', '.join(LAWS)}, got {controller!r}")
     S0 = initial_state(sc, spec, index)
     m = _master(spec, sc, controller, S0)
     plant = m.plant
