@@ -245,3 +245,48 @@ def test_closed_loop_lockstep_each_profile(profile):
     print(f"{profile}: sync error {e0:.4g} -> HIL {e_hil:.4g}, exact co-simulation {e_exact:.4g}")
     assert e_exact < 0.8 * e0
     assert abs(e_hil - e_exact) < 0.05 * (e0 - e_exact)
+
+
+def _attitude_thrust_torque_error(h: float, T: float = 1.0):
+    """hil_6uav under the hybrid law for T s at step h on the exact plant: per step and vehicle,
+    the torque a vehicle realising px4_attitude_thrust's R_d exactly would apply, minus the
+    controller's torque. The exact torque τ* reaches R_d from (R, ω) in h; the plant with τ reaches
+    R(h), so τ* − τ = (2/h²) J log(R(h)ᵀ R_d) to leading order (∂R(h)/∂τ = (h²/2) J⁻¹ + O(h³))."""
+    from controller import se3
+    from cosim.controllers import make_controller
+    from cosim.plants import FmuPlant
+
+    sc = load([f"simulation.step={h}"])
+    fp = FmuPlant.from_scenario(sc)
+    ctrl = make_controller("hybrid", sc)
+    atts = [out.AttitudeThrust(J, h, MW[:3]) for J in sc.inertias]
+    dtau, tau = [], []
+    try:
+        for _ in range(int(round(T / h))):
+            S = fp.read().copy()
+            u = np.array(ctrl.step_state(S, h)[0], copy=True)
+            fp.apply(u)
+            fp.advance(h)
+            S1 = fp.read()
+            for i, att in enumerate(atts):
+                R, om = S[i, 3:12].reshape(3, 3), S[i, 12:15]
+                Rd = se3.quat_to_rot(np.array(att.attitude_setpoint(u[i, :3], se3.rot_to_quat(R), om)))
+                e = se3.log_so3(S1[i, 3:12].reshape(3, 3).T @ Rd)
+                dtau.append(2.0 / h ** 2 * np.asarray(sc.inertias[i]) @ e)
+                tau.append(u[i, :3])
+    finally:
+        fp.close()
+    return np.array(dtau), np.array(tau)
+
+
+def test_px4_attitude_thrust_torque_error_over_a_run():
+    """The approximation's wrench error against the exact wrench over a closed-loop run: first
+    order in h (the attitude error is third order, divided by h²), and small against the torque."""
+    e4, t4 = _attitude_thrust_torque_error(0.004)
+    e2, _ = _attitude_thrust_torque_error(0.002)
+    rms4, rms2 = np.sqrt((e4 ** 2).mean()), np.sqrt((e2 ** 2).mean())
+    print(f"px4_attitude_thrust over 1 s of hil_6uav: |τ* − τ| max {np.abs(e4).max():.3g} N·m, "
+          f"rms {rms4:.3g} N·m at h = 4 ms (max |τ| {np.abs(t4).max():.3g} N·m); "
+          f"max {np.abs(e2).max():.3g}, rms {rms2:.3g} at h = 2 ms")
+    assert 1.7 < rms4 / rms2 < 2.4, (rms4, rms2)
+    assert np.abs(e4).max() < 0.01 * np.abs(t4).max()
