@@ -133,6 +133,60 @@ def test_missing_extra_hint_names_the_checkout_install(capsys):
     assert "sweep: error: sweep:" not in lines[0]
 
 
+def test_sweep_workers_0_runs_without_dask(tmp_path):
+    """`sweep --workers 0` runs the samples in this process: with Dask and distributed absent it
+    writes every row; any other --workers asks for the 'sweep' extra on one line."""
+    out = tmp_path / "r.parquet"
+    block = "import sys; sys.modules['dask'] = None; sys.modules['distributed'] = None; "
+    code = (block + "from cosim.cli import main; "
+            f"rc = main(['sweep', {SMALL!r}, '--samples', '1', '--workers', '0', '--no-baseline', "
+            f"'--set', 'simulation.duration=2.0', '--out', {str(out)!r}]); "
+            "assert sys.modules['dask'] is None and sys.modules['distributed'] is None; sys.exit(rc)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    import pyarrow.parquet as pq
+
+    t = pq.read_table(out).to_pydict()
+    assert len(t["sample"]) >= 2 and set(t["controller"]) == {"hybrid"}
+    assert all(s == "ok" for s in t["status"])
+    code = (block + "from cosim.cli import main; "
+            f"sys.exit(main(['sweep', {SMALL!r}, '--samples', '1', '--workers', '2', "
+            f"'--out', {str(tmp_path / 'x.parquet')!r}]))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and "'sweep' extra" in lines[0], r.stderr
+    assert not (tmp_path / "x.parquet").exists()
+
+
+@pytest.fixture(scope="module")
+def compiled_cache(tmp_path_factory):
+    """One unlimited run first, so that numba's on-disk cache exists before writes are limited."""
+    d = tmp_path_factory.mktemp("warm")
+    subprocess.run([sys.executable, "-m", "cosim.cli", "run", PAPER, "--duration", "0.01", "--log",
+                    str(d / "w.mcap")], check=True, capture_output=True)
+
+
+@pytest.mark.parametrize("limit,culprit", [(1 << 20, "l.mcap"), (64, "s.json")])
+def test_a_full_disk_names_the_output_and_leaves_nothing(tmp_path, limit, culprit, compiled_cache):
+    """A write that fails for lack of space (here RLIMIT_FSIZE: the same OSError path as ENOSPC)
+    is one line naming the file the user asked for, exit 2, and no output or temporary left."""
+    import resource
+
+    def limited():
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+
+    argv = [sys.executable, "-m", "cosim.cli", "run", PAPER, "--duration", "10", "--summary", "s.json"]
+    if culprit == "l.mcap":
+        argv += ["--log", "l.mcap"]
+    r = subprocess.run(argv, cwd=tmp_path, preexec_fn=limited, capture_output=True, text=True,
+                       env={**__import__("os").environ, "PYTHONDONTWRITEBYTECODE": "1"})
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"se3sync run: error: {culprit}: ") and "large" in lines[0]
+    assert list(tmp_path.iterdir()) == []
+
+
 def _wait_for(path: Path, timeout=60.0):
     t = time.monotonic()
     while time.monotonic() - t < timeout:
