@@ -36,7 +36,8 @@ from cosim import signals
 from cosim.analysis.stability import analyse
 from cosim.files import check_output_dir, write_json_atomic
 from cosim.log.mcap import McapLogger, read_log
-from cosim.master import NetworkMetrics, design_summary
+from cosim.master import NetworkMetrics
+from cosim.scenario import design_summary
 from cosim.network import parse_network
 from cosim.scenario import ScenarioError, load_scenario
 

@@ -22,18 +22,9 @@ from controller.kernels import metrics, network_U
 from . import signals
 from .controllers import law_name, make_controller
 from .fastloop import MAX_BLOCK, compiled_fleet, run_compiled
+from .scenario import design_summary
 
 __all__ = ["Master", "NetworkMetrics", "make_controller", "design_summary"]
-
-
-DESIGN_KEYS = ("case", "u_c1", "u_c2", "delta_star", "gamma", "delta", "gamma_bound",
-               "delta_bound", "exact_gap", "warnings", "Theta", "eigenvalues_W")
-
-
-def design_summary(scenario) -> dict:
-    """The synergy design as the summary, `check` and the log report it."""
-    d = scenario.design.as_dict()
-    return {k: d[k] for k in DESIGN_KEYS}
 
 
 class NetworkMetrics:

@@ -28,7 +28,7 @@ try:  # Python 3.11+
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as _toml
 
-__all__ = ["ScenarioError", "Scenario", "load_scenario", "parse_scenario", "apply_overrides",
+__all__ = ["ScenarioError", "design_summary", "Scenario", "load_scenario", "parse_scenario", "apply_overrides",
            "parse_override", "restrict", "SCHEMA", "DEFAULT_LOG_RATE",
            "MAX_DEFAULT_INTERNAL_STEP"]
 
@@ -484,7 +484,7 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
                                  f"{sub:.3g} body-substeps per step, above the plant's "
                                  f"{MAX_BODY_SUBSTEPS:.0e}")
     mode = pl.get("mode", "fleet")
-    if mode not in PLANTS:
+    if not isinstance(mode, str) or mode not in PLANTS:
         raise ScenarioError("plant.mode", "must be " + " or ".join(f'"{k}"' for k in PLANTS)
                             + f", got {_fmtv(mode)}")
 
@@ -583,3 +583,13 @@ def _initial(ini: dict, N: int, graph, weighting):
                     maximum=MAX_MAGNITUDE)
         return random_state(np.random.default_rng(seed), N, box, ball), theta0
     raise ScenarioError("initial.generator", f"must be \"paper\" or \"random\", got {_fmtv(gen)}")
+
+
+DESIGN_KEYS = ("case", "u_c1", "u_c2", "delta_star", "gamma", "delta", "gamma_bound",
+               "delta_bound", "exact_gap", "warnings", "Theta", "eigenvalues_W")
+
+
+def design_summary(scenario) -> dict:
+    """The synergy design as the summary, `check` and the log report it."""
+    d = scenario.design.as_dict()
+    return {k: d[k] for k in DESIGN_KEYS}

@@ -142,7 +142,7 @@ def _cmd_run(args) -> int:
 
 def _cmd_check(args) -> int:
     from ..analysis.stability import analyse
-    from ..master import design_summary
+    from ..scenario import design_summary
     from ..scenario import load_scenario
 
     from ..analysis.stability_report import check_extras, check_lines
