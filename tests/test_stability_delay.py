@@ -104,6 +104,21 @@ def test_reduced_history_has_the_companion_spectrum():
     assert np.abs(big[:k] - red[:k]).max() < 1e-8
 
 
+def test_delay_radius_dense_equals_arpack(monkeypatch):
+    """The two eigensolvers of `delay_radius` (dense below DENSE_MAX, ARPACK above) agree."""
+    from cosim.analysis import delay_margin as dm
+
+    sc = load_scenario(HIL)
+    lin = Linearisation(sc, True, force_sparse=True)
+    loop = delayed_parts(lin, sc.step)
+    for d in (0, 5, 8):
+        dense_r = dm.delay_radius(lin, sc.step, d, loop)
+        monkeypatch.setattr(dm, "DENSE_MAX", 10)
+        arpack_r = dm.delay_radius(lin, sc.step, d, loop)
+        monkeypatch.undo()
+        assert abs(dense_r - arpack_r) < 1e-10, (d, dense_r, arpack_r)
+
+
 def test_steps_of_delay():
     assert steps_of_delay(0.0, 0.004) == 0
     assert steps_of_delay(0.004, 0.004) == 1        # exactly one step, despite rounding

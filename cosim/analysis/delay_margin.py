@@ -28,9 +28,11 @@ from controller.errors import Se3SyncError
 
 from .stability_sparse import Linearisation
 
-# Dense eigvals costs O(((d + 1) n)³); above this ARPACK on the sparse companion matrix is faster
-# (hil_6uav at d = 32: 1.5 s against 7 s, the same radius to 1e-14).
-DENSE_MAX = 600
+# Dense eigvals costs O(m³) in the augmented size m; ARPACK converges slowly here because the
+# dominant eigenvalues cluster near 1 (slow modes at a small step). hil_6uav on 2 cores: dense
+# 0.37 / 0.80 / 1.38 s at d = 16 / 24 / 32 (m = 733 / 1061 / 1389) against ARPACK's 1.95 / 0.93 /
+# 1.08 s (2.57 s at d = 31), the same radius to 1e-13; so dense up to this size.
+DENSE_MAX = 1500
 
 __all__ = ["delayed_loop", "delayed_parts", "augmented", "delay_radius", "delay_margin",
            "steps_of_delay"]
