@@ -77,6 +77,9 @@ _AXES = ((1.0, 0.2, 0.2, (0, 0, 0, 1)), (0.2, 1.0, 0.2, (0, 0, _C, _C)),
          (0.2, 0.4, 1.0, (0, -_C, 0, _C)))
 
 
+_POSE_TPL = '{"position":{"x":%r,"y":%r,"z":%r},"orientation":{"x":%r,"y":%r,"z":%r,"w":%r}}'
+
+
 def _entity(ts: str, frame: str, eid: str, frame_locked: bool, parts: dict) -> str:
     body = ",".join(f'"{k}":[{",".join(parts.get(k, ()))}]' for k in _KEYS)
     return (f'{{"timestamp":{ts},"frame_id":"{frame}","id":"{eid}",'
@@ -134,12 +137,39 @@ class SceneBuilder:
                 f'{{"x":{_f(p_j[0])},"y":{_f(p_j[1])},"z":{_f(p_j[2])}}}],'
                 f'"color":{{"r":{_f(r)},"g":{_f(g)},"b":{_f(b)},"a":1}},"colors":[],"indices":[]}}')
 
+    def _edge_templates(self):
+        """Per edge, its entity around the time stamp and the line (what `_entity` writes for a
+        flowing edge), and the line's %-template: one C-level format per edge at scene time."""
+        self._edge_tpl = []
+        for k in range(self.M):
+            pre, mid, post = _entity("\0", "world", f"edge_{self.edge_ids[k]}", False,
+                                     {"lines": ["\1"]}).replace("\1", "\0").split("\0")
+            self._edge_tpl.append((pre, mid, post))
+        self._line_tpl = ('{"type":2,"pose":{"position":{"x":0,"y":0,"z":0},' + _IDQ + '},'
+                          '"thickness":' + _f(self._scale) + ',"scale_invariant":false,'
+                          '"points":[{"x":%r,"y":%r,"z":%r},{"x":%r,"y":%r,"z":%r}],'
+                          '"color":{"r":%r,"g":%r,"b":%r,"a":1},"colors":[],"indices":[]}')
+        return self._edge_tpl
+
     def scene(self, ts: str, S, rot_err, jumping) -> str:
-        P = np.asarray(S)[:, :3].tolist()
+        Pa = np.asarray(S)[:, :3]
+        P = Pa.tolist()
         ents = [pre + ts + post for pre, post in self._agents]
         errs = rot_err.tolist() if hasattr(rot_err, "tolist") else list(rot_err)
+        # every value finite: templates with %r (float.__repr__, the bytes of _f); else _f's
+        # replacement of a non-finite value by 0.0 on the path below
+        fast = bool(np.isfinite(Pa).all())
+        if fast:
+            etpl = getattr(self, "_edge_tpl", None) or self._edge_templates()
+            ltpl = self._line_tpl
         for k, (a, b) in enumerate(self.edges):
             pi, pj = P[a - 1], P[b - 1]
+            if fast and not jumping[k]:
+                pre, mid, post = etpl[k]
+                x = error_color(errs[k])
+                ents.append(pre + ts + mid + ltpl % (pi[0], pi[1], pi[2], pj[0], pj[1], pj[2],
+                                                     x[0], x[1], x[2]) + post)
+                continue
             parts = {"lines": [self.edge_line(k, pi, pj, errs[k], bool(jumping[k]))]}
             if jumping[k]:
                 mid = [(x + y) / 2 for x, y in zip(pi, pj)]
@@ -153,13 +183,18 @@ class SceneBuilder:
     def trails(self, ts: str, S, quat, keep: bool = True) -> list[str]:
         """One PosesInFrame per agent: the kept poses (at most trail_len) and the current one,
         which is kept too when ``keep`` (the trail is thinned to the caller's trail rate)."""
-        P = np.asarray(S)[:, :3].tolist()
-        Q = np.asarray(quat).tolist()
+        Pa, Qa = np.asarray(S)[:, :3], np.asarray(quat)
+        P, Q = Pa.tolist(), Qa.tolist()
         out = []
         n = self.trail_len
+        fast = bool(np.isfinite(Pa).all() and np.isfinite(Qa).all())   # %r is _f's bytes then
         for p, q, tr in zip(P, Q, self._trail):
-            cur = (f'{{"position":{{"x":{_f(p[0])},"y":{_f(p[1])},"z":{_f(p[2])}}},'
-                   f'"orientation":{{"x":{_f(q[0])},"y":{_f(q[1])},"z":{_f(q[2])},"w":{_f(q[3])}}}}}')
+            if fast:
+                cur = _POSE_TPL % (p[0], p[1], p[2], q[0], q[1], q[2], q[3])
+            else:
+                cur = (f'{{"position":{{"x":{_f(p[0])},"y":{_f(p[1])},"z":{_f(p[2])}}},'
+                       f'"orientation":{{"x":{_f(q[0])},"y":{_f(q[1])},"z":{_f(q[2])},'
+                       f'"w":{_f(q[3])}}}}}')
             if keep:
                 tr.append(cur)
                 if len(tr) > n:

@@ -153,6 +153,17 @@ _dumps = json.dumps
 _FMT = float.__repr__
 
 
+class _MessageIndex(MessageIndex):
+    """mcap's MessageIndex record, written with one pack for the whole record instead of two
+    calls per entry (a chunk of 1000 trail channels has 1000 of them): the same bytes."""
+
+    def write(self, stream):
+        n = 16 * len(self.records)
+        stream.write(struct.pack("<BQHI", 0x07, 6 + n, self.channel_id, n))
+        if n:
+            stream.write(np.asarray(self.records, dtype="<u8").tobytes())
+
+
 class _MessageAppender:
     """``add(channel_id, log_time, data, sequence)``: what ``Writer.add_message(channel_id,
     log_time, data, log_time, sequence)`` does, the same bytes in the same file, at ~1/10 of the
@@ -206,7 +217,7 @@ class _MessageAppender:
         buf = cb.record_writer._buffer   # a new buffer after every chunk
         idx = cb.message_indices.get(channel_id)
         if not idx:
-            idx = cb.message_indices[channel_id] = MessageIndex(channel_id=channel_id, records=[])
+            idx = cb.message_indices[channel_id] = _MessageIndex(channel_id=channel_id, records=[])
         idx.records.append((log_time, buf.tell()))
         cb.num_messages += 1
         buf.write(self._HDR.pack(0x05, 22 + len(data), channel_id, sequence, log_time, log_time))
