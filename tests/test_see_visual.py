@@ -249,3 +249,39 @@ def test_animate_mp4_without_ffmpeg_names_it(runs, tmp_path, monkeypatch, capsys
     assert main(["animate", str(runs["hybrid"][0]), "-o", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "ffmpeg" in err[0] and not out.exists()
+
+
+def test_scene_and_trails_carry_the_exact_values_and_zero_for_non_finite():
+    """SceneBuilder's two encoders (templates when every value is finite, per value otherwise):
+    the decoded lines and poses are the input floats exactly, the colours `error_color`'s, and
+    a non-finite coordinate is written as 0.0 (JSON has no NaN) without touching the others."""
+    rng = np.random.default_rng(5)
+    N = 30
+    edges = [(i + 1, int(rng.integers(1, i + 1))) for i in range(1, N)]
+    J, m = np.tile(np.diag([0.04, 0.05, 0.08]), (N, 1, 1)), np.ones(N)
+    b = fg.SceneBuilder(edges, J, m, trail_len=3)
+    for k, bad in enumerate((False, False, True, False)):
+        S = rng.standard_normal((N, 18)) * 10.0 ** rng.integers(-6, 6, (N, 1))
+        q = rng.standard_normal((N, 4))
+        if bad:
+            S[3, 1] = np.nan
+            q[7, 2] = np.inf
+        err = np.abs(rng.standard_normal(N - 1)) * 10.0 ** rng.integers(-12, 1, N - 1)
+        jump = rng.random(N - 1) < 0.2
+        ts = f'{{"sec":{k},"nsec":0}}'
+        P = np.where(np.isfinite(S[:, :3]), S[:, :3], 0.0)
+        Q = np.where(np.isfinite(q), q, 0.0)
+        scene = json.loads(b.scene(ts, S, err, jump))
+        lines = {e["id"]: e["lines"][0] for e in scene["entities"] if e["id"].startswith("edge_")}
+        assert len(lines) == N - 1
+        for kk, (i, j) in enumerate(edges):
+            ln = lines[f"edge_{kk + 1}"]
+            pts = [[p["x"], p["y"], p["z"]] for p in ln["points"]]
+            assert pts == [P[i - 1].tolist(), P[j - 1].tolist()]
+            rgb = (1.0, 1.0, 1.0) if jump[kk] else fg.error_color(err[kk])
+            assert (ln["color"]["r"], ln["color"]["g"], ln["color"]["b"]) == rgb
+        trails = [json.loads(t) for t in b.trails(ts, S, q)]
+        for i, tr in enumerate(trails):
+            cur = tr["poses"][-1]
+            assert [cur["position"][a] for a in "xyz"] == P[i].tolist()
+            assert [cur["orientation"][a] for a in "xyzw"] == Q[i].tolist()
