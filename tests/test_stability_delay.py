@@ -119,6 +119,18 @@ def test_delay_radius_dense_equals_arpack(monkeypatch):
         assert abs(dense_r - arpack_r) < 1e-10, (d, dense_r, arpack_r)
 
 
+@pytest.mark.parametrize("sets", [["gains.k_X=30", "gains.k_e=1"], ["gains.k_X=20"],
+                                  ["gains.k_X=30", "gains.k_e=1", "simulation.step=0.002"]])
+def test_secant_search_finds_the_bisection_margin(sets):
+    """`_probe`'s secant narrows the bracket to the same margin (and radii) as bisection."""
+    sc = load_scenario(HIL, sets)
+    lin = Linearisation(sc, True, force_sparse=True)
+    a = delay_margin(sc, lin=lin)
+    b = delay_margin(sc, lin=lin, secant=False)
+    assert a["delay_margin_steps"] == b["delay_margin_steps"] and a["delay_margin_steps"] >= 2
+    assert a["rho_at_margin"] == b["rho_at_margin"] and a["rho_beyond"] == b["rho_beyond"]
+
+
 def test_steps_of_delay():
     assert steps_of_delay(0.0, 0.004) == 0
     assert steps_of_delay(0.004, 0.004) == 1        # exactly one step, despite rounding

@@ -163,11 +163,25 @@ def delay_radius(lin: Linearisation, h: float, d: int, loop=None) -> float:
     return float(np.abs(lam).max())
 
 
+def _probe(lo: int, hi: int, r_lo: float, r_hi: float, secant: bool) -> int:
+    """The next d to try inside the bracket lo < d < hi (ρ(lo) < 1 ≤ ρ(hi)): where the secant
+    through the two ends crosses 1, rounded up (ρ(d) bends upwards, so the secant's crossing
+    lies at or below the true one), or the midpoint. Either way the bracket shrinks, and with
+    one crossing the margin found is the same; the secant needs fewer of the large-d
+    eigenproblems (hil_6uav: 22, 24, 25 after the bracket 16–32 instead of 24, 28, 26, 25)."""
+    if secant and r_hi > r_lo:
+        mid = int(math.ceil(lo + (1.0 - r_lo) * (hi - lo) / (r_hi - r_lo) - 1e-9))
+    else:
+        mid = (lo + hi) // 2
+    return min(max(mid, lo + 1), hi - 1)
+
+
 def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: int = 1024,
-                 lin: Linearisation | None = None) -> dict:
+                 lin: Linearisation | None = None, secant: bool = True) -> dict:
     """The largest d with ρ(d) < 1 and ρ(d + 1) ≥ 1, found by doubling d from 0 until the loop
-    is unstable and bisecting the last bracket (this assumes that ρ(d) crosses 1 once, which
-    is what we observed: ρ(d) increases with d on every case we scanned d by d).
+    is unstable and then narrowing the last bracket (`_probe`: by the secant, or by bisection
+    with ``secant=False``). This assumes that ρ(d) crosses 1 once, which is what we observed:
+    ρ(d) increases with d on every case we scanned d by d.
 
     Returns {"delay_margin_steps", "delay_margin_s", "rho_at_margin", "rho_beyond",
     "delay_method"}; steps = −1 when the loop is unstable even without delay, and None when
@@ -198,7 +212,7 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
                     "delay_method": f"stable for every delay up to {lo} steps ({lo * h:g} s) "
                                     f"tried; " + _method(n, lo)}
     while hi - lo > 1:
-        mid = (lo + hi) // 2
+        mid = _probe(lo, hi, r(lo), r(hi), secant)
         if r(mid) < 1.0:
             lo = mid
         else:
