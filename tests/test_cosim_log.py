@@ -198,3 +198,19 @@ def test_message_appender_writes_the_bytes_of_mcaps_writer(chunking):
     assert st.message_count == len(msgs)
     assert st.message_start_time == min(m[1] for m in msgs)
     assert [m.sequence for _, _, m in r.iter_messages(log_time_order=False)] == [m[3] for m in msgs]
+
+
+def test_message_appender_falls_back_when_not_proven(monkeypatch):
+    """The fast path is used only after `_proven` wrote the same bytes both ways; otherwise the
+    appender is mcap's own add_message."""
+    import io
+
+    from mcap.writer import Writer
+
+    from cosim.log import mcap as mlog
+
+    assert mlog._proven() is True          # on the mcap installed here
+    monkeypatch.setattr(mlog, "_PROOF", [False])
+    w = Writer(io.BytesIO())
+    app = mlog._MessageAppender(w)
+    assert app.add == app._slow
