@@ -40,11 +40,11 @@ import numpy as np
 from controller import AgentStepper, JumpEvent, LawParameters, layout
 from controller.errors import Se3SyncError
 from controller.kernels import metrics, network_U, relative_pose
-from cosim.registry import AGENT_LAWS
 from cosim import signals
 from cosim.log.mcap import McapLogger
 from cosim.master import Master
 from cosim.network import parse_network
+from cosim.registry import AGENT_LAWS
 from cosim.run import finish_summary
 from cosim.scenario import restrict
 
