@@ -131,6 +131,31 @@ def test_secant_search_finds_the_bisection_margin(sets):
     assert a["rho_at_margin"] == b["rho_at_margin"] and a["rho_beyond"] == b["rho_beyond"]
 
 
+def test_ten_agent_tree_radius_equals_the_plain_companion_spectrum():
+    """A 10-agent random tree (hil_6uav's bodies and gains): `delay_radius` at d = 6 equals the
+    largest eigenvalue modulus of the plain companion matrix on (s(n), …, s(n−d)) once the six
+    rigid-motion eigenvalues 1 are set aside, computed here with LAPACK on the whole matrix."""
+    import random
+
+    from cosim.analysis import delay_margin as dm
+
+    rnd = random.Random(4)
+    edges = ", ".join(f"[{i + 1}, {rnd.randrange(1, i + 1)}]" for i in range(1, 10))
+    sc = load_scenario(HIL, ["agents.count=10", f"graph.edges=[{edges}]"])
+    lin = Linearisation(sc, True, force_sparse=True)
+    P0, Pd = (m.toarray() for m in delayed_loop(lin, sc.step))
+    n, d = P0.shape[0], 6
+    comp = np.zeros(((d + 1) * n, (d + 1) * n))
+    comp[:n, :n], comp[:n, d * n:] = P0, Pd
+    comp[n:, :-n] = np.eye(d * n)
+    lam = np.linalg.eigvals(comp)
+    mods = np.sort(np.abs(lam[np.abs(lam - 1.0) > 1e-6]))[::-1]
+    assert np.sum(np.abs(lam - 1.0) <= 1e-6) == 6
+    r = dm.delay_radius(lin, sc.step, d)
+    assert abs(r - mods[0]) < 1e-9, (r, mods[:3])
+    assert (lin.N, n + d * dm.delayed_parts(lin, sc.step)[2].shape[0]) == (10, 129 + 6 * 69)
+
+
 def test_steps_of_delay():
     assert steps_of_delay(0.0, 0.004) == 0
     assert steps_of_delay(0.004, 0.004) == 1        # exactly one step, despite rounding

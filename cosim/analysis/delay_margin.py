@@ -28,11 +28,17 @@ from controller.errors import Se3SyncError
 
 from .stability_sparse import Linearisation
 
-# Dense eigvals costs O(m³) in the augmented size m; ARPACK converges slowly here because the
-# dominant eigenvalues cluster near 1 (slow modes at a small step). hil_6uav on 2 cores: dense
-# 0.37 / 0.80 / 1.38 s at d = 16 / 24 / 32 (m = 733 / 1061 / 1389) against ARPACK's 1.95 / 0.93 /
-# 1.08 s (2.57 s at d = 31), the same radius to 1e-13; so dense up to this size.
-DENSE_MAX = 1500
+# Dense eigvals costs O(m³) in the augmented size m. ARPACK is unreliable here: the dominant
+# eigenvalues cluster near 1 (slow modes at a small step), and asked for the 6 largest it can
+# return converged Ritz values that are not the largest. On a 16-agent random tree (hil_6uav's
+# gains, h = 4 ms) it gave ρ = 0.998905 at d = 16 and 0.999483 at d = 20 where dense eigvals gives
+# 0.999821 and 0.999845 (k = 12 found them, k = 16 with tol 1e-9 missed one again, 1–15 s each).
+# A missed eigenvalue can report an unstable delay as stable, so dense is used as far as it is
+# affordable (2 cores: 0.4 / 1.4 / 2.3 / 7 / 17 s at m = 733 / 1389 / 1983 / 2871 / 3759), which
+# covers the margins `check` computes (up to 12 agents); above it ARPACK with k = 12, and the
+# report says so.
+DENSE_MAX = 4000
+ARPACK_K = 12
 
 __all__ = ["delayed_loop", "delayed_parts", "augmented", "delay_radius", "delay_margin",
            "steps_of_delay"]
@@ -156,8 +162,8 @@ def delay_radius(lin: Linearisation, h: float, d: int, loop=None) -> float:
 
     op = sla.LinearOperator((m, m), matvec=mv, dtype=float)
     try:
-        lam = sla.eigs(op, k=6, which="LM", tol=1e-12, ncv=60, maxiter=20000,
-                       return_eigenvectors=False)
+        lam = sla.eigs(op, k=min(ARPACK_K, m - 2), which="LM", tol=1e-12, ncv=min(80, m - 1),
+                       maxiter=20000, return_eigenvectors=False)
     except sla.ArpackNoConvergence as exc:
         raise Se3SyncError(f"delay margin: ARPACK did not converge at d = {d} ({exc})") from None
     return float(np.abs(lam).max())
@@ -223,6 +229,7 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
 
 def _method(n, d):
     size = n[0] + d * n[1]
-    how = "dense eigvals" if size <= DENSE_MAX else "ARPACK (largest modulus)"
+    how = "dense eigvals" if size <= DENSE_MAX else \
+        "ARPACK (largest modulus; on this clustered spectrum it can miss the largest)"
     return (f"augmented state (the {n[0]}-state loop and d past copies of the {n[1]} delayed "
             f"inputs), linearised at consensus, rigid motion projected out, {how}")

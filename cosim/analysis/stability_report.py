@@ -11,9 +11,11 @@ from .delay_margin import delay_margin
 
 # The delayed loop does not decouple by graph modes (agent i weighs its own fresh state by its
 # degree and its neighbours' delayed ones by the adjacency, and D and Adj do not commute), so
-# its augmented state has 12N + M + d(6N + M) entries; above this N, `check` skips it (under
-# load: hil_6uav 5 s, a 16-agent tree 21 s, as the eigenvalues cluster near the unit circle).
-DELAY_MAX_AGENTS = 16
+# its augmented state has 12N + M + d(6N + M) entries, and its radius needs dense eigenproblems
+# (`delay_margin.DENSE_MAX`: ARPACK misses eigenvalues in this clustered spectrum). Above this N,
+# `check` skips it: on 2 cores `check` takes 5 s on hil_6uav, 11 s on a 10-agent and 16 s on a
+# 12-agent random tree, but 50 s on a 16-agent one.
+DELAY_MAX_AGENTS = 12
 
 
 def check_extras(sc, st: dict, law, from_error=None) -> dict:
