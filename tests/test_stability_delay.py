@@ -88,15 +88,22 @@ def test_zero_delay_is_the_undelayed_loop():
     assert abs(augmented(*delayed_parts(lin, sc.step), 0) - sparse_loop(lin, sc.step)).max() < 1e-15
 
 
+def _plain_companion(lin, h, d):
+    """The companion matrix of s(n+1) = Φ₀s(n) + Φ_d s(n−d) on (s(n), …, s(n−d)), dense."""
+    P0, Pd = (m.toarray() for m in delayed_loop(lin, h))
+    n = P0.shape[0]
+    comp = np.zeros(((d + 1) * n, (d + 1) * n))
+    comp[:n, :n], comp[:n, d * n:] = P0, Pd
+    comp[n:, :-n] = np.eye(d * n)
+    return comp
+
+
 def test_reduced_history_has_the_companion_spectrum():
     """(s, w(n−1..n−d)) with w = C s against the plain companion matrix on (s(n), …, s(n−d))."""
     sc = load_scenario(HIL)
     lin = Linearisation(sc, True, force_sparse=True)
-    P0, Pd = (m.toarray() for m in delayed_loop(lin, sc.step))
-    n, d = P0.shape[0], 3
-    comp = np.zeros(((d + 1) * n, (d + 1) * n))
-    comp[:n, :n], comp[:n, d * n:] = P0, Pd
-    comp[n:, :-n] = np.eye(d * n)
+    d = 3
+    comp = _plain_companion(lin, sc.step, d)
     big = np.sort(np.abs(np.linalg.eigvals(comp)))[::-1]
     red = augmented(*delayed_parts(lin, sc.step), d).toarray()
     red = np.sort(np.abs(np.linalg.eigvals(red)))[::-1]
@@ -143,11 +150,9 @@ def test_ten_agent_tree_radius_equals_the_plain_companion_spectrum():
     edges = ", ".join(f"[{i + 1}, {rnd.randrange(1, i + 1)}]" for i in range(1, 10))
     sc = load_scenario(HIL, ["agents.count=10", f"graph.edges=[{edges}]"])
     lin = Linearisation(sc, True, force_sparse=True)
-    P0, Pd = (m.toarray() for m in delayed_loop(lin, sc.step))
-    n, d = P0.shape[0], 6
-    comp = np.zeros(((d + 1) * n, (d + 1) * n))
-    comp[:n, :n], comp[:n, d * n:] = P0, Pd
-    comp[n:, :-n] = np.eye(d * n)
+    d = 6
+    comp = _plain_companion(lin, sc.step, d)
+    n = comp.shape[0] // (d + 1)
     lam = np.linalg.eigvals(comp)
     mods = np.sort(np.abs(lam[np.abs(lam - 1.0) > 1e-6]))[::-1]
     assert np.sum(np.abs(lam - 1.0) <= 1e-6) == 6
