@@ -374,8 +374,7 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, sm
         if steps[0] == 0:
             master.u0 = smp_u.copy()
         for q, (V, ximax, r, p) in enumerate(out.tolist()):
-            master.samples.append({"t": steps[q] * h, "rot_err": r, "pos_err": p,
-                                   "xi_max": ximax, "theta": smp_theta[q].tolist(), "V": V})
+            master.samples.append(m.record(steps[q] * h, r, p, ximax, smp_theta[q], V))
     jstep, jedge, jbefore, jafter, jmu = (a[:njmp].tolist() for a in jb)
     for s, e, b, a, m in zip(jstep, jedge, jbefore, jafter, jmu):
         master.jumps.append({"t": s * h, "edge": e, "theta_before": b, "theta_after": a,

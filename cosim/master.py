@@ -56,12 +56,14 @@ class NetworkMetrics:
     def sample(self, t: float, S, theta) -> dict:
         """The summary's record {t, rot_err, pos_err, xi_max, theta, V}."""
         V, ximax = self.compute(S, theta)
-        return {"t": t,
-                "rot_err": float(self.rot.max()) if self.M else 0.0,
-                "pos_err": float(self.pos.max()) if self.M else 0.0,
-                "xi_max": float(ximax),
-                "theta": np.asarray(theta).tolist(),
-                "V": float(V)}
+        return self.record(t, float(self.rot.max()) if self.M else 0.0,
+                           float(self.pos.max()) if self.M else 0.0, float(ximax), theta, float(V))
+
+    @staticmethod
+    def record(t, rot_err, pos_err, xi_max, theta, V) -> dict:
+        """One summary sample, as `sample` and the compiled loop's samples write it."""
+        return {"t": t, "rot_err": rot_err, "pos_err": pos_err, "xi_max": xi_max,
+                "theta": np.asarray(theta).tolist(), "V": V}
 
 
 class Master:
