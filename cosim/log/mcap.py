@@ -201,6 +201,8 @@ class _MessageAppender:
 
     def add(self, channel_id, log_time, data, sequence):
         st, cb = self._st, self._cb
+        # the file's and the chunk's time bounds, as mcap's add_message and ChunkBuilder keep
+        # them; written out twice rather than through a helper: this runs once per message
         if st.message_count == 0:
             st.message_start_time = log_time
         elif log_time < st.message_start_time:
