@@ -179,7 +179,7 @@ def test_message_appender_writes_the_bytes_of_mcaps_writer(chunking):
         sid = w.register_schema(name="s", encoding="jsonschema", data=b"{}")
         ids = [w.register_channel(topic=f"/c{k}", message_encoding="json", schema_id=sid)
                for k in range(3)]
-        app = _MessageAppender(w)
+        app = _MessageAppender(w, level=3)   # mcap's zstd level: its bytes exactly
         assert (app.add != app._slow) == chunking   # the fast path needs mcap's chunk builder
         for ch, t, data, seq in msgs:
             if fast:
@@ -198,6 +198,60 @@ def test_message_appender_writes_the_bytes_of_mcaps_writer(chunking):
     assert st.message_count == len(msgs)
     assert st.message_start_time == min(m[1] for m in msgs)
     assert [m.sequence for _, _, m in r.iter_messages(log_time_order=False)] == [m[3] for m in msgs]
+
+
+def test_message_appender_chunks_at_its_own_zstd_level():
+    """At the logger's zstd level (1, not mcap's 3) the file differs only inside the chunks:
+    each chunk decompresses to the bytes of mcap's own chunk, with its CRC, indexes and
+    statistics, and mcap's reader (CRCs checked) returns every message."""
+    import io
+
+    import zstandard
+    from mcap.reader import make_reader
+    from mcap.records import Chunk as ChunkRecord
+    from mcap.stream_reader import StreamReader as SR
+    from mcap.writer import CompressionType, Writer
+
+    from cosim.log.mcap import ZSTD_LEVEL, _MessageAppender
+
+    assert ZSTD_LEVEL != 3
+    text = [json.dumps({"x": [float(v) for v in np.random.default_rng(s).standard_normal(40)]})
+            .encode() for s in range(600)]
+
+    def write(level):
+        buf = io.BytesIO()
+        w = Writer(buf, chunk_size=16 * 1024, compression=CompressionType.ZSTD)
+        w.start(profile="", library="test")
+        sid = w.register_schema(name="s", encoding="jsonschema", data=b"{}")
+        ids = [w.register_channel(topic=f"/c{k}", message_encoding="json", schema_id=sid)
+               for k in range(2)]
+        app = _MessageAppender(w, level=level)
+        for q, data in enumerate(text):
+            app.add(ids[q % 2], 1000 * q, data, q + 1)
+        w.finish()
+        return buf.getvalue()
+
+    mine, theirs = write(ZSTD_LEVEL), write(3)
+    assert mine != theirs
+
+    def chunks(b):
+        return [r for r in SR(io.BytesIO(b), skip_magic=False, emit_chunks=True).records
+                if isinstance(r, ChunkRecord)]
+
+    a, b = chunks(mine), chunks(theirs)
+    assert len(a) == len(b) > 5
+    for x, y in zip(a, b):
+        assert x.data != y.data
+        assert (zstandard.ZstdDecompressor().decompress(x.data, max_output_size=1 << 24)
+                == zstandard.ZstdDecompressor().decompress(y.data, max_output_size=1 << 24))
+        assert (x.uncompressed_crc, x.uncompressed_size, x.message_start_time) == \
+            (y.uncompressed_crc, y.uncompressed_size, y.message_start_time)
+    r = make_reader(io.BytesIO(mine), validate_crcs=True)
+    got = [(m.log_time, m.data) for _, _, m in r.iter_messages()]
+    assert got == [(1000 * q, d) for q, d in enumerate(text)]
+    summary = r.get_summary()
+    assert summary.statistics.chunk_count == len(a)
+    assert [c.compressed_size for c in summary.chunk_indexes] == [len(c.data) for c in a]
 
 
 def test_message_appender_falls_back_when_not_proven(monkeypatch):
