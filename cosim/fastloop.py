@@ -44,8 +44,12 @@ CALL_NAMES = ("fmi2GetReal", "fmi2SetReal", "fmi2DoStep")
 O_N, O_REC, O_JMP, O_STATUS, O_CALL, O_SAMPLED = range(6)
 FMI2_ERROR = 3
 JUMP_CAPACITY = 4096  # jumps a block can hold (at least M: one step's worth)
-TARGET_BLOCK_S = 0.1
-QUEUE_BYTES = 128 << 20  # record arrays that may wait for the log writer  # a block is cut shorter when MAX_BLOCK steps would take longer (Ctrl-C)
+TARGET_BLOCK_S = 0.1  # a block is cut shorter when MAX_BLOCK steps would take longer (Ctrl-C)
+# with a log, the first block is this short and the blocks double from there: the writer
+# thread encodes a block's records while the next block steps, so one long first block would
+# leave it idle until then (a 1000-agent run's whole first second)
+FIRST_LOGGED_BLOCK = 16
+QUEUE_BYTES = 128 << 20  # record arrays that may wait for the log writer
 
 
 @intrinsic
@@ -274,7 +278,7 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
     writer = None
     if logging:
         writer = _Writer(logger, 8 * (N * 28 + 5 * M) * ((MAX_BLOCK - 1) // dec + 1))
-    block = MAX_BLOCK
+    block = FIRST_LOGGED_BLOCK if logging else MAX_BLOCK
     k0 = int(plant._k)
     n = 0
     interrupted = timed_out = False
