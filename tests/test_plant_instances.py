@@ -220,3 +220,37 @@ def test_libcosimpy_reproduces_fmpy(tmp_path, fmu2):
     print("libcosim max |diff|", np.abs(got - expected).max())
     assert np.abs(got - expected).max() <= 1e-12, np.abs(got - expected).max()
     assert np.abs(expected).max() > 0.1
+
+
+def test_identity_reads_our_fmu_from_its_head_and_anything_else_through_fmpy(tmp_path,
+                                                                             monkeypatch):
+    """FleetFMU recognises the FMU `build` made for n bodies by the GUID at the head of its
+    modelDescription.xml (no full read); an FMU for another n, or one whose GUID is not ours,
+    is read by fmpy: a wrong body count is a one-line error, a foreign GUID is the one the file
+    declares."""
+    import zipfile
+
+    from plant_fmu import fast
+
+    ours = build.fmu_path(N)
+    calls = []
+    real = fast.read_model_description
+    monkeypatch.setattr(fast, "read_model_description",
+                        lambda p, *a, **k: calls.append(p) or real(p, *a, **k))
+    assert fast._identity(ours, N) == (build.guid(N), build.MODEL_IDENTIFIER)
+    assert calls == []
+    with pytest.raises(fast.Se3SyncError, match=rf"has {N} bodies, expected {N + 1}$"):
+        fast._identity(ours, N + 1)
+    assert len(calls) == 1
+    other = tmp_path / "other.fmu"
+    with zipfile.ZipFile(ours) as src, zipfile.ZipFile(other, "w") as dst:
+        for item in src.infolist():
+            data = src.read(item)
+            if item.filename == "modelDescription.xml":
+                data = data.replace(build.guid(N).encode(), b"{00000000-0000-0000-0000-000000000001}")
+            dst.writestr(item, data)
+    assert fast._identity(other, N) == ("{00000000-0000-0000-0000-000000000001}",
+                                        build.MODEL_IDENTIFIER)
+    assert len(calls) == 2
+    with pytest.raises(FMUError):   # the binary checks the GUID it is instantiated with
+        FleetFMU(N, fmu_path=other)
