@@ -184,26 +184,29 @@ class SceneBuilder:
         """One PosesInFrame per agent: the kept poses (at most trail_len) and the current one,
         which is kept too when ``keep`` (the trail is thinned to the caller's trail rate)."""
         Pa, Qa = np.asarray(S)[:, :3], np.asarray(quat)
-        P, Q = Pa.tolist(), Qa.tolist()
-        out = []
         n = self.trail_len
-        fast = bool(np.isfinite(Pa).all() and np.isfinite(Qa).all())   # %r is _f's bytes then
-        for p, q, tr in zip(P, Q, self._trail):
-            if fast:
-                cur = _POSE_TPL % (p[0], p[1], p[2], q[0], q[1], q[2], q[3])
-            else:
-                cur = (f'{{"position":{{"x":{_f(p[0])},"y":{_f(p[1])},"z":{_f(p[2])}}},'
-                       f'"orientation":{{"x":{_f(q[0])},"y":{_f(q[1])},"z":{_f(q[2])},'
-                       f'"w":{_f(q[3])}}}}}')
-            if keep:
+        if bool(np.isfinite(Pa).all() and np.isfinite(Qa).all()):
+            # every pose in one format call (%r is _f's bytes for finite values), split after
+            tpl = getattr(self, "_poses_tpl", None)
+            if tpl is None:
+                tpl = self._poses_tpl = "\0".join([_POSE_TPL] * self.N)
+            curs = (tpl % tuple(np.concatenate((Pa, Qa), axis=1).ravel().tolist())).split("\0")
+        else:
+            curs = [f'{{"position":{{"x":{_f(p[0])},"y":{_f(p[1])},"z":{_f(p[2])}}},'
+                    f'"orientation":{{"x":{_f(q[0])},"y":{_f(q[1])},"z":{_f(q[2])},'
+                    f'"w":{_f(q[3])}}}}}' for p, q in zip(Pa.tolist(), Qa.tolist())]
+        joined = getattr(self, "_joined", None)
+        if joined is None:  # each trail's kept poses, joined once per kept pose, not per message
+            joined = self._joined = [",".join(tr) for tr in self._trail]
+        pre = f'{{"timestamp":{ts},"frame_id":"world","poses":['
+        if keep:
+            for k, (tr, cur) in enumerate(zip(self._trail, curs)):
                 tr.append(cur)
                 if len(tr) > n:
                     del tr[0]
-                poses = ",".join(tr)
-            else:
-                poses = ",".join(tr + [cur])
-            out.append(f'{{"timestamp":{ts},"frame_id":"world","poses":[{poses}]}}')
-        return out
+                joined[k] = ",".join(tr)
+            return [pre + j + "]}" for j in joined]
+        return [pre + (j + "," + cur if j else cur) + "]}" for j, cur in zip(joined, curs)]
 
 
 # ------------------------------------------------------------------ layout
