@@ -268,3 +268,30 @@ def test_message_appender_falls_back_when_not_proven(monkeypatch):
     w = Writer(io.BytesIO())
     app = mlog._MessageAppender(w)
     assert app.add == app._slow
+
+
+@pytest.mark.parametrize("discard", [False, True])
+def test_logger_close_stops_its_compression_thread(tmp_path, discard):
+    """Chunks are compressed on a thread of the logger's own: closing the log, or discarding
+    it, ends that thread; a finished log holds every message, a discarded one is gone."""
+    import threading
+
+    def zstd_threads():
+        return [t for t in threading.enumerate() if t.name.startswith("se3sync-zstd")]
+
+    before = len(zstd_threads())
+    sc = load_scenario(PAPER, ["simulation.duration=0.2"])
+    path = tmp_path / "c.mcap"
+    lg = McapLogger(path, sc, chunk_size=4096)
+    rng = np.random.default_rng(3)
+    N, M = sc.graph.n, sc.graph.M
+    for r in range(40):
+        lg.record(10_000_000 * r, rng.standard_normal((N, 18)), rng.standard_normal((N, 6)),
+                  *rng.random((2, M)), np.zeros(M, bool), *rng.random((3, M)),
+                  rng.standard_normal((N, 4)), 1.0, 0.5)
+    assert len(zstd_threads()) == before + 1
+    lg.close(discard=discard)
+    assert len(zstd_threads()) == before
+    assert path.exists() != discard
+    if not discard:
+        assert len(read_log(path)["messages"]["/lyapunov"]) == 40

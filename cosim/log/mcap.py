@@ -212,43 +212,91 @@ class _MessageAppender:
     def _own_chunks(self, level):
         """From now on the writer's chunks are finished by `_finalize_chunk` at zstd ``level``
         (an instance attribute shadows the name-mangled method: add_message, finish and flush
-        all call it)."""
+        all call it), and compressed on a thread of their own: a chunk is compressed while the
+        messages of the next one are encoded, and written when that one is finished (or by
+        finish/flush). The file's bytes do not depend on the thread's timing: chunk k is always
+        written by the call that finishes chunk k + 1."""
         import zstandard
+        from concurrent.futures import ThreadPoolExecutor
 
-        self._zstd = zstandard.ZstdCompressor(level=level).compress
-        self._w._Writer__finalize_chunk = self._finalize = self._finalize_chunk
+        w = self._w
+        zc = zstandard.ZstdCompressor(level=level)
+        crcs = bool(w._Writer__enable_crcs)
+
+        def pack(data):   # zstd and zlib release the GIL on large buffers
+            return zc.compress(data), (zlib.crc32(data) if crcs else 0)
+
+        self._pack = pack
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="se3sync-zstd")
+        self._pending = None
+        finish, flush = w.finish, w.flush
+
+        def finish_all():
+            self._finalize_chunk()
+            self._drain()
+            self._pool.shutdown(wait=True)
+            finish()
+
+        def flush_all():
+            self._finalize_chunk()
+            self._drain()
+            flush()
+
+        w._Writer__finalize_chunk = self._finalize = self._finalize_chunk
+        w.finish, w.flush = finish_all, flush_all
+
+    def close(self):
+        """Stops the compression thread of a writer that will not be finished (a discarded
+        log); a finished writer has stopped it already."""
+        pool = getattr(self, "_pool", None)
+        if pool is not None:
+            self._pending = None
+            pool.shutdown(wait=True)
 
     def _finalize_chunk(self):
-        """mcap's Writer.__finalize_chunk (mcap 1.x), step for step, with our compressor."""
-        w, cb = self._w, self._cb
+        """mcap's Writer.__finalize_chunk (mcap 1.x): the chunk's bytes and indexes are taken
+        here and the chunk builder reset; compressing and writing are `_write`'s."""
+        cb = self._cb
         if cb.num_messages == 0:
             return
         self._st.chunk_count += 1
         data = cb.end()
-        packed = self._zstd(data)
-        chunk = Chunk(compression="zstd", data=packed, message_start_time=cb.message_start_time,
-                      message_end_time=cb.message_end_time,
-                      uncompressed_crc=zlib.crc32(data) if w._Writer__enable_crcs else 0,
-                      uncompressed_size=len(data))
+        job = (self._pool.submit(self._pack, data), len(data), cb.message_start_time,
+               cb.message_end_time, list(cb.message_indices.items()))
+        cb.reset()
+        prev, self._pending = self._pending, job
+        if prev is not None:
+            self._write(prev)
+
+    def _drain(self):
+        prev, self._pending = self._pending, None
+        if prev is not None:
+            self._write(prev)
+
+    def _write(self, job):
+        """The chunk record, its message indexes and its chunk index, as mcap writes them."""
+        w = self._w
+        fut, size, t0, t1, indices = job
+        packed, crc = fut.result()
+        chunk = Chunk(compression="zstd", data=packed, message_start_time=t0,
+                      message_end_time=t1, uncompressed_crc=crc, uncompressed_size=size)
         flush, rb = w._Writer__flush, w._Writer__record_builder
         flush()
         start = w._Writer__stream.tell()
         chunk.write(rb)
-        index = ChunkIndex(message_start_time=chunk.message_start_time,
-                           message_end_time=chunk.message_end_time, chunk_start_offset=start,
+        index = ChunkIndex(message_start_time=t0, message_end_time=t1, chunk_start_offset=start,
                            chunk_length=rb.count, message_index_offsets={},
                            message_index_length=0, compression="zstd",
-                           compressed_size=len(packed), uncompressed_size=len(data))
+                           compressed_size=len(packed), uncompressed_size=size)
         flush()
         index_start = w._Writer__stream.tell()
         if w._Writer__index_types & IndexType.MESSAGE:
-            for cid, idx in cb.message_indices.items():
+            for cid, idx in indices:
                 index.message_index_offsets[cid] = index_start + rb.count
                 idx.write(rb)
         index.message_index_length = rb.count
         flush()
         w._Writer__chunk_indices.append(index)
-        cb.reset()
 
     def _slow(self, channel_id, log_time, data, sequence):
         self._w.add_message(channel_id, log_time, data, log_time, sequence)
@@ -427,7 +475,8 @@ class McapLogger:
                         for i in aid]
         self._edge_pre = [f'{{"edge":{eid[k]},"positive":{aid[a - 1]},"negative":{aid[b - 1]},'
                           for k, (a, b) in enumerate(scenario.graph.edge_list)]
-        self._add = _MessageAppender(w).add
+        self._app = _MessageAppender(w)
+        self._add = self._app.add
         self.counts = {}
         self.orjson = True  # record_fast may use orjson (False: the bytes of `record`)
         self._scene_dt = round(1e9 / scene_rate) if scene_rate and scene_rate > 0 else 0
@@ -693,6 +742,7 @@ class McapLogger:
             if not discard:
                 self._w.finish()
         finally:
+            self._app.close()
             self._f.close()
         if discard:
             try:
