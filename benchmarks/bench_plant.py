@@ -1,7 +1,9 @@
 """Benchmark of the plant FMU.  Run: /work/venv/bin/python benchmarks/bench_plant.py [--quick]
 
 Prints a table:
-  * C cost per body per internal step (1000-body fleet, one big communication step);
+  * C cost per body per internal step (1000-body fleet, one big communication step), with
+    bodies stepped two at a time (the default) and one at a time (-DSE3SYNC_NO_PAIRS) in the
+    same run;
   * cost per communication step (h = 1e-4 = one internal step) of a 6-body FMU:
     fmpy's high-level API (setReal(36) + doStep + getReal(108)) versus the FleetFMU fast path;
   * a 1000-body fleet per communication step (fast path).
@@ -10,7 +12,9 @@ Times are the best of several repeats (wall clock, perf_counter).
 from __future__ import annotations
 
 import argparse
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -27,9 +31,9 @@ def best_of(fn, number, repeat=5):
     return best
 
 
-def fleet(n):
+def fleet(n, fmu_path=None):
     rng = np.random.default_rng(0)
-    f = FleetFMU(n)
+    f = FleetFMU(n, fmu_path=fmu_path)
     J = np.array([np.diag(rng.uniform(1.0, 1.4, 3)) + 0.05 * (np.ones((3, 3)) - np.eye(3)) for _ in range(n)])
     f.set_parameters(J=J, xi0=rng.normal(size=(n, 6)), gravity=[0.0, 0.0, -9.81])
     f.initialize()
@@ -45,11 +49,24 @@ def main(argv=None):
 
     # 1. C cost per body per internal step
     n_big = 1000
-    f = fleet(n_big)
     steps = int(1000 * k)
-    t = best_of(lambda m: [f.do_step(0.0, steps * 1e-4) for _ in range(m)], 1, repeat=3)
-    rows.append(("C integrator, per body per internal step (1000 bodies, g != 0)", t / (n_big * steps)))
-    f.close()
+    with tempfile.TemporaryDirectory() as tmp:
+        flags = build.CFLAGS
+        build.CFLAGS = flags + ("-DSE3SYNC_NO_PAIRS",)
+        try:
+            single = build.build_fmu(n_big, Path(tmp) / "single.fmu")
+        finally:
+            build.CFLAGS = flags
+        per = {}
+        for name, path in (("two bodies at a time", None), ("one body at a time", single)):
+            f = fleet(n_big, path)
+            t = best_of(lambda m: [f.do_step(0.0, steps * 1e-4) for _ in range(m)], 1, repeat=3)
+            per[name] = t / (n_big * steps)
+            rows.append((f"C integrator, per body per internal step (1000 bodies, g != 0), {name}",
+                         per[name]))
+            f.close()
+    print(f"bodies two at a time: {per['one body at a time'] / per['two bodies at a time']:.2f}x "
+          f"faster than one at a time")
 
     # 2. 6 bodies, one internal step per communication step
     n = 6

@@ -32,15 +32,15 @@ from . import layout
 MODEL_IDENTIFIER = "se3sync_plant"
 C_DIR = Path(__file__).resolve().parent / "c"
 C_SOURCES = ("model.c", "fmi2.c")
-C_HEADERS = ("model.h", "fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
+C_HEADERS = ("model.h", "rkmk4.h", "fmi2Functions.h", "fmi2FunctionTypes.h", "fmi2TypesPlatform.h")
 C_SOURCES_FMI3 = ("model.c", "fmi3.c")
-C_HEADERS_FMI3 = ("model.h", "fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h")
+C_HEADERS_FMI3 = ("model.h", "rkmk4.h", "fmi3Functions.h", "fmi3FunctionTypes.h", "fmi3PlatformTypes.h")
 # the version-independent part of both FMI layers: #included by fmi2.c and fmi3.c (so it is
 # compiled as part of them and <SourceFiles> stays model.c + fmiN.c), shipped in sources/
 C_COMMON = ("fmu_common.h", "fmu_common.c")
 FMI_VERSIONS = (2, 3)
 VR_TIME = 0  # FMI 3.0 only: the independent variable
-CFLAGS = ("-O2", "-fPIC", "-shared", "-ffp-contract=off")
+CFLAGS = ("-O3", "-fPIC", "-shared", "-ffp-contract=off")
 
 UNITS = {  # name: SI base-unit exponents
     "kg": dict(kg=1),

@@ -24,27 +24,6 @@
 
 static int is_finite(double x) { return isfinite(x); }
 
-static ALWAYS_INLINE void cross(const double a[3], const double b[3], double c[3])
-{
-    c[0] = a[1] * b[2] - a[2] * b[1];
-    c[1] = a[2] * b[0] - a[0] * b[2];
-    c[2] = a[0] * b[1] - a[1] * b[0];
-}
-
-static ALWAYS_INLINE void mat3_vec(const double M[9], const double x[3], double y[3])
-{
-    y[0] = M[0] * x[0] + M[1] * x[1] + M[2] * x[2];
-    y[1] = M[3] * x[0] + M[4] * x[1] + M[5] * x[2];
-    y[2] = M[6] * x[0] + M[7] * x[1] + M[8] * x[2];
-}
-
-static ALWAYS_INLINE void mat3T_vec(const double M[9], const double x[3], double y[3])
-{
-    y[0] = M[0] * x[0] + M[3] * x[1] + M[6] * x[2];
-    y[1] = M[1] * x[0] + M[4] * x[1] + M[7] * x[2];
-    y[2] = M[2] * x[0] + M[5] * x[1] + M[8] * x[2];
-}
-
 /* unit quaternion (w, x, y, z) -> rotation matrix, row-major */
 static void R_from_quat(const double q[4], double R[9])
 {
@@ -452,14 +431,20 @@ void model_preview(ModelData *d)
  * with Taylor series (through t^6, truncation < 1e-22 relative) for t < 1e-2, where the
  * closed forms lose digits.
  */
+/* the series, for a double or a vector of doubles (multiplications by constant reciprocals:
+ * no divisions in the hot path) */
+#define EXP_SERIES(T, th2, A, B, C)                                                                      \
+    do {                                                                                              \
+        const T c_ = 1.0 - (th2) * (1.0 / 20.0) * (1.0 - (th2) * (1.0 / 42.0) * (1.0 - (th2) * (1.0 / 72.0))); \
+        *(A) = 1.0 - (th2) * (1.0 / 6.0) * c_;                                                         \
+        *(B) = 0.5 * (1.0 - (th2) * (1.0 / 12.0) * (1.0 - (th2) * (1.0 / 30.0) * (1.0 - (th2) * (1.0 / 56.0)))); \
+        *(C) = c_ * (1.0 / 6.0);                                                                       \
+    } while (0)
+
 static ALWAYS_INLINE void exp_coeffs(double th2, double *A, double *B, double *C)
 {
     if (th2 < 1e-4) {
-        /* multiplications by constant reciprocals: no divisions in the hot path */
-        const double c = 1.0 - th2 * (1.0 / 20.0) * (1.0 - th2 * (1.0 / 42.0) * (1.0 - th2 * (1.0 / 72.0)));
-        *A = 1.0 - th2 * (1.0 / 6.0) * c;
-        *B = 0.5 * (1.0 - th2 * (1.0 / 12.0) * (1.0 - th2 * (1.0 / 30.0) * (1.0 - th2 * (1.0 / 56.0))));
-        *C = c * (1.0 / 6.0);
+        EXP_SERIES(double, th2, A, B, C);
     } else {
         const double th = sqrt(th2), s = sin(th), hs = sin(0.5 * th);
         *A = s / th;
@@ -468,173 +453,85 @@ static ALWAYS_INLINE void exp_coeffs(double th2, double *A, double *B, double *C
     }
 }
 
-/* body-frame acceleration a = I^{-1}(ad_xi^T I xi + u) + [0; R^T g] */
-static ALWAYS_INLINE void accel(const Body *B, const double xi[6], const double *gb, double a[6])
+/* one body at a time */
+#define REAL double
+#define SFX(name) name##_1
+#define BODYT Body
+#define EXPC exp_coeffs
+#include "rkmk4.h"
+#undef REAL
+#undef SFX
+#undef BODYT
+#undef EXPC
+
+#if (defined(__GNUC__) || defined(__clang__)) && !defined(SE3SYNC_NO_PAIRS)
+#define SE3SYNC_PAIRS 1
+/* two bodies at a time, one per lane (SSE2 on x86-64, NEON on arm64) */
+typedef double v2d __attribute__((vector_size(16)));
+typedef struct {
+    v2d J[9], Jinv[9], minv, u[6];
+} BodyPair;
+
+/* exp_coeffs lane by lane: the series in vector arithmetic when both lanes take it, else each
+ * lane through the scalar function (the same bits either way) */
+static ALWAYS_INLINE void exp_coeffs_2(v2d th2, v2d *A, v2d *B, v2d *C)
 {
-    const double *w = xi, *v = xi + 3;
-    double Jw[3], t[3], vw[3];
-    const double im = B->minv;
-    mat3_vec(B->J, w, Jw);
-    cross(Jw, w, t);
-    t[0] += B->u[0];
-    t[1] += B->u[1];
-    t[2] += B->u[2];
-    mat3_vec(B->Jinv, t, a);
-    cross(v, w, vw);
-    a[3] = vw[0] + B->u[3] * im;
-    a[4] = vw[1] + B->u[4] * im;
-    a[5] = vw[2] + B->u[5] * im;
-    if (gb) {
-        a[3] += gb[0];
-        a[4] += gb[1];
-        a[5] += gb[2];
+    if (th2[0] < 1e-4 && th2[1] < 1e-4) {
+        EXP_SERIES(v2d, th2, A, B, C);
+    } else {
+        double a0, b0, c0, a1, b1, c1;
+        exp_coeffs(th2[0], &a0, &b0, &c0);
+        exp_coeffs(th2[1], &a1, &b1, &c1);
+        *A = (v2d){a0, a1};
+        *B = (v2d){b0, b1};
+        *C = (v2d){c0, c1};
     }
 }
 
-/* Lie bracket on se(3): [a, b] = ad_a b = [wa x wb; wa x vb + va x wb] */
-static ALWAYS_INLINE void bracket(const double a[6], const double b[6], double c[6])
-{
-    double t1[3], t2[3];
-    cross(a, b, c);
-    cross(a, b + 3, t1);
-    cross(a + 3, b, t2);
-    c[3] = t1[0] + t2[0];
-    c[4] = t1[1] + t2[1];
-    c[5] = t1[2] + t2[2];
-}
+#define REAL v2d
+#define SFX(name) name##_2
+#define BODYT BodyPair
+#define EXPC exp_coeffs_2
+#include "rkmk4.h"
+#undef REAL
+#undef SFX
+#undef BODYT
+#undef EXPC
 
-/* dexp^{-1}_{-Theta}(xi) = xi + [Theta, xi]/2 + [Theta, [Theta, xi]]/12 (+ O(Theta^4)) */
-static ALWAYS_INLINE void dexpinv(const double th[6], const double xi[6], double out[6])
+/* n RKMK4 steps of length hs of bodies a and b together */
+static void step_pair(Body *a, Body *b, const double *gw, double hs, long long n)
 {
-    double c1[6], c2[6];
-    bracket(th, xi, c1);
-    bracket(th, c1, c2);
-#define DX(k) out[k] = xi[k] + 0.5 * c1[k] + c2[k] * (1.0 / 12.0);
-    DX(0) DX(1) DX(2) DX(3) DX(4) DX(5)
-#undef DX
-}
-
-/* gb = exp(phi)^T g0 (gravity in the frame of R0 exp(phi), given g0 = R0^T g) */
-static ALWAYS_INLINE void rotate_gravity(const double phi[3], const double g0[3], double gb[3])
-{
-    double A, B, C, c1[3], c2[3];
-    exp_coeffs(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2], &A, &B, &C);
-    (void)C;
-    cross(phi, g0, c1);
-    cross(phi, c1, c2);
-    for (int k = 0; k < 3; k++) gb[k] = g0[k] - A * c1[k] + B * c2[k];
-}
-
-/* X <- X exp(theta^) on SE(3); R <- R + R (exp(phi) - I) keeps the rounding small */
-static ALWAYS_INLINE void se3_update(double *p, double *R, const double th[6])
-{
-    const double *phi = th, *rho = th + 3;
-    const double x = phi[0], y = phi[1], z = phi[2];
-    const double th2 = x * x + y * y + z * z;
-    double A, B, C, D[9], c1[3], c2[3], Vr[3], dp[3], Rn[9];
-    exp_coeffs(th2, &A, &B, &C);
-    D[0] = -B * (y * y + z * z);
-    D[1] = -A * z + B * x * y;
-    D[2] = A * y + B * x * z;
-    D[3] = A * z + B * x * y;
-    D[4] = -B * (x * x + z * z);
-    D[5] = -A * x + B * y * z;
-    D[6] = -A * y + B * x * z;
-    D[7] = A * x + B * y * z;
-    D[8] = -B * (x * x + y * y);
-    cross(phi, rho, c1);
-    cross(phi, c1, c2);
-    for (int k = 0; k < 3; k++) Vr[k] = rho[k] + B * c1[k] + C * c2[k];
-    mat3_vec(R, Vr, dp);
-    p[0] += dp[0];
-    p[1] += dp[1];
-    p[2] += dp[2];
-    for (int r = 0; r < 3; r++)
-        for (int c = 0; c < 3; c++)
-            Rn[3 * r + c] = R[3 * r + c]
-                            + (R[3 * r] * D[c] + R[3 * r + 1] * D[3 + c] + R[3 * r + 2] * D[6 + c]);
-    memcpy(R, Rn, sizeof Rn);
-}
-
-/* one RKMK4 step of length h for one body (the 6-component loops are unrolled by hand:
- * gcc -O2 does not unroll them and they dominate the cost) */
-static void rkmk4_step(Body *Bd, const double *gw, double h)
-{
-    double *p = Bd->out + OFF_P, *R = Bd->out + OFF_R, *xi = Bd->out + OFF_XI;
-    double g0[3], gb[3], *gp = NULL;
-    double k1v[6], k2x[6], k2v[6], k3x[6], k3v[6], k4x[6], k4v[6], th[6], xs[6];
-    const double h2 = 0.5 * h, h6 = h / 6.0;
-    if (gw) {
-        mat3T_vec(R, gw, g0);
-        gp = gb;
-        memcpy(gb, g0, sizeof g0);
+    BodyPair P;
+    v2d p[3], R[9], xi[6], g[3];
+    for (int k = 0; k < 9; k++) {
+        P.J[k] = (v2d){a->J[k], b->J[k]};
+        P.Jinv[k] = (v2d){a->Jinv[k], b->Jinv[k]};
+        R[k] = (v2d){a->out[OFF_R + k], b->out[OFF_R + k]};
     }
-    /* stage 1: Theta = 0, K1 = F(y0) */
-    accel(Bd, xi, gp, k1v);
-    /* stage 2: Theta = h/2 K1 */
-    th[0] = h2 * xi[0];
-    xs[0] = xi[0] + h2 * k1v[0];
-    th[1] = h2 * xi[1];
-    xs[1] = xi[1] + h2 * k1v[1];
-    th[2] = h2 * xi[2];
-    xs[2] = xi[2] + h2 * k1v[2];
-    th[3] = h2 * xi[3];
-    xs[3] = xi[3] + h2 * k1v[3];
-    th[4] = h2 * xi[4];
-    xs[4] = xi[4] + h2 * k1v[4];
-    th[5] = h2 * xi[5];
-    xs[5] = xi[5] + h2 * k1v[5];
-    if (gw) rotate_gravity(th, g0, gb);
-    dexpinv(th, xs, k2x);
-    accel(Bd, xs, gp, k2v);
-    /* stage 3: Theta = h/2 K2 */
-    th[0] = h2 * k2x[0];
-    xs[0] = xi[0] + h2 * k2v[0];
-    th[1] = h2 * k2x[1];
-    xs[1] = xi[1] + h2 * k2v[1];
-    th[2] = h2 * k2x[2];
-    xs[2] = xi[2] + h2 * k2v[2];
-    th[3] = h2 * k2x[3];
-    xs[3] = xi[3] + h2 * k2v[3];
-    th[4] = h2 * k2x[4];
-    xs[4] = xi[4] + h2 * k2v[4];
-    th[5] = h2 * k2x[5];
-    xs[5] = xi[5] + h2 * k2v[5];
-    if (gw) rotate_gravity(th, g0, gb);
-    dexpinv(th, xs, k3x);
-    accel(Bd, xs, gp, k3v);
-    /* stage 4: Theta = h K3 */
-    th[0] = h * k3x[0];
-    xs[0] = xi[0] + h * k3v[0];
-    th[1] = h * k3x[1];
-    xs[1] = xi[1] + h * k3v[1];
-    th[2] = h * k3x[2];
-    xs[2] = xi[2] + h * k3v[2];
-    th[3] = h * k3x[3];
-    xs[3] = xi[3] + h * k3v[3];
-    th[4] = h * k3x[4];
-    xs[4] = xi[4] + h * k3v[4];
-    th[5] = h * k3x[5];
-    xs[5] = xi[5] + h * k3v[5];
-    if (gw) rotate_gravity(th, g0, gb);
-    dexpinv(th, xs, k4x);
-    accel(Bd, xs, gp, k4v);
-    /* update */
-    th[0] = h6 * (xi[0] + 2.0 * k2x[0] + 2.0 * k3x[0] + k4x[0]);
-    xs[0] = xi[0] + h6 * (k1v[0] + 2.0 * k2v[0] + 2.0 * k3v[0] + k4v[0]);
-    th[1] = h6 * (xi[1] + 2.0 * k2x[1] + 2.0 * k3x[1] + k4x[1]);
-    xs[1] = xi[1] + h6 * (k1v[1] + 2.0 * k2v[1] + 2.0 * k3v[1] + k4v[1]);
-    th[2] = h6 * (xi[2] + 2.0 * k2x[2] + 2.0 * k3x[2] + k4x[2]);
-    xs[2] = xi[2] + h6 * (k1v[2] + 2.0 * k2v[2] + 2.0 * k3v[2] + k4v[2]);
-    th[3] = h6 * (xi[3] + 2.0 * k2x[3] + 2.0 * k3x[3] + k4x[3]);
-    xs[3] = xi[3] + h6 * (k1v[3] + 2.0 * k2v[3] + 2.0 * k3v[3] + k4v[3]);
-    th[4] = h6 * (xi[4] + 2.0 * k2x[4] + 2.0 * k3x[4] + k4x[4]);
-    xs[4] = xi[4] + h6 * (k1v[4] + 2.0 * k2v[4] + 2.0 * k3v[4] + k4v[4]);
-    th[5] = h6 * (xi[5] + 2.0 * k2x[5] + 2.0 * k3x[5] + k4x[5]);
-    xs[5] = xi[5] + h6 * (k1v[5] + 2.0 * k2v[5] + 2.0 * k3v[5] + k4v[5]);
-    se3_update(p, R, th);
-    memcpy(xi, xs, sizeof xs);
+    for (int k = 0; k < 6; k++) {
+        P.u[k] = (v2d){a->u[k], b->u[k]};
+        xi[k] = (v2d){a->out[OFF_XI + k], b->out[OFF_XI + k]};
+    }
+    for (int k = 0; k < 3; k++) {
+        p[k] = (v2d){a->out[OFF_P + k], b->out[OFF_P + k]};
+        g[k] = gw ? (v2d){gw[k], gw[k]} : (v2d){0.0, 0.0};
+    }
+    P.minv = (v2d){a->minv, b->minv};
+    for (long long s = 0; s < n; s++) rkmk4_step_2(&P, p, R, xi, gw ? g : NULL, hs);
+    for (int k = 0; k < 9; k++) {
+        a->out[OFF_R + k] = R[k][0];
+        b->out[OFF_R + k] = R[k][1];
+    }
+    for (int k = 0; k < 6; k++) {
+        a->out[OFF_XI + k] = xi[k][0];
+        b->out[OFF_XI + k] = xi[k][1];
+    }
+    for (int k = 0; k < 3; k++) {
+        a->out[OFF_P + k] = p[k][0];
+        b->out[OFF_P + k] = p[k][1];
+    }
 }
+#endif
 
 int model_check_step(const ModelData *d, double h, ModelLogger log, void *env)
 {
@@ -662,9 +559,16 @@ int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
     n_d = ceil(ratio - 1e-9);
     n = n_d < 1.0 ? 1 : (long long)n_d;
     hs = h / (double)n;
-    for (int b = 0; b < N_BODIES; b++) {
+    int b = 0;
+#ifdef SE3SYNC_PAIRS
+    for (; b + 1 < N_BODIES; b += 2) step_pair(&d->body[b], &d->body[b + 1], gw, hs, n);
+#endif
+    for (; b < N_BODIES; b++) {
         Body *B = &d->body[b];
-        for (long long s = 0; s < n; s++) rkmk4_step(B, gw, hs);
+        for (long long s = 0; s < n; s++) rkmk4_step_1(B, B->out + OFF_P, B->out + OFF_R, B->out + OFF_XI, gw, hs);
+    }
+    for (b = 0; b < N_BODIES; b++) {
+        const Body *B = &d->body[b];
         for (int k = 0; k < OFF_Q; k++) {
             if (!is_finite(B->out[k])) {
                 ok = 0;
