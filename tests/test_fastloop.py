@@ -132,10 +132,24 @@ def test_jump_buffers_full_end_the_block_early(tmp_path, monkeypatch):
     assert_same(ref, fast)
 
 
-def test_steps_not_multiple_of_ticks(tmp_path):
+def test_steps_not_multiple_of_ticks(tmp_path, monkeypatch):
+    """Also: a logged compiled run shortens the GIL switch interval while it steps (its blocks
+    would wait for the encoder thread) and gives the caller's back."""
+    seen = []
+    real = fastloop.run_block
+
+    def spy(*args):
+        seen.append(sys.getswitchinterval())
+        return real(*args)
+
+    monkeypatch.setattr(fastloop, "run_block", spy)
+    before = sys.getswitchinterval()
     sc = load_scenario(PAPER, ["simulation.duration=1", "simulation.log_rate=30"])
     ref, fast = run_both(sc, tmp_path, steps=4321)
     assert_same(ref, fast)
+    want = min(before, fastloop.LOGGED_SWITCH_S)   # Python keeps it in whole microseconds
+    assert seen and all(abs(x - want) < 1e-9 for x in seen)
+    assert sys.getswitchinterval() == before
 
 
 def test_without_logger(tmp_path):
