@@ -295,3 +295,31 @@ def test_logger_close_stops_its_compression_thread(tmp_path, discard):
     assert path.exists() != discard
     if not discard:
         assert len(read_log(path)["messages"]["/lyapunov"]) == 40
+
+
+def test_a_log_that_cannot_be_finished_is_removed(tmp_path):
+    """close() whose finishing write fails (a full disk: OSError) removes the log, stops the
+    compression thread and raises the error: nothing is left that looks whole."""
+    import errno
+    import threading
+
+    def zstd_threads():
+        return [t for t in threading.enumerate() if t.name.startswith("se3sync-zstd")]
+
+    before = len(zstd_threads())
+    sc = load_scenario(PAPER, ["simulation.duration=0.2"])
+    path = tmp_path / "f.mcap"
+    lg = McapLogger(path, sc, chunk_size=2048)
+    N, M = sc.graph.n, sc.graph.M
+    for r in range(20):
+        lg.record(10_000_000 * r, np.zeros((N, 18)), np.zeros((N, 6)), *np.zeros((2, M)),
+                  np.zeros(M, bool), *np.zeros((3, M)), np.tile([0, 0, 0, 1.0], (N, 1)), 1.0, 0.5)
+
+    def full():
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    lg._w.finish = full
+    with pytest.raises(OSError, match="No space left"):
+        lg.close()
+    assert not path.exists()
+    assert len(zstd_threads()) == before

@@ -26,12 +26,12 @@ import math
 import os
 import struct
 import time
+import zlib
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
-
-import zlib
-
+import zstandard
 from mcap.records import Attachment, Channel, Chunk, ChunkIndex, Message, MessageIndex, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, IndexType, Writer
@@ -216,9 +216,6 @@ class _MessageAppender:
         messages of the next one are encoded, and written when that one is finished (or by
         finish/flush). The file's bytes do not depend on the thread's timing: chunk k is always
         written by the call that finishes chunk k + 1."""
-        import zstandard
-        from concurrent.futures import ThreadPoolExecutor
-
         w = self._w
         zc = zstandard.ZstdCompressor(level=level)
         crcs = bool(w._Writer__enable_crcs)
@@ -734,21 +731,33 @@ class McapLogger:
 
     def close(self, discard: bool = False):
         """Finishes the file (and writes the layout beside it); ``discard=True`` removes the
-        log instead: a run that failed leaves nothing that looks whole."""
+        log instead: a run that failed leaves nothing that looks whole. A log that cannot be
+        finished (OSError, e.g. a full disk) is removed too, and the error raised."""
         if self._closed:
             return
         self._closed = True
+        err = None
         try:
             if not discard:
                 self._w.finish()
+        except OSError as exc:  # e.g. no space left: a log that cannot be finished is removed
+            err, discard = exc, True
         finally:
-            self._app.close()
-            self._f.close()
+            try:
+                self._app.close()
+            finally:
+                try:
+                    self._f.close()   # flushes the buffer: fails again on a full disk
+                except OSError as exc:
+                    if not discard:
+                        err, discard = exc, True
         if discard:
             try:
                 os.unlink(self.path)
             except OSError:
                 pass
+            if err is not None:
+                raise err
             return
         if self._layout_path is not None:
             with atomic_path(self._layout_path) as tmp:
