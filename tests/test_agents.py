@@ -277,7 +277,10 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
     sets, _, _ = _ports([f"network.max_age={max_age}", f"network.hold={hold}"])
     key = tmp_path / "k.key"
     key.write_bytes(bytes(range(32)))
-    common = [HIL, *[x for v in sets for x in ("--set", v)], "--duration", "14", "--key", str(key)]
+    # agent 3's vehicle coasts with zero wrench from the kill (t = 3 s) until the restarted agent
+    # joins (t = 7–9 s, by the machine's load): the swarm is disturbed and needs time again
+    dur = 24
+    common = [HIL, *[x for v in sets for x in ("--set", v)], "--duration", str(dur), "--key", str(key)]
     start_file = tmp_path / "start"
     procs = {}
 
@@ -343,10 +346,10 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
     # the swarm converged after the restart
     from bridge.swarm import merge_summaries
 
-    merged = merge_summaries(load(sets, duration=14), {**s, 3: s3})
+    merged = merge_summaries(load(sets, duration=dur), {**s, 3: s3})
     f = merged["final"]
     assert merged["agents_missing"] == []
-    assert f["t"] == pytest.approx(14.0)
+    assert f["t"] == pytest.approx(dur)
     # (the merged samples start when every agent has them: once agent 3 is back)
     back = merged["samples"][0]
     assert back["t"] == pytest.approx(s3["first_step"] * H)
