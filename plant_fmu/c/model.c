@@ -1,5 +1,5 @@
 /*
- * se3sync plant: model equations, RKMK4 integrator on SE(3) x R^6, validation.
+ * se3sync plant: model equations, RKMK4 integrator on SE(3) x R^6 (its step in rkmk4.h), validation.
  * No FMI types here (see fmi2.c).  Every function works on the ModelData it is given;
  * there is no global or static mutable data.
  */

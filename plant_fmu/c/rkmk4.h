@@ -117,8 +117,8 @@ static ALWAYS_INLINE void SFX(se3_update)(REAL *p, REAL *R, const REAL th[6])
     memcpy(R, Rn, sizeof Rn);
 }
 
-/* one RKMK4 step of length h for one body (the 6-component loops are unrolled by hand:
- * gcc -O2 does not unroll them and they dominate the cost) */
+/* one RKMK4 step of length h for one body, or a pair in the vector instance (the 6-component
+ * loops are unrolled by hand: gcc -O2 does not unroll them and they dominate the cost) */
 static void SFX(rkmk4_step)(const BODYT *Bd, REAL *p, REAL *R, REAL *xi, const REAL *gw, double h)
 {
     REAL g0[3], gb[3], *gp = NULL;
