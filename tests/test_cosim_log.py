@@ -270,28 +270,36 @@ def test_message_appender_falls_back_when_not_proven(monkeypatch):
     assert app.add == app._slow
 
 
+def _zstd_threads():
+    import threading
+
+    return [t for t in threading.enumerate() if t.name.startswith("se3sync-zstd")]
+
+
+def _small_log(path, n_records):
+    """A paper-scenario logger with 4 KiB chunks and n_records random records in it (so several
+    chunks have gone to its compression thread)."""
+    sc = load_scenario(PAPER, ["simulation.duration=0.2"])
+    lg = McapLogger(path, sc, chunk_size=4096)
+    rng = np.random.default_rng(3)
+    N, M = sc.graph.n, sc.graph.M
+    for r in range(n_records):
+        lg.record(10_000_000 * r, rng.standard_normal((N, 18)), rng.standard_normal((N, 6)),
+                  *rng.random((2, M)), np.zeros(M, bool), *rng.random((3, M)),
+                  rng.standard_normal((N, 4)), 1.0, 0.5)
+    return lg
+
+
 @pytest.mark.parametrize("discard", [False, True])
 def test_logger_close_stops_its_compression_thread(tmp_path, discard):
     """Chunks are compressed on a thread of the logger's own: closing the log, or discarding
     it, ends that thread; a finished log holds every message, a discarded one is gone."""
-    import threading
-
-    def zstd_threads():
-        return [t for t in threading.enumerate() if t.name.startswith("se3sync-zstd")]
-
-    before = len(zstd_threads())
-    sc = load_scenario(PAPER, ["simulation.duration=0.2"])
+    before = len(_zstd_threads())
     path = tmp_path / "c.mcap"
-    lg = McapLogger(path, sc, chunk_size=4096)
-    rng = np.random.default_rng(3)
-    N, M = sc.graph.n, sc.graph.M
-    for r in range(40):
-        lg.record(10_000_000 * r, rng.standard_normal((N, 18)), rng.standard_normal((N, 6)),
-                  *rng.random((2, M)), np.zeros(M, bool), *rng.random((3, M)),
-                  rng.standard_normal((N, 4)), 1.0, 0.5)
-    assert len(zstd_threads()) == before + 1
+    lg = _small_log(path, 40)
+    assert len(_zstd_threads()) == before + 1
     lg.close(discard=discard)
-    assert len(zstd_threads()) == before
+    assert len(_zstd_threads()) == before
     assert path.exists() != discard
     if not discard:
         assert len(read_log(path)["messages"]["/lyapunov"]) == 40
@@ -301,19 +309,11 @@ def test_a_log_that_cannot_be_finished_is_removed(tmp_path):
     """close() whose finishing write fails (a full disk: OSError) removes the log, stops the
     compression thread and raises the error: nothing is left that looks whole."""
     import errno
-    import threading
 
-    def zstd_threads():
-        return [t for t in threading.enumerate() if t.name.startswith("se3sync-zstd")]
-
-    before = len(zstd_threads())
-    sc = load_scenario(PAPER, ["simulation.duration=0.2"])
+    before = len(_zstd_threads())
     path = tmp_path / "f.mcap"
-    lg = McapLogger(path, sc, chunk_size=2048)
-    N, M = sc.graph.n, sc.graph.M
-    for r in range(20):
-        lg.record(10_000_000 * r, np.zeros((N, 18)), np.zeros((N, 6)), *np.zeros((2, M)),
-                  np.zeros(M, bool), *np.zeros((3, M)), np.tile([0, 0, 0, 1.0], (N, 1)), 1.0, 0.5)
+    lg = _small_log(path, 20)
+    assert len(_zstd_threads()) == before + 1
 
     def full():
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
@@ -322,4 +322,4 @@ def test_a_log_that_cannot_be_finished_is_removed(tmp_path):
     with pytest.raises(OSError, match="No space left"):
         lg.close()
     assert not path.exists()
-    assert len(zstd_threads()) == before
+    assert len(_zstd_threads()) == before
