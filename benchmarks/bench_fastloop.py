@@ -11,7 +11,8 @@ All numbers come from one process; compare them as ratios.
   records  cost of one log record (/tf, /edges, /agents, /lyapunov) through `record` (the
            reference encoder) and `record_fast` (templates), at N = 6 and N = --big;
   big      --big-agent random tree, h = 1 ms, log at 100 Hz, --big-seconds simulated: compiled
-           loop with and without the log (the logging share of the step time), best of --repeat;
+           loop with the JSON log, with the CDR log (--log-encoding cdr) and without a log (the
+           logging share of the step time), best of --repeat;
   startup  a fresh process: import + first compiled block from the on-disk numba cache.
 """
 from __future__ import annotations
@@ -51,13 +52,13 @@ def random_tree_text(n, seed=1, step=1e-3, duration=1.0):
     return text.replace("step = 0.004", f"step = {step}")
 
 
-def run(sc, compiled=True, log=None):
+def run(sc, compiled=True, log=None, encoding="json"):
     from cosim.master import Master
     from cosim.log.mcap import McapLogger
     from cosim.plants import FmuPlant
 
     plant = FmuPlant.from_scenario(sc)
-    logger = McapLogger(log, sc) if log else None
+    logger = McapLogger(log, sc, encoding=encoding) if log else None
     try:
         m = Master(sc, plant, "hybrid", logger)
         m.use_compiled = compiled
@@ -188,19 +189,21 @@ def main():
         with tempfile.TemporaryDirectory() as d:
             # interleaved, best of --repeat: the no-log time varies by ±30 % from run to run
             # on a shared machine, and the share is a ratio of the two
-            logged, plain = [], []
+            logged, plain = {"json": [], "cdr": []}, []
             for _ in range(max(1, args.repeat)):
-                logged.append(run(big, True, os.path.join(d, "c.mcap")))
+                for enc in logged:
+                    logged[enc].append(run(big, True, os.path.join(d, f"{enc}.mcap"), enc))
                 plain.append(run(big, True))
-            size = os.path.getsize(os.path.join(d, "c.mcap"))
-            wb_log, sb = min(logged, key=lambda x: x[0])
+            size = {enc: os.path.getsize(os.path.join(d, f"{enc}.mcap")) for enc in logged}
             wb_nolog, sb0 = min(plain, key=lambda x: x[0])
-        print(f"{args.big}-agent random tree, h = {big.step:g} s, {nb} steps, log 100 Hz "
-              f"({size / 1e6:.1f} MB, {sb['n_jumps']} jumps = /jumps messages):")
-        print(f"  compiled + log {wb_log:7.3f} s ({wb_log / nb * 1e6:8.1f} µs/step), no log "
-              f"{wb_nolog:7.3f} s; logging share {(wb_log - wb_nolog) / wb_log * 100:.1f} % "
-              f"of the wall time, {(sb['cpu_s'] - sb0['cpu_s']) / sb['cpu_s'] * 100:.1f} % of "
-              f"the CPU time")
+        print(f"{args.big}-agent random tree, h = {big.step:g} s, {nb} steps, log 100 Hz; no log "
+              f"{wb_nolog:7.3f} s ({wb_nolog / nb * 1e6:8.1f} µs/step)")
+        for enc, runs in logged.items():
+            wb_log, sb = min(runs, key=lambda x: x[0])
+            print(f"  compiled + {enc:4s} log {wb_log:7.3f} s ({wb_log / nb * 1e6:8.1f} µs/step, "
+                  f"{size[enc] / 1e6:.1f} MB, {sb['n_jumps']} jumps); logging share "
+                  f"{(wb_log - wb_nolog) / wb_log * 100:.1f} % of the wall time, "
+                  f"{(sb['cpu_s'] - sb0['cpu_s']) / sb['cpu_s'] * 100:.1f} % of the CPU time")
 
     out = subprocess.run([sys.executable, "-c", STARTUP.format(root=str(ROOT), paper=str(PAPER))],
                          capture_output=True, text=True, check=True).stdout.split()

@@ -40,12 +40,13 @@ def with_timing(scenario, duration=None, step=None):
 
 def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                  summary_path=None, duration=None, step=None, progress=False,
-                 fmu_path=None, log_metadata=None, summary_extra=None) -> dict:
+                 fmu_path=None, log_metadata=None, summary_extra=None,
+                 log_encoding="json") -> dict:
     """Runs a scenario (a Scenario or a path to a TOML file) and returns the summary dict.
 
     plant: "fleet" | "per-body" | a Plant instance (closed by the caller);
     controller: "hybrid" | "gradient" | a controller instance. log_path: MCAP written
-    (streamed) there; summary_path: summary JSON written atomically. log_metadata adds to (or
+    (streamed) there, its per-record channels in log_encoding ("json" or "cdr"); summary_path: summary JSON written atomically. log_metadata adds to (or
     overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C or SIGTERM the
     run stops cleanly, the log is finished and the summary has "interrupted": true. A run that
     fails (an exception) removes its log: no output is better than one that looks whole.
@@ -70,6 +71,7 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                 md = getattr(p, "model_description", None)
                 logger = McapLogger(log_path, scenario, controller=ctrl_kind,
                                     model_description=md() if md is not None else None,
+                                    encoding=log_encoding,
                                     extra_metadata={"plant": plant_kind, **(log_metadata or {})})
             master = Master(scenario, p, ctrl, logger)
         if requested:

@@ -50,15 +50,16 @@ def messages(path, decoded=False):
                 for _, c, m in make_reader(f).iter_messages()]
 
 
-def run_both(sc, tmp_path, controller="hybrid", log=True, steps=None, fast_json=False):
+def run_both(sc, tmp_path, controller="hybrid", log=True, steps=None, fast_json=False,
+             encoding="json"):
     """(summary, final state, log messages) of the reference loop, then of the compiled one.
     fast_json: the compiled loop's log encodes numbers with orjson (compared as values),
-    else with float repr (compared as bytes)."""
+    else with float repr (compared as bytes). encoding: the log's (McapLogger)."""
     out = []
     for compiled in (False, True):
         plant = FmuPlant.from_scenario(sc)
         path = tmp_path / f"{'c' if compiled else 'py'}.mcap"
-        logger = McapLogger(path, sc, controller=controller) if log else None
+        logger = McapLogger(path, sc, controller=controller, encoding=encoding) if log else None
         if logger is not None:
             logger.orjson = fast_json
         try:
@@ -107,6 +108,18 @@ def test_random_tree_50_bit_identical(tmp_path, fast_json):
     ref, fast = run_both(sc, tmp_path, fast_json=fast_json)
     assert_same(ref, fast)
     assert ref[0]["steps"] == sc.n_steps()
+
+
+@pytest.mark.parametrize("scenario", ["paper", "tree50"])
+def test_cdr_log_bit_identical(tmp_path, scenario):
+    """The CDR log (--log-encoding cdr) of the compiled loop is the reference loop's, byte for
+    byte: records arrive there in blocks (record_block), here one by one (record)."""
+    sc = (load_scenario(PAPER, ["simulation.duration=1"]) if scenario == "paper"
+          else with_timing(random_tree_scenario(50, 3), duration=0.3))
+    ref, fast = run_both(sc, tmp_path, encoding="cdr")
+    assert_same(ref, fast)
+    assert ref[0]["n_jumps"] > 0
+    assert {t for t, *_ in ref[2]} >= {"/tf", "/edges", "/agents", "/lyapunov", "/scene"}
 
 
 def test_paper_orjson_log_decodes_to_the_same_values(tmp_path):

@@ -34,6 +34,11 @@ def register(sub) -> None:
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--log", metavar="OUT.mcap",
                    help="write an MCAP log (streamed; simulated-time stamps) to this path")
+    p.add_argument("--log-encoding", choices=("json", "cdr"), default="json",
+                   help="messages of the log's per-record channels (/tf, /edges, /agents, "
+                        "/lyapunov, /scene, trails): json (default; readable as text) or cdr "
+                        "(ROS 2 CDR with .msg schemas: the same values, for large swarms, where "
+                        "formatting JSON costs more than the simulation; Foxglove reads both)")
     p.add_argument("--summary", metavar="OUT.json",
                    help="write the run summary JSON (atomically) to this path")
     p.add_argument("--duration", type=float, metavar="S",
@@ -123,7 +128,8 @@ def _cmd_run(args) -> int:
     progress = sys.stderr.isatty()
     try:
         summary = run_scenario(sc, plant=args.plant or sc.plant_mode, controller=args.controller,
-                               log_path=args.log, summary_path=args.summary, progress=progress)
+                               log_path=args.log, summary_path=args.summary, progress=progress,
+                               log_encoding=args.log_encoding)
     except OSError as exc:  # the streamed log is the file being written when the disk fills up
         raise Se3SyncError(f"{exc.filename or args.log or args.summary}: "
                            f"{exc.strerror or exc}") from None

@@ -23,7 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SCENE", "TRAIL_PREFIX", "schema_bytes", "box_size", "error_color", "SceneBuilder",
+from . import cdr
+
+__all__ = ["SCENE", "TRAIL_PREFIX", "schema_bytes", "box_size", "error_color", "error_colors",
+           "SceneBuilder", "CdrScene",
            "layout", "ERR_LO", "ERR_HI"]
 
 SCENE = "/scene"
@@ -207,6 +210,110 @@ class SceneBuilder:
                 joined[k] = ",".join(tr)
             return [pre + j + "]}" for j in joined]
         return [pre + (j + "," + cur if j else cur) + "]}" for j, cur in zip(joined, curs)]
+
+
+def error_colors(err) -> np.ndarray:
+    """`error_color` of each value of ``err``, as an (M, 3) array."""
+    e = np.asarray(err, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.minimum(1.0, np.log10(e / ERR_LO) / math.log10(ERR_HI / ERR_LO))
+    x = np.where(e > ERR_LO, x, np.where(np.isnan(e), 1.0, 0.0))
+    return np.stack((x, 1.0 - x, np.full_like(x, 0.2)), axis=1)
+
+
+_ID_POSE = {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
+            "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+_NO_PARTS = {k: [] for k in _KEYS}
+
+
+class CdrScene:
+    """The /scene and /trail messages of `SceneBuilder` in ROS 2 CDR (cosim/log/cdr.py), for a
+    log written with ``encoding="cdr"``: the same bodies, edges and trails. One difference, so
+    that every scene of a run has the same shape: each edge always carries its "θ_k jumps"
+    label, with font size 0 and alpha 0 while the edge flows."""
+
+    def __init__(self, sb: SceneBuilder, inertias, masses):
+        self.sb = sb
+        N, M = sb.N, sb.M
+        ai = np.array([a for a, _ in sb.edges], np.int64) - 1 if M else np.zeros(0, np.int64)
+        bi = np.array([b for _, b in sb.edges], np.int64) - 1 if M else np.zeros(0, np.int64)
+        self._a, self._b = ai, bi
+        agents = []
+        for i in range(N):
+            a, b, c = (float(v) for v in box_size(inertias[i], masses[i]))
+            L = 0.75 * max(a, b, c)
+            name = f"agent_{sb.agent_ids[i]}"
+            cube = {"pose": _ID_POSE, "size": {"x": a, "y": b, "z": c},
+                    "color": {"r": 0.55, "g": 0.6, "b": 0.7, "a": 0.85}}
+            arrows = [{"pose": {"position": _ID_POSE["position"],
+                                "orientation": dict(zip("xyzw", map(float, q)))},
+                       "shaft_length": 0.8 * L, "shaft_diameter": 0.04 * L,
+                       "head_length": 0.2 * L, "head_diameter": 0.1 * L,
+                       "color": {"r": r, "g": g, "b": bb, "a": 1.0}} for r, g, bb, q in _AXES]
+            agents.append((name, cube, arrows))
+
+        def build(f, t, mode):
+            ents = [dict(_NO_PARTS, timestamp=t(), frame_id=name, id=name,
+                         lifetime={"sec": 0, "nanosec": 0}, frame_locked=True, metadata=[],
+                         cubes=[cube], arrows=arrows) for name, cube, arrows in agents]
+            for k in range(M):
+                line = {"type": 2, "pose": _ID_POSE, "thickness": f(), "scale_invariant": False,
+                        "points": [{"x": f(), "y": f(), "z": f()} for _ in range(2)],
+                        "color": {"r": f(), "g": f(), "b": f(), "a": 1.0}, "colors": [],
+                        "indices": []}
+                text = {"pose": {"position": {"x": f(), "y": f(), "z": f()},
+                                 "orientation": _ID_POSE["orientation"]},
+                        "billboard": True, "font_size": f(), "scale_invariant": True,
+                        "color": {"r": 1.0, "g": 1.0, "b": 1.0, "a": f()},
+                        "text": f"θ_{sb.edge_ids[k]} jumps"}
+                ents.append(dict(_NO_PARTS, timestamp=t(), frame_id="world",
+                                 id=f"edge_{sb.edge_ids[k]}", lifetime={"sec": 0, "nanosec": 0},
+                                 frame_locked=False, metadata=[], lines=[line], texts=[text]))
+            return {"deletions": [], "entities": ents}
+
+        self._scene = cdr.compile_layout(cdr.SCHEMA["/scene"], build)
+        self._trail = {}   # layout by number of poses
+        self._kept = np.zeros((N, sb.trail_len, 7))
+        self._nkept = 0
+
+    def scene(self, t_ns: int, S, rot_err, jumping) -> bytes:
+        """The SceneUpdate at t_ns (``jumping``: M booleans)."""
+        sb = self.sb
+        # as SceneBuilder: a non-finite coordinate or colour is drawn as 0
+        P = np.nan_to_num(np.asarray(S, np.float64)[:, :3], nan=0.0, posinf=0.0, neginf=0.0)
+        J = np.asarray(jumping, np.bool_)
+        pi, pj = P[self._a], P[self._b]
+        col = np.where(J[:, None], 1.0, error_colors(rot_err))
+        th = np.where(J, 3 * sb._scale, sb._scale)
+        v = np.concatenate((th[:, None], pi, pj, col, (pi + pj) / 2, np.where(J, 14.0, 0.0)[:, None],
+                            J[:, None].astype(np.float64)), axis=1)
+        return self._scene.fill(v.ravel(), t_ns)[0].tobytes()
+
+    def trails(self, t_ns: int, S, quat, keep: bool = True) -> np.ndarray:
+        """One PosesInFrame per agent as the rows of a uint8 array (`SceneBuilder.trails`)."""
+        cur = np.concatenate((np.asarray(S, np.float64)[:, :3], np.asarray(quat, np.float64)),
+                             axis=1)
+        cur = np.nan_to_num(cur, nan=0.0, posinf=0.0, neginf=0.0)
+        n = self.sb.trail_len
+        if keep:
+            if self._nkept == n:
+                self._kept[:, :-1] = self._kept[:, 1:]
+                self._kept[:, -1] = cur
+            else:
+                self._kept[:, self._nkept] = cur
+                self._nkept += 1
+            poses = self._kept[:, :self._nkept]
+        else:
+            poses = np.concatenate((self._kept[:, :self._nkept], cur[:, None]), axis=1)
+        L = poses.shape[1]
+        lay = self._trail.get(L)
+        if lay is None:
+            lay = self._trail[L] = cdr.compile_layout(cdr.SCHEMA["trail"], lambda f, t, m: {
+                "timestamp": t(), "frame_id": "world",
+                "poses": [{"position": {"x": f(), "y": f(), "z": f()},
+                           "orientation": {"x": f(), "y": f(), "z": f(), "w": f()}}
+                          for _ in range(L)]})
+        return lay.fill(poses.reshape(len(poses), -1), t_ns)
 
 
 # ------------------------------------------------------------------ layout

@@ -27,12 +27,14 @@ import os
 import struct
 import time
 import zlib
+from itertools import chain
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import zstandard
-from mcap.records import Attachment, Channel, Chunk, ChunkIndex, Message, MessageIndex, Metadata
+from mcap.records import (Attachment, Channel, Chunk, ChunkIndex, Message, MessageIndex, Metadata,
+                          Schema)
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, IndexType, Writer
 
@@ -41,9 +43,10 @@ from controller import layout
 from controller.errors import Se3SyncError
 
 from ..files import atomic_path
+from . import cdr
 from . import foxglove as fg
 
-__all__ = ["McapLogger", "SCHEMAS", "read_log"]
+__all__ = ["McapLogger", "SCHEMAS", "ENCODINGS", "read_log"]
 
 TIME = {"type": "object", "title": "time",
         "properties": {"sec": {"type": "integer", "minimum": 0},
@@ -157,6 +160,36 @@ _FMT = float.__repr__
 # zstd level of the log's chunks (see _MessageAppender)
 ZSTD_LEVEL = 1
 
+# zstd level of a CDR log's chunks: binary numbers compress little (1.9× at level 1, 1.85× at
+# -3, on a 1000-agent run) and level -3 takes half the time of level 1
+CDR_ZSTD_LEVEL = -3
+
+# the message encodings of the per-record channels: JSON text, or ROS 2 CDR (cosim/log/cdr.py)
+ENCODINGS = ("json", "cdr")
+
+
+class _CdrRecords:
+    """The /tf, /edges, /agents and /lyapunov layouts of a CDR log (cdr.compile_layout): the
+    messages `McapLogger.record` writes in JSON, with the same names and numbers."""
+
+    def __init__(self, aid, eid, edge_list):
+        xyz, xyzw = "xyz", "xyzw"
+        S = cdr.SCHEMA
+        self.tf = cdr.compile_layout(S["/tf"], lambda f, t, m: {"transforms": [
+            {"timestamp": t(), "parent_frame_id": "world", "child_frame_id": f"agent_{i}",
+             "translation": {k: f() for k in xyz}, "rotation": {k: f() for k in xyzw}}
+            for i in aid]})
+        self.edges = cdr.compile_layout(S["/edges"], lambda f, t, m: {"timestamp": t(), "edges": [
+            {"edge": eid[k], "positive": aid[a - 1], "negative": aid[b - 1], "theta": f(),
+             "mu_u": f(), "rot_err": f(), "pos_err": f(), "u": f(), "mode": m()}
+            for k, (a, b) in enumerate(edge_list)]})
+        self.agents = cdr.compile_layout(S["/agents"], lambda f, t, m: {
+            "timestamp": t(), "agents": [
+                {"agent": i, **{k: [f(), f(), f()] for k in ("omega", "v", "torque", "force")}}
+                for i in aid]})
+        self.lyapunov = cdr.compile_layout(S["/lyapunov"], lambda f, t, m: {
+            "timestamp": t(), "v": f(), "kx_u": f()})
+
 
 class _MessageIndex(MessageIndex):
     """mcap's MessageIndex record, written with one pack for the whole record instead of two
@@ -224,6 +257,7 @@ class _MessageAppender:
             return zc.compress(data), (zlib.crc32(data) if crcs else 0)
 
         self._pack = pack
+        self._stretches = []   # add_rows' messages of the current chunk (see _row_indexes)
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="se3sync-zstd")
         self._pending = None
         finish, flush = w.finish, w.flush
@@ -259,7 +293,8 @@ class _MessageAppender:
         self._st.chunk_count += 1
         data = cb.end()
         job = (self._pool.submit(self._pack, data), len(data), cb.message_start_time,
-               cb.message_end_time, list(cb.message_indices.items()))
+               cb.message_end_time, list(cb.message_indices.items()), self._stretches)
+        self._stretches = []
         cb.reset()
         prev, self._pending = self._pending, job
         if prev is not None:
@@ -273,7 +308,7 @@ class _MessageAppender:
     def _write(self, job):
         """The chunk record, its message indexes and its chunk index, as mcap writes them."""
         w = self._w
-        fut, size, t0, t1, indices = job
+        fut, size, t0, t1, indices, stretches = job
         packed, crc = fut.result()
         chunk = Chunk(compression="zstd", data=packed, message_start_time=t0,
                       message_end_time=t1, uncompressed_crc=crc, uncompressed_size=size)
@@ -288,9 +323,22 @@ class _MessageAppender:
         flush()
         index_start = w._Writer__stream.tell()
         if w._Writer__index_types & IndexType.MESSAGE:
+            # the chunk's message indexes (as _MessageIndex.write) in one write: a chunk of a
+            # CDR log's trails has one per agent
+            off, parts, offsets = index_start + rb.count, [], index.message_index_offsets
             for cid, idx in indices:
-                index.message_index_offsets[cid] = index_start + rb.count
-                idx.write(rb)
+                recs = idx.records
+                n = 16 * len(recs)
+                offsets[cid] = off
+                parts.append(struct.pack("<BQHI", 0x07, 6 + n, cid, n))
+                parts.append(struct.pack(f"<{2 * len(recs)}Q", *chain.from_iterable(recs))
+                             if len(recs) < 16 else np.asarray(recs, dtype="<u8").tobytes())
+                off += 15 + n
+            if stretches:
+                data, offs = self._row_indexes(stretches, off)
+                parts.append(data)
+                offsets.update(offs)
+            rb.write(b"".join(parts))
         index.message_index_length = rb.count
         flush()
         w._Writer__chunk_indices.append(index)
@@ -326,6 +374,84 @@ class _MessageAppender:
         buf.write(data)
         if buf.tell() > self._size:
             self._finalize()
+
+    _IDX_DT = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("n", "<u4")])
+    _ENT_DT = np.dtype([("t", "<u8"), ("o", "<u8")])
+
+    @classmethod
+    def _row_indexes(cls, stretches, base):
+        """The message index records of the messages `add_rows` put in a chunk, built at once:
+        ``stretches`` are (channel ids, first offset, record length, log time), one channel
+        at most once per stretch; records start at file offset ``base``. Returns their bytes
+        and {channel: offset}: what _MessageIndex.write gives for each channel, entries in
+        the order they were added."""
+        cids = np.concatenate([np.asarray(c, np.int64) for c, _, _, _ in stretches])
+        offs = np.concatenate([o + s * np.arange(len(c), dtype=np.int64)
+                               for c, o, s, _ in stretches])
+        ts = np.concatenate([np.full(len(c), t, np.int64) for c, _, _, t in stretches])
+        order = np.argsort(cids, kind="stable")
+        ch, first, count = np.unique(cids[order], return_index=True, return_counts=True)
+        size = 15 + 16 * count
+        start = np.concatenate(([0], np.cumsum(size)[:-1]))
+        out = np.empty(int(size.sum()), np.uint8)
+        hdr = np.empty(len(ch), cls._IDX_DT)
+        hdr["op"], hdr["len"], hdr["ch"], hdr["n"] = 0x07, 6 + 16 * count, ch, 16 * count
+        out[(start[:, None] + np.arange(15)).ravel()] = hdr.view(np.uint8)
+        ent = np.empty(len(cids), cls._ENT_DT)
+        ent["t"], ent["o"] = ts[order], offs[order]
+        rank = np.repeat(np.arange(len(ch)), count)
+        pos = start[rank] + 15 + 16 * (np.arange(len(cids)) - first[rank])
+        out[(pos[:, None] + np.arange(16)).ravel()] = ent.view(np.uint8)
+        return out.tobytes(), dict(zip(ch.tolist(), (base + start).tolist()))
+
+    _HDR_DT = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("seq", "<u4"),
+                        ("log", "<u8"), ("pub", "<u8")])   # packed: _HDR's 31 bytes
+
+    def add_rows(self, channel_ids, log_time, rows, sequence):
+        """``add(channel_ids[r], log_time, rows[r].tobytes(), sequence + r)`` for each row of
+        the uint8 array ``rows`` (messages of one length, e.g. the trails of a CDR log): the
+        same bytes, chunks cut at the same messages, but one write per stretch of a chunk."""
+        n, L = rows.shape
+        if n == 0:
+            return
+        if self.add == self._slow or getattr(self, "_pool", None) is None:
+            for r in range(n):
+                self._slow(channel_ids[r], log_time, rows[r].tobytes(), sequence + r)
+            return
+        hdr = np.zeros(n, self._HDR_DT)
+        hdr["op"], hdr["len"], hdr["ch"] = 0x05, 22 + L, channel_ids
+        hdr["seq"] = np.arange(sequence, sequence + n) & 0xFFFFFFFF
+        hdr["log"] = hdr["pub"] = log_time
+        recs = np.empty((n, 31 + L), np.uint8)
+        recs[:, :31] = hdr.view(np.uint8).reshape(n, 31)
+        recs[:, 31:] = rows
+        st = self._st
+        if st.message_count == 0 or log_time < st.message_start_time:
+            st.message_start_time = log_time
+        if log_time > st.message_end_time:
+            st.message_end_time = log_time
+        counts = st.channel_message_counts
+        for c in channel_ids:
+            counts[c] += 1
+        st.message_count += n
+        size, step, r = self._size, 31 + L, 0
+        while r < n:
+            cb = self._cb
+            if cb.num_messages == 0 or log_time < cb.message_start_time:
+                cb.message_start_time = log_time
+            if log_time > cb.message_end_time:
+                cb.message_end_time = log_time
+            buf = cb.record_writer._buffer
+            pos = buf.tell()
+            # add() finishes the chunk after the first message that ends past `size`
+            k = n - r if pos + (n - r) * step <= size else min(n - r, (size - pos) // step + 1)
+            # their message indexes are made with the chunk's (_row_indexes)
+            self._stretches.append((channel_ids[r:r + k], pos, step, log_time))
+            cb.num_messages += k
+            buf.write(recs[r:r + k].data)
+            r += k
+            if buf.tell() > size:
+                self._finalize()
 
 
 _PROOF = []
@@ -402,7 +528,12 @@ class McapLogger:
     def __init__(self, path, scenario, controller: str = "hybrid", model_description=None,
                  chunk_size: int = 256 * 1024, extra_metadata: dict | None = None,
                  scene_rate: float = 20.0, trail_seconds: float = 5.0, trail_rate: float = 5.0,
-                 layout_path="auto", agent_ids=None, edge_ids=None):
+                 layout_path="auto", agent_ids=None, edge_ids=None, encoding: str = "json"):
+        if encoding not in ENCODINGS:
+            raise Se3SyncError(f"log encoding {encoding!r}: expected one of "
+                               f"{', '.join(ENCODINGS)}")
+        self.encoding = encoding
+        self._cdr = None   # the CDR record layouts (encoding "cdr"), made below
         self.path = str(path)
         n, M = scenario.graph.n, scenario.graph.M
         aid = list(range(1, n + 1)) if agent_ids is None else [int(x) for x in agent_ids]
@@ -437,6 +568,7 @@ class McapLogger:
                 "masses": json.dumps(np.asarray(scenario.masses, float).tolist()),
                 "inertias": json.dumps(np.asarray(scenario.inertias, float).tolist()),
                 "scene_rate": repr(float(scene_rate)),
+                "log_encoding": encoding,
             }
             if agent_ids is not None or edge_ids is not None:
                 meta["agent_ids"] = json.dumps(aid)
@@ -462,6 +594,11 @@ class McapLogger:
                 self._channel(fg.SCENE)
                 for i in aid:
                     self._channel(f"{fg.TRAIL_PREFIX}{i}")
+            if encoding == "cdr":
+                self._cdr = _CdrRecords(aid, eid, scenario.graph.edge_list)
+                self._cdr_scene = None if self._scene is None else fg.CdrScene(
+                    self._scene, np.asarray(scenario.inertias, float),
+                    np.asarray(scenario.masses, float))
         except BaseException:
             self._f.close()
             raise
@@ -472,7 +609,7 @@ class McapLogger:
                         for i in aid]
         self._edge_pre = [f'{{"edge":{eid[k]},"positive":{aid[a - 1]},"negative":{aid[b - 1]},'
                           for k, (a, b) in enumerate(scenario.graph.edge_list)]
-        self._app = _MessageAppender(w)
+        self._app = _MessageAppender(w, ZSTD_LEVEL if encoding == "json" else CDR_ZSTD_LEVEL)
         self._add = self._app.add
         self.counts = {}
         self.orjson = True  # record_fast may use orjson (False: the bytes of `record`)
@@ -492,6 +629,15 @@ class McapLogger:
             self._layout_path = Path(layout_path)
 
     def _channel(self, topic):
+        if topic not in self._ch and self.encoding == "cdr":
+            name = cdr.SCHEMA.get("trail" if topic.startswith(fg.TRAIL_PREFIX) else topic)
+            if name is not None:   # /jumps and /link/stats stay JSON
+                sid = self._schema_ids.get(name)
+                if sid is None:
+                    sid = self._schema_ids[name] = self._w.register_schema(
+                        name=name, encoding="ros2msg", data=cdr.schema_text(name).encode())
+                self._ch[topic] = self._w.register_channel(topic=topic, message_encoding="cdr",
+                                                           schema_id=sid)
         if topic not in self._ch:
             fox = _FOXGLOVE.get(topic) or ("PosesInFrame" if topic.startswith(fg.TRAIL_PREFIX)
                                             else None)
@@ -531,6 +677,9 @@ class McapLogger:
 
     def record(self, t_ns: int, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U):
         """One decimated record: /tf, /edges, /agents, /lyapunov at simulated time t_ns."""
+        if self._cdr is not None:
+            return self.record_block([t_ns], *(np.asarray(x)[None] for x in (
+                S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U)))
         ts = f'{{"sec":{t_ns // 1_000_000_000},"nsec":{t_ns % 1_000_000_000}}}'
         Sl = S.tolist()
         ql = quat.tolist()
@@ -565,8 +714,20 @@ class McapLogger:
         ju = self._jump_until
         jl = jumped.tolist()
         jumping = [j or t_ns <= u for j, u in zip(jl, ju)]
-        self._msg("/scene", t_ns, self._scene.scene(ts, S, rot_err, jumping))
         keep = t_ns >= self._next_trail
+        if self._cdr is not None:
+            cs = self._cdr_scene
+            self._msg_bytes("/scene", t_ns, cs.scene(t_ns, S, rot_err, jumping))
+            if keep:
+                self._next_trail = t_ns + self._trail_dt
+            rows = cs.trails(t_ns, S, quat, keep)
+            self._app.add_rows(self._trail_ids, t_ns, rows, self._seq + 1)
+            self._seq += len(rows)
+            counts = self.counts
+            for topic in self._trail_topics:
+                counts[topic] = counts.get(topic, 0) + 1
+            return
+        self._msg("/scene", t_ns, self._scene.scene(ts, S, rot_err, jumping))
         if keep:
             self._next_trail = t_ns + self._trail_dt
         # one message per agent: `_msg` inlined (at N = 1000 the per-call cost shows)
@@ -623,6 +784,8 @@ class McapLogger:
         to the same values bit for bit, but the text of some numbers differs (0.00001 for
         1e-05); without it they are the same bytes as `record`'s. A record with a jump in it
         or a non-finite value goes through `record` (rare)."""
+        if self._cdr is not None:
+            return self.record(t_ns, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U)
         tf_v = np.concatenate((S[:, layout.P], quat), axis=1)
         ed_v = np.stack((theta, mu, rot_err, pos_err, U), axis=1)
         ag_v = np.concatenate((S[:, layout.XI], u), axis=1)
@@ -672,6 +835,9 @@ class McapLogger:
         R = len(t_ns)
         if R == 0:
             return
+        if self._cdr is not None:
+            return self._record_cdr(t_ns, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V,
+                                    kX_U)
         if not (self.orjson and _orjson is not None):
             for r in range(R):
                 self.record_fast(t_ns[r], S[r], u[r], theta[r], mu[r], jumped[r], rot_err[r],
@@ -707,6 +873,26 @@ class McapLogger:
                 msg_b(topic, tn, t.replace(b"@TS@", tsb) % tuple(vals))
             msg("/lyapunov", tn, f'{{"timestamp":{ts},"V":{r_(V[r])},"kX_U":{r_(kX_U[r])}}}')
             self._scene_due(tn, ts, S[r], quat[r], rot_err[r], jumped[r])
+
+    def _record_cdr(self, t_ns, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U):
+        """`record_block` in CDR: each channel's R messages filled at once (`_CdrRecords`)."""
+        c = self._cdr
+        S, quat = np.asarray(S, np.float64), np.asarray(quat, np.float64)
+        rows = {"/tf": c.tf.fill(np.concatenate((S[:, :, layout.P], quat), axis=2)
+                                 .reshape(len(t_ns), -1), t_ns),
+                "/edges": c.edges.fill(np.stack((theta, mu, rot_err, pos_err, U), axis=2)
+                                       .reshape(len(t_ns), -1), t_ns,
+                                       np.where(jumped, cdr.MODE["jump"], cdr.MODE["flow"])),
+                "/agents": c.agents.fill(np.concatenate((S[:, :, layout.XI], u), axis=2)
+                                         .reshape(len(t_ns), -1), t_ns),
+                "/lyapunov": c.lyapunov.fill(np.stack((V, kX_U), axis=1), t_ns)}
+        msg_b = self._msg_bytes
+        for r, tn in enumerate(t_ns):
+            for topic in ("/tf", "/edges", "/agents", "/lyapunov"):
+                msg_b(topic, tn, rows[topic][r].tobytes())
+            if self._scene is not None and tn >= self._next_scene:
+                self._next_scene = tn + self._scene_dt
+                self.scene(tn, None, S[r], quat[r], rot_err[r], jumped[r])
 
     _JUMP_TPL = ('{"timestamp": {"sec": %d, "nsec": %d}, "t": %r, "edge": %d, '
                  '"theta_before": %r, "theta_after": %r, "mu": %r}')
@@ -779,7 +965,7 @@ def read_log(path) -> dict:
     line) when the file is unreadable or is not an se3sync log.
     """
     out = {"metadata": None, "attachments": {}, "messages": {}, "truncated": False}
-    channels = {}
+    channels, schemas = {}, {}
     n_records = 0
     try:
         f = open(path, "rb")
@@ -792,12 +978,21 @@ def read_log(path) -> dict:
             for rec in StreamReader(f, skip_magic=False).records:
                 n_records += 1
                 if isinstance(rec, Message):
-                    topic = channels.get(rec.channel_id)
-                    if topic is not None:
-                        out["messages"].setdefault(topic, []).append((rec.log_time, json.loads(rec.data)))
+                    ch = channels.get(rec.channel_id)
+                    if ch is not None:
+                        topic, ros2 = ch
+                        out["messages"].setdefault(topic, []).append(
+                            (rec.log_time, json.loads(rec.data) if ros2 is None
+                             else cdr.decode(ros2, rec.data)))
+                elif isinstance(rec, Schema):
+                    schemas[rec.id] = rec
                 elif isinstance(rec, Channel):
-                    if rec.message_encoding == "json":  # se3sync writes JSON only
-                        channels[rec.id] = rec.topic
+                    sch = schemas.get(rec.schema_id)
+                    if rec.message_encoding == "json":
+                        channels[rec.id] = (rec.topic, None)
+                    elif (rec.message_encoding == "cdr" and sch is not None
+                          and sch.encoding == "ros2msg" and sch.name in cdr.SCHEMA.values()):
+                        channels[rec.id] = (rec.topic, sch.name)
                 elif isinstance(rec, Metadata):
                     if rec.name == "se3sync":
                         out["metadata"] = dict(rec.metadata)

@@ -1,0 +1,255 @@
+"""The CDR log (--log-encoding cdr): the JSON log's values in ROS 2 CDR, each message the bytes
+mcap-ros2-support's own encoder gives, and the bulk trail writer equal to the one-by-one one."""
+import io
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.records import Chunk, MessageIndex
+from mcap.stream_reader import StreamReader
+
+from controller.errors import Se3SyncError
+from cosim.log import cdr
+from cosim.log import foxglove as fg
+from cosim.log.mcap import McapLogger, read_log
+from cosim.master import Master
+from cosim.plants import FmuPlant
+from cosim.scenario import load_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "scenarios" / "paper_6uav.toml"
+
+
+def _log(tmp_path, sc, encoding, **kw):
+    path = tmp_path / f"{encoding}.mcap"
+    plant = FmuPlant.from_scenario(sc)
+    lg = McapLogger(path, sc, encoding=encoding, **kw)
+    try:
+        Master(sc, plant, "hybrid", lg).run(sc.n_steps())
+    finally:
+        lg.close()
+        plant.close()
+    return path
+
+
+def _same(a, b, where):
+    """a (from JSON) and b (from CDR) hold the same values: floats bit for bit (JSON null is a
+    non-finite value)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and set(a) == set(b), (where, a, b)
+        for k in a:
+            _same(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, list):
+        assert isinstance(b, list) and len(a) == len(b), (where, a, b)
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{where}[{i}]")
+    elif a is None:
+        assert isinstance(b, float) and not math.isfinite(b), (where, b)
+    elif isinstance(a, float) or isinstance(b, float):
+        assert isinstance(b, float) and float(a) == b and math.copysign(1, a) == math.copysign(1, b), (where, a, b)
+    else:
+        assert a == b and type(a) is type(b), (where, a, b)
+
+
+def test_cdr_log_holds_the_json_logs_values(tmp_path):
+    """The paper scenario for 2 s (jumps, so edges in mode "jump" and scenes with jumping
+    edges): every channel of the CDR log decodes to the JSON log's messages, at the same log
+    times, under the same names. The one difference is documented: each edge of a CDR scene
+    carries its label, hidden (font size 0, alpha 0) while the edge flows."""
+    sc = load_scenario(PAPER, ["simulation.duration=2"])
+    js = read_log(_log(tmp_path, sc, "json"))
+    cd = read_log(_log(tmp_path, sc, "cdr"))
+    assert cd["metadata"]["log_encoding"] == "cdr" and js["metadata"]["log_encoding"] == "json"
+    assert set(js["messages"]) == set(cd["messages"])
+    edges = [m for _, msg in js["messages"]["/edges"] for m in msg["edges"]]
+    assert any(e["mode"] == "jump" for e in edges)
+    hidden = shown = 0
+    for topic, msgs in js["messages"].items():
+        assert [t for t, _ in msgs] == [t for t, _ in cd["messages"][topic]], topic
+        for (_, a), (_, b) in zip(msgs, cd["messages"][topic]):
+            if topic == "/scene":
+                for ea, eb in zip(a["entities"], b["entities"]):
+                    if ea["id"].startswith("edge_") and not ea["texts"]:
+                        (label,) = eb["texts"]
+                        assert label["font_size"] == 0 and label["color"]["a"] == 0
+                        eb = dict(eb, texts=[])
+                        hidden += 1
+                    elif ea["texts"]:
+                        shown += 1
+                    _same(ea, eb, topic)
+                assert len(a["entities"]) == len(b["entities"])
+            else:
+                _same(a, b, topic)
+    assert hidden and shown
+    with open(tmp_path / "cdr.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    enc = {c.topic: (c.message_encoding, summary.schemas[c.schema_id].encoding,
+                     summary.schemas[c.schema_id].name) for c in summary.channels.values()}
+    assert enc["/tf"] == ("cdr", "ros2msg", "foxglove_msgs/msg/FrameTransforms")
+    assert enc["/scene"] == ("cdr", "ros2msg", "foxglove_msgs/msg/SceneUpdate")
+    assert enc["/trail/agent_3"] == ("cdr", "ros2msg", "foxglove_msgs/msg/PosesInFrame")
+    assert enc["/edges"][2] == "se3sync_msgs/msg/Edges" and enc["/jumps"][0] == "json"
+
+
+def _raw(x):
+    """A decoded message as a dict with its ROS 2 field names (what the encoder takes)."""
+    slots = getattr(type(x), "__slots__", None)
+    if slots is not None and hasattr(x, "_type"):
+        return {k: _raw(getattr(x, k)) for k in slots}
+    if isinstance(x, (list, tuple)):
+        return [_raw(v) for v in x]
+    return x
+
+
+def test_every_cdr_message_is_the_library_encoding(tmp_path):
+    """Each message of a CDR log (records, scenes, trails of every length until full) is the
+    byte string mcap-ros2-support's encoder makes of its decoded value: the templates' padding,
+    alignment and lengths are the library's."""
+    sc = load_scenario(PAPER, ["simulation.duration=1.3"])
+    path = _log(tmp_path, sc, "cdr", trail_seconds=0.5, trail_rate=10.0)
+    lengths = set()
+    n = 0
+    with open(path, "rb") as f:
+        for schema, channel, msg in make_reader(f).iter_messages():
+            if channel.message_encoding != "cdr":
+                continue
+            enc, dec = cdr._codec(schema.name)
+            value = dec(msg.data)
+            assert enc(_raw(value)) == bytes(msg.data), channel.topic
+            if channel.topic == "/trail/agent_2":
+                lengths.add(len(value.poses))
+            n += 1
+    assert lengths == set(range(1, 7))   # 5 kept poses and the current one
+    assert n > 500
+
+
+def test_layout_fill_is_the_library_encoding():
+    """`Layout.fill` of random rows (NaN, ±inf, −0.0, subnormals, large time stamps, modes)
+    against the library's encoding of the same dicts, for a message with strings of every
+    length mod 4 before its numbers (so every alignment case occurs)."""
+    rng = np.random.default_rng(5)
+    names = ["a", "bb", "ccc", "dddd", "eeeee"]
+
+    def edges(f, t, m):
+        return {"timestamp": t(), "edges": [
+            {"edge": k + 1, "positive": 1, "negative": 2, "theta": f(), "mu_u": f(),
+             "rot_err": f(), "pos_err": f(), "u": f(), "mode": m()} for k in range(5)]}
+
+    def frames(f, t, m):
+        return {"transforms": [{"timestamp": t(), "parent_frame_id": "w" * (k + 1),
+                                "child_frame_id": nm, "translation": {c: f() for c in "xyz"},
+                                "rotation": {c: f() for c in "xyzw"}}
+                               for k, nm in enumerate(names)]}
+
+    for name, build, K, M in (("se3sync_msgs/msg/Edges", edges, 25, 5),
+                              ("foxglove_msgs/msg/FrameTransforms", frames, 35, 0)):
+        lay = cdr.compile_layout(name, build)
+        R = 7
+        v = rng.standard_normal((R, K)) * 10.0 ** rng.integers(-300, 300, (R, K))
+        v.flat[rng.choice(v.size, 12, replace=False)] = [np.nan, np.inf, -np.inf, -0.0, 0.0,
+                                                          5e-324, -5e-324, 1e308, -1e-308,
+                                                          np.pi, 1.0, -1.0]
+        t = rng.integers(0, 2**31 - 1, R) * 1_000_000_000 + rng.integers(0, 10**9, R)
+        modes = rng.choice([cdr.MODE["flow"], cdr.MODE["jump"]], (R, M))
+        rows = lay.fill(v, t, modes if M else None)
+        enc, _ = cdr._codec(name)
+        for r in range(R):
+            vals = iter(v[r].tolist())
+            ts = {"sec": int(t[r] // 10**9), "nanosec": int(t[r] % 10**9)}
+            md = iter("jump" if x == cdr.MODE["jump"] else "flow" for x in modes[r])
+            msg = build(lambda: next(vals), lambda: dict(ts), lambda: next(md))
+            assert rows[r].tobytes() == enc(msg), (name, r)
+
+
+def test_add_rows_is_add_message_by_message():
+    """`_MessageAppender.add_rows` (the trails of a CDR log, one write per stretch of a chunk)
+    against `add` row by row, with other channels in between and chunks cut inside the rows:
+    the same chunks byte for byte and the same message indexes, and mcap's reader finds every
+    message of every channel."""
+    from mcap.writer import CompressionType, Writer
+
+    from cosim.log.mcap import _MessageAppender
+
+    n_ch = 40
+
+    def write(bulk: bool) -> bytes:
+        rng = np.random.default_rng(3)
+        buf = io.BytesIO()
+        w = Writer(buf, chunk_size=3000, compression=CompressionType.ZSTD)
+        w.start(profile="", library="test")
+        sid = w.register_schema(name="s", encoding="ros2msg", data=b"")
+        other = w.register_channel(topic="/o", message_encoding="cdr", schema_id=sid)
+        ids = [w.register_channel(topic=f"/r{k}", message_encoding="cdr", schema_id=sid)
+               for k in range(n_ch)]
+        app = _MessageAppender(w, level=3)
+        assert app.add != app._slow
+        seq = 0
+        for tick in range(30):
+            t = 10_000_000 * tick
+            seq += 1
+            app.add(other, t, b"o" * int(rng.integers(1, 400)), seq)
+            L = int(rng.integers(1, 200))
+            rows = rng.integers(0, 256, (n_ch, L), dtype=np.uint8)
+            if bulk:
+                app.add_rows(ids, t, rows, seq + 1)
+            else:
+                for r in range(n_ch):
+                    app.add(ids[r], t, rows[r].tobytes(), seq + 1 + r)
+            seq += n_ch
+        w.finish()
+        return buf.getvalue()
+
+    def parts(data):
+        chunks, indexes = [], set()
+        for rec in StreamReader(io.BytesIO(data), skip_magic=False, emit_chunks=True).records:
+            if isinstance(rec, Chunk):
+                chunks.append(bytes(rec.data))
+            elif isinstance(rec, MessageIndex):
+                indexes.add((len(chunks), rec.channel_id, tuple(rec.records)))
+        return chunks, indexes
+
+    one, bulk = write(False), write(True)
+    c1, i1 = parts(one)
+    c2, i2 = parts(bulk)
+    assert len(c1) > 10 and c1 == c2 and i1 == i2
+    r = make_reader(io.BytesIO(bulk))
+    for k in (0, 17, n_ch - 1):
+        got = [m.log_time for _, _, m in r.iter_messages(topics=[f"/r{k}"])]
+        assert got == [10_000_000 * t for t in range(30)]
+
+
+def test_error_colors_is_error_color_elementwise():
+    e = np.array([0.0, -1.0, 1e-5, fg.ERR_LO, 2e-4, 0.1, 1.0, fg.ERR_HI, 5.0, np.nan, np.inf])
+    got = fg.error_colors(e)
+    for x, row in zip(e, got):
+        assert tuple(row) == fg.error_color(float(x)), x
+
+
+def test_unknown_encoding_is_refused(tmp_path):
+    sc = load_scenario(PAPER, ["simulation.duration=0.01"])
+    with pytest.raises(Se3SyncError, match="log encoding 'xml'"):
+        McapLogger(tmp_path / "x.mcap", sc, encoding="xml")
+    assert not (tmp_path / "x.mcap").exists()
+    p = subprocess.run([sys.executable, "-m", "cosim.cli", "run", str(PAPER), "--duration",
+                        "0.01", "--log", str(tmp_path / "y.mcap"), "--log-encoding", "xml"],
+                       capture_output=True, text=True)
+    assert p.returncode == 2
+    assert "--log-encoding" in p.stderr.strip().splitlines()[-1]
+    assert not (tmp_path / "y.mcap").exists()
+
+
+def test_run_cli_writes_a_cdr_log(tmp_path):
+    out = tmp_path / "c.mcap"
+    p = subprocess.run([sys.executable, "-m", "cosim.cli", "run", str(PAPER), "--duration",
+                        "0.2", "--log", str(out), "--log-encoding", "cdr"],
+                       capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    log = read_log(out)
+    assert log["metadata"]["log_encoding"] == "cdr"
+    tf = log["messages"]["/tf"]
+    assert len(tf) == 20 and len(tf[0][1]["transforms"]) == 6
+    assert tf[-1][1]["transforms"][0]["timestamp"] == {"sec": 0, "nsec": tf[-1][0]}
