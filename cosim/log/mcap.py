@@ -202,6 +202,43 @@ class _MessageIndex(MessageIndex):
             stream.write(np.asarray(self.records, dtype="<u8").tobytes())
 
 
+class _Counted:
+    """The log file as mcap's writer sees it: ``tell`` counts the bytes written instead of
+    asking the OS (lseek, twice per chunk, and a wait for the GIL after each)."""
+
+    def __init__(self, f):
+        self._f, self._pos = f, f.tell()
+
+    def write(self, data):
+        n = self._f.write(data)
+        self._pos += n
+        return n
+
+    def tell(self):
+        return self._pos
+
+    def flush(self):
+        self._f.flush()
+
+
+class _ChunkIndex(ChunkIndex):
+    """mcap's ChunkIndex record with its channel → offset map packed at once: the same bytes
+    (a chunk of a CDR log's trails maps 1000 channels, written by mcap one field at a time when
+    the file is finished)."""
+
+    def write(self, stream):
+        offs = self.message_index_offsets
+        c = self.compression.encode()
+        m = np.empty(len(offs), np.dtype([("ch", "<u2"), ("off", "<u8")]))
+        m["ch"], m["off"] = list(offs), list(offs.values())
+        body = (struct.pack("<QQQQI", self.message_start_time, self.message_end_time,
+                            self.chunk_start_offset, self.chunk_length, 10 * len(offs))
+                + m.tobytes() + struct.pack(f"<QI{len(c)}sQQ", self.message_index_length,
+                                            len(c), c, self.compressed_size,
+                                            self.uncompressed_size))
+        stream.write(struct.pack("<BQ", 0x08, len(body)) + body)
+
+
 class _MessageAppender:
     """``add(channel_id, log_time, data, sequence)``: what ``Writer.add_message(channel_id,
     log_time, data, log_time, sequence)`` does, the same bytes in the same file, at ~1/10 of the
@@ -316,7 +353,7 @@ class _MessageAppender:
         flush()
         start = w._Writer__stream.tell()
         chunk.write(rb)
-        index = ChunkIndex(message_start_time=t0, message_end_time=t1, chunk_start_offset=start,
+        index = _ChunkIndex(message_start_time=t0, message_end_time=t1, chunk_start_offset=start,
                            chunk_length=rb.count, message_index_offsets={},
                            message_index_length=0, compression="zstd",
                            compressed_size=len(packed), uncompressed_size=size)
@@ -377,6 +414,8 @@ class _MessageAppender:
 
     _IDX_DT = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("n", "<u4")])
     _ENT_DT = np.dtype([("t", "<u8"), ("o", "<u8")])
+    _ONE_DT = np.dtype([("op", "u1"), ("len", "<u8"), ("ch", "<u2"), ("n", "<u4"), ("t", "<u8"),
+                        ("o", "<u8")])
 
     @classmethod
     def _row_indexes(cls, stretches, base):
@@ -385,6 +424,13 @@ class _MessageAppender:
         at most once per stretch; records start at file offset ``base``. Returns their bytes
         and {channel: offset}: what _MessageIndex.write gives for each channel, entries in
         the order they were added."""
+        if len(stretches) == 1:   # the usual case: each channel once, one 31-byte record each
+            c, o, s, t = stretches[0]
+            n = len(c)
+            rec = np.empty(n, cls._ONE_DT)
+            rec["op"], rec["len"], rec["ch"], rec["n"] = 0x07, 22, c, 16
+            rec["t"], rec["o"] = t, o + s * np.arange(n, dtype=np.int64)
+            return rec.tobytes(), dict(zip(c, range(base, base + 31 * n, 31)))
         cids = np.concatenate([np.asarray(c, np.int64) for c, _, _, _ in stretches])
         offs = np.concatenate([o + s * np.arange(len(c), dtype=np.int64)
                                for c, o, s, _ in stretches])
@@ -544,7 +590,8 @@ class McapLogger:
         self._aid, self._eid = aid, eid
         self._f = open(self.path, "wb")
         try:
-            self._w = w = Writer(self._f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+            self._w = w = Writer(_Counted(self._f), chunk_size=chunk_size,
+                                 compression=CompressionType.ZSTD)
             w.start(profile="", library=f"se3sync {__version__}")
             self._ch = {}
             self._schema_ids = {}
