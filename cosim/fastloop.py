@@ -50,6 +50,11 @@ TARGET_BLOCK_S = 0.1  # a block is cut shorter when MAX_BLOCK steps would take l
 # thread encodes a block's records while the next block steps, so one long first block would
 # leave it idle until then (a 1000-agent run's whole first second)
 FIRST_LOGGED_BLOCK = 16
+# ... and they grow only while shorter than this: the records of the last block are encoded
+# after the loop has stopped, so a long one is a tail of logging the loop waits for (a
+# 1000-agent run at h = 1 ms reached 256-step, 56 ms blocks, and its last quarter second of
+# records was encoded after the last step)
+TARGET_LOGGED_BLOCK_S = 0.01
 QUEUE_BYTES = 128 << 20  # record arrays that may wait for the log writer
 # Python's GIL switch interval while a logged run steps: a block that ends waits for the GIL
 # the encoder thread holds, by default up to 5 ms (paper scenario: a 1000-step block is 1.3 ms,
@@ -284,11 +289,15 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
     if logging:
         writer = _Writer(logger, 8 * (N * 28 + 5 * M) * ((MAX_BLOCK - 1) // dec + 1))
     block = FIRST_LOGGED_BLOCK if logging else MAX_BLOCK
+    target = TARGET_LOGGED_BLOCK_S if logging else TARGET_BLOCK_S
     k0 = int(plant._k)
     n = 0
     interrupted = timed_out = False
     deadline = None
     pending = None
+    # record buffers the writer has encoded, for the next blocks: fresh ones cost the loop a
+    # page fault per 4 KiB written (a 1000-agent record is 0.26 MB)
+    free = []
     # a signal only sets master._stop while blocks run (they are short): Python would run a
     # raising handler between blocks only, where a KeyboardInterrupt would lose the step count
     catcher = signals.catching(master.request_stop).__enter__()
@@ -299,7 +308,12 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
         while n < n_steps and not master._stop:
             nxt = min(n_steps, n + block)
             cap = (nxt - n - 1) // dec + 1 if logging else 0
-            rec = _RecordBuffers(cap, N, M)
+            rec = None
+            while free and rec is None:
+                r = free.pop()
+                rec = r if r.cap >= cap else None
+            if rec is None:
+                rec = _RecordBuffers(cap, N, M)
             jb = (np.empty(jcap, np.int64), np.empty(jcap, np.int64), np.empty(jcap),
                   np.empty(jcap), np.empty(jcap))
             t0 = time.perf_counter()
@@ -315,12 +329,12 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
             fmu.time = (k0 + n) * h
             if u is not fmu._u:
                 fmu._u[...] = u
-            if n > n0 and dt > TARGET_BLOCK_S * 1.5:
-                block = max(1, int((n - n0) * TARGET_BLOCK_S / dt))
-            elif block < MAX_BLOCK and dt < TARGET_BLOCK_S / 2:
+            if n > n0 and dt > target * 1.5:
+                block = max(1, int((n - n0) * target / dt))
+            elif block < MAX_BLOCK and dt < target / 2:
                 block = min(MAX_BLOCK, 2 * block)
             _hand_over(master, writer, rec, int(out[O_REC]), jb, int(out[O_JMP]), h,
-                       int(out[O_SAMPLED]), smp_step, smp_S, smp_theta, smp_u)
+                       int(out[O_SAMPLED]), smp_step, smp_S, smp_theta, smp_u, free)
             if out[O_STATUS]:
                 pending = (CALL_NAMES[int(out[O_CALL])], int(out[O_STATUS]))
                 break
@@ -357,6 +371,7 @@ def _addresses(fmu):
 
 class _RecordBuffers:
     def __init__(self, cap, N, M):
+        self.cap = cap
         self.step = np.empty(cap, np.int64)
         self.S = np.empty((cap, N, layout.S_WIDTH))
         self.u = np.empty((cap, N, 6))
@@ -375,7 +390,7 @@ class _RecordBuffers:
 
 
 def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, smp_theta,
-               smp_u):
+               smp_u, free=None):
     """The block's events, in step order: the summary samples (main thread, they fill
     master.samples), jumps (master.jumps now, the log on the writer) and log records."""
     if nsmp:
@@ -393,6 +408,8 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, sm
         master.jumps.append({"t": s * h, "edge": e, "theta_before": b, "theta_after": a,
                              "mu": m})
     if writer is None or (njmp == 0 and nrec == 0):
+        if free is not None and writer is not None:
+            free.append(rec)
         return
     kX = master._kX
 
@@ -433,5 +450,7 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, sm
             t = jstep[i] * h
             jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
             i += 1
+        if free is not None:   # encoded: the loop may fill these buffers again
+            free.append(rec)
 
     writer.put(write)

@@ -253,3 +253,33 @@ def test_run_cli_writes_a_cdr_log(tmp_path):
     tf = log["messages"]["/tf"]
     assert len(tf) == 20 and len(tf[0][1]["transforms"]) == 6
     assert tf[-1][1]["transforms"][0]["timestamp"] == {"sec": 0, "nsec": tf[-1][0]}
+
+
+def test_cdr_chunks_carry_zstds_checksum_instead_of_crc32(tmp_path):
+    """A CDR log's chunks are checked by zstd's frame checksum (verified on decompression)
+    rather than MCAP's CRC-32 of the uncompressed chunk (0: not computed): the integrity check
+    stays, at a fraction of the cost. A JSON log keeps the CRC-32."""
+    import zlib
+
+    import zstandard
+
+    sc = load_scenario(PAPER, ["simulation.duration=0.3"])
+    for enc in ("json", "cdr"):
+        chunks = []
+        with open(_log(tmp_path, sc, enc), "rb") as f:
+            for rec in StreamReader(f, skip_magic=False, emit_chunks=True).records:
+                if isinstance(rec, Chunk):
+                    chunks.append(rec)
+        assert chunks
+        for c in chunks:
+            data = zstandard.ZstdDecompressor().decompress(c.data,
+                                                           max_output_size=c.uncompressed_size)
+            has = zstandard.get_frame_parameters(c.data).has_checksum
+            if enc == "cdr":
+                assert has and c.uncompressed_crc == 0
+            else:
+                assert not has and c.uncompressed_crc == zlib.crc32(data)
+    bad = bytearray(c.data)
+    bad[-2] ^= 0xFF   # inside the checksum: only the check itself can notice
+    with pytest.raises(zstandard.ZstdError):
+        zstandard.ZstdDecompressor().decompress(bytes(bad), max_output_size=c.uncompressed_size)

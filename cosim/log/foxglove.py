@@ -276,8 +276,9 @@ class CdrScene:
         self._kept = np.zeros((N, sb.trail_len, 7))
         self._nkept = 0
 
-    def scene(self, t_ns: int, S, rot_err, jumping) -> bytes:
-        """The SceneUpdate at t_ns (``jumping``: M booleans)."""
+    def scene(self, t_ns: int, S, rot_err, jumping) -> np.ndarray:
+        """The SceneUpdate at t_ns (``jumping``: M booleans), as a uint8 row valid until the next
+        scene (`cdr.Layout.fill`)."""
         sb = self.sb
         # as SceneBuilder: a non-finite coordinate or colour is drawn as 0
         P = np.nan_to_num(np.asarray(S, np.float64)[:, :3], nan=0.0, posinf=0.0, neginf=0.0)
@@ -287,7 +288,7 @@ class CdrScene:
         th = np.where(J, 3 * sb._scale, sb._scale)
         v = np.concatenate((th[:, None], pi, pj, col, (pi + pj) / 2, np.where(J, 14.0, 0.0)[:, None],
                             J[:, None].astype(np.float64)), axis=1)
-        return self._scene.fill(v.ravel(), t_ns)[0].tobytes()
+        return self._scene.fill(v.ravel(), t_ns)[0]
 
     def trails(self, t_ns: int, S, quat, keep: bool = True) -> np.ndarray:
         """One PosesInFrame per agent as the rows of a uint8 array (`SceneBuilder.trails`)."""
