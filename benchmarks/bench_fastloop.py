@@ -58,6 +58,9 @@ def run(sc, compiled=True, log=None, encoding="json"):
     from cosim.plants import FmuPlant
 
     plant = FmuPlant.from_scenario(sc)
+    if log:   # a new path, as a run usually writes: replacing the last run's files costs more
+        for p in (Path(log), Path(log).with_suffix(".layout.json")):
+            p.unlink(missing_ok=True)
     logger = McapLogger(log, sc, encoding=encoding) if log else None
     try:
         m = Master(sc, plant, "hybrid", logger)

@@ -177,7 +177,9 @@ def test_message_appender_writes_the_bytes_of_mcaps_writer(chunking):
                    use_chunking=chunking)
         w.start(profile="", library="test")
         sid = w.register_schema(name="s", encoding="jsonschema", data=b"{}")
-        ids = [w.register_channel(topic=f"/c{k}", message_encoding="json", schema_id=sid)
+        # one channel with metadata (non-ASCII too): the appender writes channel records
+        ids = [w.register_channel(topic=f"/c{k}", message_encoding="json", schema_id=sid,
+                                  metadata={"a": "b", "ключ": "значение"} if k == 1 else {})
                for k in range(3)]
         app = _MessageAppender(w, level=3)   # mcap's zstd level: its bytes exactly
         assert (app.add != app._slow) == chunking   # the fast path needs mcap's chunk builder

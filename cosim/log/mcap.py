@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import zstandard
 from mcap.records import (Attachment, Channel, Chunk, ChunkIndex, Message, MessageIndex, Metadata,
-                          Schema)
+                          Schema, Statistics)
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, IndexType, Writer
 
@@ -221,6 +221,38 @@ class _Counted:
         self._f.flush()
 
 
+def _map_bytes(keys, vals) -> bytes:
+    """An MCAP map<uint16, uint64> (its byte length, then the pairs)."""
+    m = np.empty(len(keys), np.dtype([("k", "<u2"), ("v", "<u8")]))
+    m["k"], m["v"] = keys, vals
+    return struct.pack("<I", 10 * len(keys)) + m.tobytes()
+
+
+class _Channel(Channel):
+    """mcap's Channel record written with one pack: the summary section repeats every channel
+    (1000 trails) and mcap writes each field through its own call."""
+
+    def write(self, stream):
+        t, e = self.topic.encode(), self.message_encoding.encode()
+        meta = b"".join(struct.pack(f"<I{len(k)}sI{len(v)}s", len(k), k, len(v), v)
+                        for k, v in ((k.encode(), v.encode()) for k, v in self.metadata.items()))
+        body = struct.pack(f"<HHI{len(t)}sI{len(e)}sI", self.id, self.schema_id, len(t), t,
+                           len(e), e, len(meta)) + meta
+        stream.write(struct.pack("<BQ", 0x04, len(body)) + body)
+
+
+class _Statistics(Statistics):
+    """mcap's Statistics record with its per-channel message counts packed at once."""
+
+    def write(self, stream):
+        c = self.channel_message_counts
+        body = struct.pack("<QHIIIIQQ", self.message_count, self.schema_count,
+                           self.channel_count, self.attachment_count, self.metadata_count,
+                           self.chunk_count, self.message_start_time, self.message_end_time
+                           ) + _map_bytes(list(c), list(c.values()))
+        stream.write(struct.pack("<BQ", 0x0B, len(body)) + body)
+
+
 class _ChunkIndex(ChunkIndex):
     """mcap's ChunkIndex record with its channel → offset map packed at once: the same bytes
     (a chunk of a CDR log's trails maps 1000 channels, written by mcap one field at a time when
@@ -229,11 +261,9 @@ class _ChunkIndex(ChunkIndex):
     def write(self, stream):
         offs = self.message_index_offsets
         c = self.compression.encode()
-        m = np.empty(len(offs), np.dtype([("ch", "<u2"), ("off", "<u8")]))
-        m["ch"], m["off"] = list(offs), list(offs.values())
-        body = (struct.pack("<QQQQI", self.message_start_time, self.message_end_time,
-                            self.chunk_start_offset, self.chunk_length, 10 * len(offs))
-                + m.tobytes() + struct.pack(f"<QI{len(c)}sQQ", self.message_index_length,
+        body = (struct.pack("<QQQQ", self.message_start_time, self.message_end_time,
+                            self.chunk_start_offset, self.chunk_length)
+                + _map_bytes(list(offs), list(offs.values())) + struct.pack(f"<QI{len(c)}sQQ", self.message_index_length,
                                             len(c), c, self.compressed_size,
                                             self.uncompressed_size))
         stream.write(struct.pack("<BQ", 0x08, len(body)) + body)
@@ -276,6 +306,12 @@ class _MessageAppender:
             self.add = self._slow
             return
         self._cb, self._st, self._size, self._finalize = cb, st, size, flush
+        # the summary's statistics and channels (the channels made so far) written faster
+        if type(st) is Statistics:
+            st.__class__ = _Statistics
+        for ch in getattr(writer, "_Writer__channels", {}).values():
+            if type(ch) is Channel:
+                ch.__class__ = _Channel
         if getattr(writer, "_Writer__compression", None) == CompressionType.ZSTD:
             self._own_chunks(level, frame_checksum)
 
