@@ -76,9 +76,10 @@ def run(sc, compiled=True, log=None, encoding="json"):
     return wall, s
 
 
-def record_cost(sc, n_rec, fast, use_orjson=True):
+def record_cost(sc, n_rec, fast, use_orjson=True, encoding="json"):
     """Seconds per record of McapLogger.record / record_fast (random finite values, no jump);
-    use_orjson=False: record_fast with float-repr templates (the bytes of `record`)."""
+    use_orjson=False: record_fast with float-repr templates (the bytes of `record`);
+    encoding "cdr": the CDR log's record (one record at a time: the loop hands over blocks)."""
     from cosim.log.mcap import McapLogger
 
     N, M = sc.graph.n, sc.graph.M
@@ -89,7 +90,7 @@ def record_cost(sc, n_rec, fast, use_orjson=True):
     q = rng.standard_normal((n_rec, N, 4))
     no = np.zeros(M, np.bool_)
     with tempfile.TemporaryDirectory() as d:
-        lg = McapLogger(os.path.join(d, "r.mcap"), sc)
+        lg = McapLogger(os.path.join(d, "r.mcap"), sc, encoding=encoding)
         lg.orjson = use_orjson
         rec = lg.record_fast if fast else lg.record
         t0 = time.perf_counter()
@@ -168,7 +169,7 @@ def main():
               f"compiled + log / fmpy = {w_log / w_fmpy:.3f}×")
 
     print("record cost (/tf, /edges, /agents, /lyapunov + /scene and trails when due; MCAP "
-          "chunking + zstd included):")
+          "chunking + zstd included; the logger's set-up is not):")
     sizes = [(sc, 400)]
     big = None
     if not args.skip_big:
@@ -184,6 +185,9 @@ def main():
         if mcaplog._orjson is not None:
             fast = record_cost(s_, k, True, True)
             line += f", record_fast (orjson) {fast * 1e6:9.1f} µs ({slow / fast:.1f}×)"
+        record_cost(s_, 2, True, encoding="cdr")   # numba's first call of the fill kernel
+        c = record_cost(s_, k, True, encoding="cdr")
+        line += f", CDR {c * 1e6:9.1f} µs ({slow / c:.1f}×)"
         print(line)
 
     if big is not None:
