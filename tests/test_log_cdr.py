@@ -283,3 +283,44 @@ def test_cdr_chunks_carry_zstds_checksum_instead_of_crc32(tmp_path):
     bad[-2] ^= 0xFF   # inside the checksum: only the check itself can notice
     with pytest.raises(zstandard.ZstdError):
         zstandard.ZstdDecompressor().decompress(bytes(bad), max_output_size=c.uncompressed_size)
+
+
+def test_layout_plots_fields_the_cdr_messages_have(tmp_path):
+    """Every path a CDR log's Foxglove layout plots resolves in the messages as Foxglove sees
+    them (ROS 2 names: /lyapunov.v, not .V), and so does the JSON layout in the JSON log."""
+    import json
+    import re
+
+    sc = load_scenario(PAPER, ["simulation.duration=0.1"])
+    for enc in ("json", "cdr"):
+        path = _log(tmp_path, sc, enc)
+        layout = json.loads(read_log(path)["attachments"]["foxglove_layout.json"])
+        plotted = [p["value"] for k, c in layout["configById"].items() if k.startswith("Plot!")
+                   for p in c["paths"]]
+        last = {}
+        with open(path, "rb") as f:
+            for schema, channel, msg in make_reader(f).iter_messages():
+                if channel.message_encoding == "cdr":
+                    last[channel.topic] = _raw(cdr._codec(schema.name)[1](msg.data))
+                else:
+                    last[channel.topic] = json.loads(msg.data)
+        assert len(plotted) == 2 * sc.graph.M + 1
+        for p in plotted:
+            topic, rest = p.split(".", 1)
+            node = last[topic]
+            for name, idx in re.findall(r"([A-Za-z_]+)(?:\[(\d+)\])?", rest):
+                node = node[name]
+                if idx:
+                    node = node[int(idx)]
+            assert isinstance(node, float), (enc, p)
+
+
+def test_read_log_decodes_only_the_topics_asked_for(tmp_path):
+    sc = load_scenario(PAPER, ["simulation.duration=0.2"])
+    for enc in ("json", "cdr"):
+        path = _log(tmp_path, sc, enc)
+        whole = read_log(path)
+        part = read_log(path, topics=("/edges", "/jumps", "/nothing"))
+        assert set(part["messages"]) == {"/edges"} | ({"/jumps"} & set(whole["messages"]))
+        assert part["messages"]["/edges"] == whole["messages"]["/edges"]
+        assert part["metadata"] == whole["metadata"] and part["attachments"] == whole["attachments"]

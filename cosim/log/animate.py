@@ -32,7 +32,7 @@ def load_poses(path) -> dict:
     import json
 
 
-    log = read_log(path)
+    log = read_log(path, topics=("/tf", "/edges"))
     tf = sorted(log["messages"].get("/tf", []), key=lambda m: m[0])
     ed = sorted(log["messages"].get("/edges", []), key=lambda m: m[0])
     if not tf or not ed:

@@ -334,7 +334,7 @@ def _ids(x) -> list:
     return list(range(1, x + 1)) if isinstance(x, int) else [int(v) for v in x]
 
 
-def layout(agents, edges) -> dict:
+def layout(agents, edges, encoding: str = "json") -> dict:
     """A Foxglove layout: a 3D panel following ``world`` with /tf, /scene and the trails, beside
     plots of ‖I − R̄_k‖_F per edge, θ_k per edge and V̄ (log time = simulated time). ``agents``
     and ``edges``: their numbers (lists), or their counts (numbered from 1)."""
@@ -361,7 +361,8 @@ def layout(agents, edges) -> dict:
                               [(f"/edges.edges[{r}].rot_err", f"k={k}") for r, k in enumerate(edges)]),
         "Plot!theta": _plot("θ_k (rad)",
                             [(f"/edges.edges[{r}].theta", f"k={k}") for r, k in enumerate(edges)]),
-        "Plot!V": _plot("V̄", [("/lyapunov.V", "V̄")]),
+        # a CDR log's field is `v` (ROS 2 names are lower case, cosim/log/cdr.py)
+        "Plot!V": _plot("V̄", [("/lyapunov.V" if encoding == "json" else "/lyapunov.v", "V̄")]),
     }
     return {
         "configById": cfg,
@@ -374,5 +375,5 @@ def layout(agents, edges) -> dict:
     }
 
 
-def layout_json(agents, edges) -> str:
-    return json.dumps(layout(agents, edges), indent=1, ensure_ascii=False)
+def layout_json(agents, edges, encoding: str = "json") -> str:
+    return json.dumps(layout(agents, edges, encoding), indent=1, ensure_ascii=False)

@@ -675,7 +675,7 @@ class McapLogger:
                 w.add_attachment(create_time=time.time_ns(), log_time=0,
                                  name="modelDescription.xml", media_type="application/xml",
                                  data=data)
-            self._layout = fg.layout_json(aid, eid)
+            self._layout = fg.layout_json(aid, eid, encoding)
             w.add_attachment(create_time=time.time_ns(), log_time=0, name="foxglove_layout.json",
                              media_type="application/json", data=self._layout.encode())
             self._scene = None
@@ -1051,9 +1051,11 @@ class McapLogger:
         self.close()
 
 
-def read_log(path) -> dict:
+def read_log(path, topics=None) -> dict:
     """Reads an se3sync MCAP back: {"metadata": {...}, "attachments": {name: bytes},
-    "messages": {topic: [(log_time_ns, decoded JSON), ...]}, "truncated": bool}.
+    "messages": {topic: [(log_time_ns, decoded JSON), ...]}, "truncated": bool}. A CDR message
+    is decoded to the dict its JSON message would give (`cdr.decode`). ``topics``: decode the
+    messages of these topics only (the scene and 1000 trails of a large log are most of it).
 
     One streaming pass (mcap's StreamReader), so a file without a summary section, or with a
     torn tail (a killed run), yields every record before the tear. Raises Se3SyncError (one
@@ -1088,6 +1090,8 @@ def read_log(path) -> dict:
                     elif (rec.message_encoding == "cdr" and sch is not None
                           and sch.encoding == "ros2msg" and sch.name in cdr.SCHEMA.values()):
                         channels[rec.id] = (rec.topic, sch.name)
+                    if topics is not None and rec.topic not in topics:
+                        channels.pop(rec.id, None)
                 elif isinstance(rec, Metadata):
                     if rec.name == "se3sync":
                         out["metadata"] = dict(rec.metadata)

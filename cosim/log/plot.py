@@ -25,7 +25,7 @@ _MARKERS = ("o", "s", "^", "v", "D", "P", "X", "*")
 def load_series(path) -> dict:
     """Arrays from a log: t (T,), rot_err/pos_err/theta (T, M), omega/v (T, N, 3),
     t_V/V (V̄ from /lyapunov), jumps, metadata."""
-    log = read_log(path)
+    log = read_log(path, topics=("/edges", "/agents", "/lyapunov", "/jumps"))
     edges = log["messages"].get("/edges", [])
     agents = log["messages"].get("/agents", [])
     if not edges or not agents:
