@@ -4,8 +4,8 @@ The JSON log spends most of a 1000-agent run formatting and compressing text (1.
 record). In CDR a number is its 8 bytes, and a message of a run has the same shape at every
 record: only its numbers and time stamps change. So each message kind is serialised once, by
 mcap-ros2-support's encoder with a marked value in every place that varies (`compile_layout`),
-and each record copies those bytes and writes its numbers into the marked places with one numpy
-assignment (`Layout.fill`). Decoding is mcap-ros2-support's (`decode`).
+and each record writes its numbers into the marked places of a buffer that holds those bytes
+(`Layout.fill`, a compiled loop). Decoding is mcap-ros2-support's (`decode`).
 
 Schemas are ROS 2 ``.msg`` files (``ros2_schemas/``): Foxglove's ``foxglove_msgs`` as published,
 the ``geometry_msgs`` and ``builtin_interfaces`` types they use, and ``se3sync_msgs`` for our own
