@@ -50,7 +50,8 @@ def _same(a, b, where):
     elif a is None:
         assert isinstance(b, float) and not math.isfinite(b), (where, b)
     elif isinstance(a, float) or isinstance(b, float):
-        assert isinstance(b, float) and float(a) == b and math.copysign(1, a) == math.copysign(1, b), (where, a, b)
+        assert isinstance(b, float) and float(a) == b, (where, a, b)
+        assert math.copysign(1, a) == math.copysign(1, b), (where, a, b)
     else:
         assert a == b and type(a) is type(b), (where, a, b)
 

@@ -84,7 +84,8 @@ def _codec(name: str):
     # the functions mcap_ros2's own Writer and DecoderFactory build their codecs with
     from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
 
-    return serialize_dynamic(name, schema_text(name))[name], generate_dynamic(name, schema_text(name))[name]
+    text = schema_text(name)
+    return serialize_dynamic(name, text)[name], generate_dynamic(name, text)[name]
 
 
 # Markers. A float place k holds the float64 whose bits are _F_MARK << 32 | k (finite, ~1e8);

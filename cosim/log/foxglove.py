@@ -286,8 +286,9 @@ class CdrScene:
         pi, pj = P[self._a], P[self._b]
         col = np.where(J[:, None], 1.0, error_colors(rot_err))
         th = np.where(J, 3 * sb._scale, sb._scale)
-        v = np.concatenate((th[:, None], pi, pj, col, (pi + pj) / 2, np.where(J, 14.0, 0.0)[:, None],
-                            J[:, None].astype(np.float64)), axis=1)
+        font, alpha = np.where(J, 14.0, 0.0), J.astype(np.float64)
+        v = np.concatenate((th[:, None], pi, pj, col, (pi + pj) / 2, font[:, None],
+                            alpha[:, None]), axis=1)
         return self._scene.fill(v.ravel(), t_ns)[0]
 
     def trails(self, t_ns: int, S, quat, keep: bool = True) -> np.ndarray:

@@ -263,9 +263,9 @@ class _ChunkIndex(ChunkIndex):
         c = self.compression.encode()
         body = (struct.pack("<QQQQ", self.message_start_time, self.message_end_time,
                             self.chunk_start_offset, self.chunk_length)
-                + _map_bytes(list(offs), list(offs.values())) + struct.pack(f"<QI{len(c)}sQQ", self.message_index_length,
-                                            len(c), c, self.compressed_size,
-                                            self.uncompressed_size))
+                + _map_bytes(list(offs), list(offs.values()))
+                + struct.pack(f"<QI{len(c)}sQQ", self.message_index_length, len(c), c,
+                              self.compressed_size, self.uncompressed_size))
         stream.write(struct.pack("<BQ", 0x08, len(body)) + body)
 
 
