@@ -723,42 +723,38 @@ class McapLogger:
         if layout_path is not None:
             self._layout_path = Path(layout_path)
 
+    def _register(self, topic, name, schema_encoding, data, message_encoding):
+        """The channel ``topic`` on the schema ``name``, registered once per name (``data()``
+        gives its bytes)."""
+        sid = self._schema_ids.get(name)
+        if sid is None:
+            sid = self._schema_ids[name] = self._w.register_schema(
+                name=name, encoding=schema_encoding, data=data())
+        self._ch[topic] = self._w.register_channel(topic=topic, message_encoding=message_encoding,
+                                                   schema_id=sid)
+
     def _channel(self, topic):
-        if topic not in self._ch and self.encoding == "cdr":
-            name = cdr.SCHEMA.get("trail" if topic.startswith(fg.TRAIL_PREFIX) else topic)
-            if name is not None:   # /jumps and /link/stats stay JSON
-                sid = self._schema_ids.get(name)
-                if sid is None:
-                    sid = self._schema_ids[name] = self._w.register_schema(
-                        name=name, encoding="ros2msg", data=cdr.schema_text(name).encode())
-                self._ch[topic] = self._w.register_channel(topic=topic, message_encoding="cdr",
-                                                           schema_id=sid)
-        if topic not in self._ch:
-            fox = _FOXGLOVE.get(topic) or ("PosesInFrame" if topic.startswith(fg.TRAIL_PREFIX)
-                                            else None)
-            if fox is not None:  # Foxglove's own schema, name and content as published
-                name, data = f"foxglove.{fox}", fg.schema_bytes(fox)
-            else:
-                name, data = SCHEMAS[topic]["title"], json.dumps(SCHEMAS[topic]).encode()
-            sid = self._schema_ids.get(name)
-            if sid is None:
-                sid = self._schema_ids[name] = self._w.register_schema(
-                    name=name, encoding="jsonschema", data=data)
-            self._ch[topic] = self._w.register_channel(topic=topic, message_encoding="json",
-                                                       schema_id=sid)
+        if topic in self._ch:
+            return self._ch[topic]
+        trail = topic.startswith(fg.TRAIL_PREFIX)
+        name = cdr.SCHEMA.get("trail" if trail else topic) if self.encoding == "cdr" else None
+        if name is not None:   # a CDR log's per-record channels; /jumps and /link/stats are JSON
+            self._register(topic, name, "ros2msg", lambda: cdr.schema_text(name).encode(), "cdr")
+            return self._ch[topic]
+        fox = _FOXGLOVE.get(topic) or ("PosesInFrame" if trail else None)
+        if fox is not None:  # Foxglove's own schema, name and content as published
+            name, data = f"foxglove.{fox}", lambda: fg.schema_bytes(fox)
+        else:
+            name, data = SCHEMAS[topic]["title"], lambda: json.dumps(SCHEMAS[topic]).encode()
+        self._register(topic, name, "jsonschema", data, "json")
         return self._ch[topic]
 
     def add_channel(self, topic: str, schema: dict) -> None:
         """A channel of another kind of JSON message (``schema``: a JSON schema with a
         ``title``), for `message`."""
         if topic not in self._ch:
-            name = schema["title"]
-            sid = self._schema_ids.get(name)
-            if sid is None:
-                sid = self._schema_ids[name] = self._w.register_schema(
-                    name=name, encoding="jsonschema", data=json.dumps(schema).encode())
-            self._ch[topic] = self._w.register_channel(topic=topic, message_encoding="json",
-                                                       schema_id=sid)
+            self._register(topic, schema["title"], "jsonschema",
+                           lambda: json.dumps(schema).encode(), "json")
 
     def message(self, topic: str, t_ns: int, obj: dict) -> None:
         """One JSON message (``obj`` plus its timestamp) on a channel made by `add_channel`."""
