@@ -14,7 +14,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from tqdm import tqdm
 
 from controller import LawParameters, V_bar, jump_bound
 from controller.kernels import metrics, network_U
@@ -182,6 +181,7 @@ class Master:
         spl = self._sample_every()
         bar = None
         if progress:
+            from tqdm import tqdm      # only a run with a bar pays its import (7 ms)
             bar = tqdm(total=n_steps, unit="step", unit_scale=True, mininterval=0.5,
                        desc=self.scenario.name)
         catcher = signals.catching(self._on_signal).__enter__()

@@ -23,7 +23,6 @@ import threading
 import uuid
 import zipfile
 from pathlib import Path
-from xml.sax.saxutils import quoteattr
 
 from controller.errors import Se3SyncError
 
@@ -177,6 +176,13 @@ def config_h(n_bodies: int, fmi_version: int = 2) -> str:
         f'#ifndef FMU_GUID\n#define FMU_GUID "{guid(n, fmi_version)}"\n#endif\n'
         "#endif\n"
     )
+
+
+def quoteattr(text: str) -> str:
+    """An XML attribute value, quoted. xml.sax.saxutils is imported here, not at the top: it
+    pulls in urllib.request, http.client and ssl (10 ms), and only a build needs it."""
+    from xml.sax.saxutils import quoteattr as quote
+    return quote(text)
 
 
 def _fmt(x: float) -> str:
