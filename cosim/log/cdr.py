@@ -239,7 +239,33 @@ def _plain(x):
     return x
 
 
+@lru_cache(maxsize=None)
+def _decoder(name: str):
+    from .cdr_decode import decoder, parse_msg
+
+    defs = {}
+
+    def visit(full):
+        if full not in defs:
+            p, m = full.split("/")
+            defs[full] = parse_msg(p, (_DIR / p / f"{m}.msg").read_text())
+            for _, base, _, _ in defs[full]:
+                if "/" in base:
+                    visit(base)
+
+    pkg, _, msg = name.split("/")
+    visit(f"{pkg}/{msg}")
+    return decoder(name, defs, _RENAME)
+
+
 def decode(name: str, data: bytes) -> dict:
     """A CDR message of ROS 2 type ``name`` as the dict the JSON log would give (names as
-    there, times as {"sec", "nsec"})."""
+    there, times as {"sec", "nsec"}), by the decoder generated for its type (`cdr_decode`).
+    Raises ValueError or struct.error on a message that is not whole."""
+    return _decoder(name)(data)
+
+
+def decode_reference(name: str, data: bytes) -> dict:
+    """The same dict by mcap-ros2-support's own decoder (19 s against 3 s on a 1000-agent
+    log's second); the tests hold `decode` to it."""
     return _plain(_codec(name)[1](data))
