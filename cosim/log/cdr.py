@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .cdr_decode import decoder, parse_msg
+
 __all__ = ["SCHEMA", "schema_text", "compile_layout", "Layout", "decode", "MODE"]
 
 _DIR = Path(__file__).with_name("ros2_schemas")
@@ -241,8 +243,6 @@ def _plain(x):
 
 @lru_cache(maxsize=None)
 def _decoder(name: str):
-    from .cdr_decode import decoder, parse_msg
-
     defs = {}
 
     def visit(full):
