@@ -468,3 +468,25 @@ def test_read_log_decodes_only_the_topics_asked_for(tmp_path):
         assert set(part["messages"]) == {"/edges"} | ({"/jumps"} & set(whole["messages"]))
         assert part["messages"]["/edges"] == whole["messages"]["/edges"]
         assert part["metadata"] == whole["metadata"] and part["attachments"] == whole["attachments"]
+
+
+def test_a_torn_cdr_log_reads_to_its_last_whole_chunk(tmp_path):
+    """A CDR log cut anywhere (a killed run) reads back as the whole log's first messages of
+    each topic, flagged truncated: no message is made from part of a chunk."""
+    sc = load_scenario(PAPER, ["simulation.duration=1.0"])
+    path = _log(tmp_path, sc, "cdr", chunk_size=20_000)
+    whole = read_log(path)
+    assert not whole["truncated"]
+    data = path.read_bytes()
+    cut_path = tmp_path / "cut.mcap"
+    seen = []
+    for frac in (0.2, 0.35, 0.5, 0.65, 0.8, 0.95):
+        cut_path.write_bytes(data[:int(len(data) * frac)])
+        part = read_log(cut_path)
+        assert part["truncated"] and part["metadata"] == whole["metadata"]
+        n = {t: len(m) for t, m in part["messages"].items()}
+        for topic, msgs in part["messages"].items():
+            assert repr(msgs) == repr(whole["messages"][topic][:len(msgs)]), (frac, topic)
+        seen.append(sum(n.values()))
+    total = sum(len(m) for m in whole["messages"].values())
+    assert seen == sorted(set(seen)) and seen[0] < total / 4 and seen[-1] <= total
