@@ -5,7 +5,8 @@ record). In CDR a number is its 8 bytes, and a message of a run has the same sha
 record: only its numbers and time stamps change. So each message kind is serialised once, by
 mcap-ros2-support's encoder with a marked value in every place that varies (`compile_layout`),
 and each record writes its numbers into the marked places of a buffer that holds those bytes
-(`Layout.fill`, a compiled loop). Decoding is mcap-ros2-support's (`decode`).
+(`Layout.fill`, a compiled loop). `decode` reads a message with a function generated for its
+type (`cdr_decode`); `decode_reference` is mcap-ros2-support's decoder, which tests hold it to.
 
 Schemas are ROS 2 ``.msg`` files (``ros2_schemas/``): Foxglove's ``foxglove_msgs`` as published,
 the ``geometry_msgs`` and ``builtin_interfaces`` types they use, and ``se3sync_msgs`` for our own
@@ -23,7 +24,7 @@ import numpy as np
 
 from .cdr_decode import decoder, parse_msg
 
-__all__ = ["SCHEMA", "schema_text", "compile_layout", "Layout", "decode", "MODE"]
+__all__ = ["SCHEMA", "schema_text", "compile_layout", "Layout", "decode", "decode_reference", "MODE"]
 
 _DIR = Path(__file__).with_name("ros2_schemas")
 _SEP = "=" * 80
