@@ -132,8 +132,9 @@ def startup():
         if k:
             rows.append([float(out[3]) - t] + [float(x) for x in out[:3]])
     med = np.median(np.array(rows), axis=0)
+    low = min(r[0] for r in rows)
     print(f"start-up (fresh process, numba cache on disk; median of {len(rows)}): spawn to the "
-          f"end of the first 100 compiled steps {med[0]:.3f} s (min {min(r[0] for r in rows):.3f}); "
+          f"end of the first 100 compiled steps {med[0]:.3f} s (min {low:.3f}); "
           f"inside: imports + FMU {med[1]:.3f} s, Master() {med[2]:.3f} s, first 100 compiled "
           f"steps (loads run_block) {med[3]:.3f} s")
 

@@ -24,7 +24,8 @@ import numpy as np
 
 from .cdr_decode import decoder, parse_msg
 
-__all__ = ["SCHEMA", "schema_text", "compile_layout", "Layout", "decode", "decode_reference", "MODE"]
+__all__ = ["SCHEMA", "schema_text", "compile_layout", "Layout", "decode", "decode_reference",
+           "MODE"]
 
 _DIR = Path(__file__).with_name("ros2_schemas")
 _SEP = "=" * 80

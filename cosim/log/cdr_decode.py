@@ -152,7 +152,7 @@ class _Gen:
                 # before a list of that length is made
                 lines += ["p += (4 - p) & 3", f"c, = {self.st('<I')}(b, p)", "p += 4",
                           "if c > len(b) - p:",
-                          "    raise ValueError(f'a sequence of {c} runs past the end of the message')"]
+                          "    raise ValueError(f'a sequence of {c} runs past the message\\'s end')"]
                 count = "c"
             else:
                 count = str(n)
@@ -178,7 +178,7 @@ class _Gen:
                     lines += [f"    p += (4 - p) & {size - 1}"]
                 lines += [f"    _e = p + {size * k} * {count}",
                           "    if _e > len(b):",
-                          "        raise ValueError('a sequence runs past the end of the message')",
+                          "        raise ValueError('a sequence runs past the message\\'s end')",
                           f"    {v} = [{item} for {', '.join(names)}, in "
                           f"{self.st('<' + ''.join(flat), 'iter_unpack')}(b[p:_e])]",
                           "    p = _e",
