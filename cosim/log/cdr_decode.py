@@ -37,7 +37,7 @@ def parse_msg(pkg: str, text: str) -> list:
         typ, _, rest = line.partition(" ")
         rest = rest.strip()
         if "=" in rest:
-            continue                             # a constant, NAME=VALUE
+            continue            # a constant, NAME=VALUE: rosidl takes any "=" to mean one
         if not rest:
             raise ValueError(f"{pkg}: a field without a name: {line!r}")
         name = rest.split()[0]                   # what follows the name is a default value
