@@ -491,7 +491,7 @@ NEIGHBOURS = {
 }
 
 
-def _agent_logger(path, node: AgentNode, extra_metadata: dict):
+def _agent_logger(path, node: AgentNode, extra_metadata: dict, encoding: str = "json"):
     """The neighbourhood's McapLogger (the swarm's numbers) with a /neighbours channel written
     at every record: the sample of each neighbour used, its age and the age rule's verdict."""
     class AgentLogger(McapLogger):
@@ -506,7 +506,7 @@ def _agent_logger(path, node: AgentNode, extra_metadata: dict):
                                                "neighbours": nb})
 
     lg = AgentLogger(path, node.local, controller=node.law, agent_ids=node.agents,
-                     edge_ids=node.edge_ids, extra_metadata=extra_metadata)
+                     edge_ids=node.edge_ids, extra_metadata=extra_metadata, encoding=encoding)
     lg.add_channel("/neighbours", NEIGHBOURS)
     return lg
 
@@ -530,7 +530,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
               start: float | None = None, start_file=None, key_file=None, insecure: bool = False,
               vehicle: str | None = None, connect_timeout: float | None = None,
               signing_state=None, tlog=None, log_path=None, summary_path=None,
-              progress: bool = False, on_event=None) -> dict:
+              log_encoding: str = "json", progress: bool = False, on_event=None) -> dict:
     """Agent ``agent_id`` from its vehicle's connection to its summary (see the module
     docstring); the library entry point of `se3sync agent`. Raises ConnectError (the vehicle
     never connected) and LinkError (lockstep: a vehicle or neighbour stopped answering; a late
@@ -562,7 +562,8 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
                     "plant": "mavlink", "agent": node.i,
                     "time_base": "simulated (lockstep)" if lockstep else
                                  "wall (paced: t = n·h from the swarm's start)",
-                    "first_step": node.first_step, "start_unix": "" if start is None else repr(start)})
+                    "first_step": node.first_step, "start_unix": "" if start is None else repr(start)},
+                    log_encoding)
             master = Master(node.local, node.plant, node.controller, logger,
                             first_step=node.first_step)
         if requested:

@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 from controller.errors import Se3SyncError
+from cosim.cli.run import add_log_encoding
 from cosim.registry import AGENT_LAWS, LAWS
 
 __all__ = ["register", "EXIT_NOT_CONNECTED", "EXIT_LINK"]
@@ -88,6 +89,7 @@ def register(sub) -> None:
                         "once per vehicle in order")
     p.add_argument("--log", metavar="OUT.mcap", help="write an MCAP log here")
     p.add_argument("--summary", metavar="OUT.json", help="write the run summary JSON here")
+    add_log_encoding(p)
     p.add_argument("--duration", type=float, metavar="S", help="duration in s (overrides simulation.duration)")
     p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
                    help="override a scenario value (e.g. --set bridge.base_port=15000); repeatable")
@@ -133,6 +135,7 @@ def register(sub) -> None:
     p.add_argument("--controller", choices=AGENT_LAWS, default="hybrid",
                    help="the law (default hybrid); " + "; ".join(f"{k}: {LAWS[k][1]}" for k in AGENT_LAWS))
     p.add_argument("--log", metavar="OUT.mcap", help="write the agent's MCAP log here")
+    add_log_encoding(p, "the agent's log's")
     p.add_argument("--summary", metavar="OUT.json", help="write the agent's summary JSON here")
     p.add_argument("--duration", type=float, metavar="S", help="duration in s (overrides "
                    "simulation.duration; the swarm's run ends at step ⌈S/h⌉)")
@@ -160,6 +163,7 @@ def register(sub) -> None:
                         "(default): the vehicles are already there, at the [bridge] endpoints")
     p.add_argument("--lockstep", action="store_true", help="agents and vehicles in lockstep")
     p.add_argument("--log", metavar="OUT.mcap", help="merge the agents' logs into this MCAP")
+    add_log_encoding(p, "the agents' logs' and the merged log's")
     p.add_argument("--summary", metavar="OUT.json", help="write the merged summary here")
     p.add_argument("--dir", metavar="DIR",
                    help="keep each agent's log, summary and stderr here (default: a temporary "
@@ -205,7 +209,7 @@ def _cmd_agent(args) -> int:
                             vehicle=args.vehicle, connect_timeout=args.connect_timeout,
                             signing_state=args.signing_state, tlog=args.tlog,
                             log_path=args.log, summary_path=args.summary,
-                            progress=sys.stderr.isatty())
+                            log_encoding=args.log_encoding, progress=sys.stderr.isatty())
     except ConnectError as exc:
         print(f"se3sync agent: error: {exc}", file=sys.stderr)
         return EXIT_NOT_CONNECTED
@@ -322,7 +326,7 @@ def _cmd_connect(args) -> int:
             return EXIT_NOT_CONNECTED
         try:
             summary = run_hil(sc, plant, log_path=args.log, summary_path=args.summary,
-                              progress=sys.stderr.isatty())
+                              log_encoding=args.log_encoding, progress=sys.stderr.isatty())
         except LinkError as exc:
             print(f"se3sync connect: error: {exc}", file=sys.stderr)
             return EXIT_LINK

@@ -191,10 +191,10 @@ def _own_records(path, agent: int, owned: set) -> dict:
 
 
 def merge_logs(scenario, logs: dict, out_path, *, law: str = "hybrid",
-               extra_metadata: dict | None = None) -> dict:
-    """One log of the swarm from {agent id: [its log paths]} (a restarted agent has several);
-    returns {"records": …, "jumps": …}. Records are kept at the log instants every agent
-    recorded."""
+               extra_metadata: dict | None = None, encoding: str = "json") -> dict:
+    """One log of the swarm from {agent id: [its log paths]} (a restarted agent has several),
+    its per-record channels in ``encoding``; returns {"records": …, "jumps": …}. Records are
+    kept at the log instants every agent recorded. The agents' logs may be JSON or CDR."""
     sc = scenario
     N, M = sc.graph.n, sc.graph.M
     owned = {i: set(sc.graph.M_plus(i)) for i in range(1, N + 1)}
@@ -207,7 +207,7 @@ def merge_logs(scenario, logs: dict, out_path, *, law: str = "hybrid",
             jumps += js
     common = sorted(set.intersection(*(set(r) for r in recs.values()))) if recs else []
     mx = NetworkMetrics(sc)
-    logger = McapLogger(out_path, sc, controller=law, extra_metadata={
+    logger = McapLogger(out_path, sc, controller=law, encoding=encoding, extra_metadata={
         "plant": "mavlink (one agent process per vehicle)",
         "merged_from": json.dumps({str(i): [str(p) for p in logs.get(i, [])] for i in logs}),
         **(extra_metadata or {})})
@@ -294,7 +294,7 @@ class _Children:
 def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockstep: bool = False,
               log_path=None, summary_path=None, workdir=None, duration=None, law: str = "hybrid",
               key_file=None, start_delay=None, insecure: bool = False, progress: bool = False,
-              python=None, on_event=None) -> tuple:
+              python=None, on_event=None, log_encoding: str = "json") -> tuple:
     """Launches the swarm and merges its outputs; returns (merged summary, exit status): 0 all
     agents finished, EXIT_AGENT_FAILED an agent failed (the others are stopped), 130/143 a
     signal stopped everything. The merged outputs are written in every case."""
@@ -335,7 +335,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                 kids.start(f"agent {i}", [
                     py, "-m", "cosim.cli", "agent", *common, "--id", str(i),
                     "--controller", law, "--summary", str(wd / f"agent_{i}.json"),
-                    *(["--log", str(wd / f"agent_{i}.mcap")] if log_path is not None else []),
+                    *(["--log", str(wd / f"agent_{i}.mcap"), "--log-encoding", log_encoding]
+                      if log_path is not None else []),
                     *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec],
                     wd / f"agent_{i}.err")
             say(f"{N} agent processes{' and the loopback vehicles' if vehicles == 'loopback' else ''}"
@@ -408,7 +409,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
             merged["log"] = str(log_path)
             merged["log_merge"] = merge_logs(sc, logs, log_path, law=law, extra_metadata={
                 "time_base": "simulated (lockstep)" if lockstep else
-                             "wall (paced: t = n·h from the swarm's start)"})
+                             "wall (paced: t = n·h from the swarm's start)"},
+                encoding=log_encoding)
         else:
             say(f"no merged log: agent log(s) missing for {[i for i in range(1, N + 1) if i not in logs]}")
     if summary_path is not None:
@@ -450,7 +452,7 @@ def run_swarm_cli(args) -> int:
                            log_path=args.log, summary_path=args.summary, workdir=args.dir,
                            duration=args.duration, law=args.controller, key_file=args.key,
                            start_delay=args.start_delay, insecure=args.insecure,
-                           progress=sys.stderr.isatty())
+                           progress=sys.stderr.isatty(), log_encoding=args.log_encoding)
     f = merged.get("final") or {}
     tot = merged["link_total"]
     print(f"{sc.name}: {len(merged['agents']) - len(merged['agents_missing'])} agents, "

@@ -81,11 +81,21 @@ def _assert_equal_to_float32(merged, ref):
 
 # ------------------------------------------------------------------------------ lockstep
 @pytest.mark.timeout(300)
-def test_lockstep_swarm_equals_run_on_the_float32_plant(tmp_path):
+@pytest.mark.parametrize("encoding", ["json", "cdr"])
+def test_lockstep_swarm_equals_run_on_the_float32_plant(tmp_path, encoding):
+    """...with the agents' logs and the merged one in either encoding (the reference's JSON)."""
     sets, _, _ = _ports()
     p, merged = _swarm(tmp_path, sets, "--lockstep", "--duration", "1.0", "--log",
-                       str(tmp_path / "swarm.mcap"))
+                       str(tmp_path / "swarm.mcap"), "--log-encoding", encoding)
     assert p.returncode == 0, p.stderr
+    from mcap.reader import make_reader
+
+    agent_logs = sorted((tmp_path / "work").glob("agent_*.mcap"))
+    assert len(agent_logs) == 6
+    for log in [tmp_path / "swarm.mcap", *agent_logs]:
+        with open(log, "rb") as f:
+            chans = make_reader(f).get_summary().channels.values()
+            assert {c.topic: c.message_encoding for c in chans}["/edges"] == encoding, log
     ref = _reference(HIL, sets, 1.0, log=tmp_path / "ref.mcap")
     assert len(ref["jumps"]) == 5
     _assert_equal_to_float32(merged, ref)
@@ -377,6 +387,9 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
     (["agent", HIL, "--id", "1", "--start-file", "/nonexistent-se3sync/sf"], "--start-file"),
     (["agent", HIL, "--id", "1", "--connect-timeout", "nan"], "--connect-timeout"),
     (["connect", HIL, "--connect-timeout", "-1"], "--connect-timeout"),
+    (["connect", HIL, "--log-encoding", "xml"], "--log-encoding"),
+    (["agent", HIL, "--id", "1", "--log-encoding", "cbor"], "--log-encoding"),
+    (["swarm", HIL, "--log-encoding", "JSON"], "--log-encoding"),
     (["agent", HIL, "--id", "1", "--set", "network.host=0.0.0.0"], "--insecure"),
 ])
 def test_agent_and_swarm_bad_input_is_one_line_exit_2(argv, needle, capsys, tmp_path):

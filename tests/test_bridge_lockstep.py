@@ -68,7 +68,8 @@ def test_lockstep_bitwise_enu_allocation_gravity_command_long():
 
 def test_lockstep_converges_cli_and_tlog(tmp_path):
     """`se3sync vehicle --lockstep` and `se3sync connect --lockstep` as processes, 6 vehicles, the
-    full 20 s of hil_6uav: the hybrid loop converges; MCAP + summary + tlog are written."""
+    full 20 s of hil_6uav: the hybrid loop converges; MCAP (in CDR) + summary + tlog are
+    written."""
     port = free_base_port(6)
     sets = ["--set", f"bridge.base_port={port}"]
     summary = tmp_path / "s.json"
@@ -76,7 +77,8 @@ def test_lockstep_converges_cli_and_tlog(tmp_path):
     with VehicleProcess(["--scenario", HIL, "--lockstep", "--aux-rate", "0", *sets], tmp_path) as veh:
         r = subprocess.run([sys.executable, "-m", "cosim.cli", "connect", HIL, "--lockstep", *sets,
                             "--summary", str(summary), "--log", str(tmp_path / "l.mcap"), "--tlog", str(tlog),
-                            "--connect-timeout", "20"], capture_output=True, text=True, timeout=240, cwd=str(ROOT))
+                            "--log-encoding", "cdr", "--connect-timeout", "20"],
+                           capture_output=True, text=True, timeout=240, cwd=str(ROOT))
         vst = veh.stop()
     assert r.returncode == 0, r.stderr
     s = json.loads(summary.read_text())
@@ -90,6 +92,14 @@ def test_lockstep_converges_cli_and_tlog(tmp_path):
 
     log = read_log(tmp_path / "l.mcap")
     assert log["messages"].get("/link/stats") and log["metadata"]["plant"] == "mavlink"
+    # written in CDR (--log-encoding cdr), with the summary's last errors in its last record
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "l.mcap", "rb") as f:
+        enc = {c.topic: c.message_encoding for c in make_reader(f).get_summary().channels.values()}
+    assert enc["/edges"] == enc["/tf"] == "cdr" and enc["/link/stats"] == "json"
+    last = log["messages"]["/edges"][-1][1]["edges"]
+    assert max(e["rot_err"] for e in last) < 3e-3
     # mavlogdump.py reads the tlog (both directions)
     mld = os.path.join(os.path.dirname(sys.executable), "mavlogdump.py")
     out = subprocess.run([sys.executable, mld, "--types", "ODOMETRY,SET_ACTUATOR_CONTROL_TARGET", str(tlog)],

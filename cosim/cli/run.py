@@ -9,10 +9,19 @@ from controller.errors import Se3SyncError
 from ..files import check_output
 from ..registry import LAWS, PLANTS
 
-__all__ = ["register", "EXIT_UNSTABLE"]
+__all__ = ["register", "add_log_encoding", "EXIT_UNSTABLE"]
 
 EXIT_UNSTABLE = 3   # `check`: the sampled loop is unstable at the step checked
 PLOT_FORMATS = (".png", ".pdf", ".svg", ".eps", ".ps")
+
+
+def add_log_encoding(p, whose: str = "the log's") -> None:
+    """--log-encoding, the same for every command that writes a run log."""
+    p.add_argument("--log-encoding", choices=("json", "cdr"), default="json",
+                   help=f"messages of {whose} per-record channels (/tf, /edges, /agents, "
+                        "/lyapunov, /scene, trails): json (default; readable as text) or cdr "
+                        "(ROS 2 CDR with .msg schemas: the same values, for large swarms, where "
+                        "formatting JSON costs more than the simulation; Foxglove reads both)")
 
 
 def _add_set(p):
@@ -34,11 +43,7 @@ def register(sub) -> None:
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--log", metavar="OUT.mcap",
                    help="write an MCAP log (streamed; simulated-time stamps) to this path")
-    p.add_argument("--log-encoding", choices=("json", "cdr"), default="json",
-                   help="messages of the log's per-record channels (/tf, /edges, /agents, "
-                        "/lyapunov, /scene, trails): json (default; readable as text) or cdr "
-                        "(ROS 2 CDR with .msg schemas: the same values, for large swarms, where "
-                        "formatting JSON costs more than the simulation; Foxglove reads both)")
+    add_log_encoding(p)
     p.add_argument("--summary", metavar="OUT.json",
                    help="write the run summary JSON (atomically) to this path")
     p.add_argument("--duration", type=float, metavar="S",
