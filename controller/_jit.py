@@ -4,7 +4,106 @@ Kernels are written as scalar loops so that numba compiles them to tight machine
 NUMBA_DISABLE_JIT=1 numba hands back the plain functions and the same source runs as Python,
 which is how the tests check that both give the same numbers.
 """
-import numba
+import os
+import sys
+
+
+def _import_numba():
+    """Import numba without three imports that buy nothing here (together ~40 ms of a 0.5 s
+    start-up).
+
+    - `numba/__init__` imports scipy only to refuse a scipy older than 1.0; our install pins a
+      newer one (13 ms). scipy is hidden (numba catches the ImportError) for that one import.
+    - `numba.core.config` imports yaml only to read a `.numba_config.yaml` in the working
+      directory (13 ms). With no such file, yaml is hidden the same way, and numba's config
+      then gets a lazy yaml, so a config file written later is still read.
+    - `numba.core.entrypoints` imports importlib.metadata (14 ms) and, at the first compile,
+      lists every installed distribution (5 ms) to run the `numba_extensions` hooks. When no
+      distribution on sys.path declares one (`_no_numba_extensions`), numba gets a lazy
+      importlib.metadata and is told that the (empty) set of hooks has run.
+    Each module imports normally afterwards.
+    """
+    if "numba" in sys.modules:
+        return sys.modules["numba"]
+    hide = [m for m in ("scipy", "yaml") if m not in sys.modules]
+    if os.path.isfile(".numba_config.yaml") and "yaml" in hide:
+        hide.remove("yaml")
+    import importlib
+    lazy_md = None
+    if _no_numba_extensions() and "importlib.metadata" not in sys.modules:
+        # `from importlib import metadata` takes the package's attribute when it has one; the
+        # real import (by anyone, later) replaces it
+        lazy_md = importlib.metadata = _Lazy("importlib.metadata")
+    for m in hide:
+        sys.modules[m] = None
+    try:
+        import numba
+    finally:
+        for m in hide:
+            if sys.modules.get(m, 0) is None:
+                del sys.modules[m]
+        if lazy_md is not None and importlib.__dict__.get("metadata") is lazy_md:
+            del importlib.metadata
+    if lazy_md is not None:
+        entrypoints = sys.modules.get("numba.core.entrypoints")
+        if entrypoints is not None and hasattr(entrypoints, "_already_initialized"):
+            entrypoints._already_initialized = True
+    config = sys.modules.get("numba.core.config")
+    if "yaml" in hide and config is not None and not getattr(config, "_HAVE_YAML", True):
+        import importlib.util
+        if importlib.util.find_spec("yaml") is not None:
+            config.yaml = _Lazy("yaml")
+            config._HAVE_YAML = True
+    return numba
+
+
+def _no_numba_extensions() -> bool:
+    """True when no distribution importlib.metadata would find declares a `numba_extensions`
+    entry point: it finds them through PathFinder, in the `*.dist-info` and `*.egg-info`
+    folders of sys.path's directories. Anything else on the path (a zip, an egg, another
+    finder that lists distributions) answers False, and numba looks for itself."""
+    import importlib.machinery
+    if any(hasattr(f, "find_distributions") and f is not importlib.machinery.PathFinder
+           for f in sys.meta_path):
+        return False
+    for entry in sys.path:
+        entry = entry or "."
+        if not os.path.isdir(entry):
+            if os.path.exists(entry):
+                return False
+            continue
+        try:
+            names = os.listdir(entry)
+        except OSError:
+            return False
+        for name in names:
+            if name.endswith((".dist-info", ".egg-info")):
+                ep = os.path.join(entry, name, "entry_points.txt")
+                try:
+                    with open(ep, "rb") as f:
+                        if b"numba_extensions" in f.read():
+                            return False
+                except FileNotFoundError:
+                    pass
+                except OSError:
+                    return False
+            elif name.endswith(".egg"):
+                return False
+    return True
+
+
+class _Lazy:
+    """Stands for a module that is imported on its first attribute access."""
+
+    def __init__(self, name: str):
+        self._name = name
+
+    def __getattr__(self, attr):
+        import importlib
+        return getattr(importlib.import_module(self._name), attr)
+
+
+numba = _import_numba()
 
 
 def _load_numba_without_blas_probe():
@@ -18,7 +117,6 @@ def _load_numba_without_blas_probe():
     and put back: a kernel that does use BLAS still runs `ensure_blas` when it compiles, and
     numba's compiled BLAS wrappers import scipy's cython_blas themselves when they run.
     """
-    import sys
     if "numba.np.arraymath" in sys.modules:
         return
     try:

@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import importlib
 from functools import lru_cache
-from importlib.metadata import PackageNotFoundError, distribution, entry_points
 
 __all__ = ["command_modules", "table_names", "table_parser"]
 
 
 @lru_cache(maxsize=None)
 def _group(name: str) -> dict:
+    # imported here: 12 ms that a script loading a scenario without plugin tables never needs
+    from importlib.metadata import PackageNotFoundError, distribution, entry_points
     # Our own distribution's entry points only: scanning every installed distribution costs
     # ~70 ms at start-up in a test environment, more than the rest of `se3sync --help`.
     try:

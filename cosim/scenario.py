@@ -339,7 +339,8 @@ def parse_scenario(text: str, name: str = "scenario", path: str = "<string>", ov
 
 
 def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> Scenario:
-    plugin_tables = plugins.table_names()
+    # the entry points are read only when the scenario has a table of another package
+    plugin_tables = plugins.table_names() if set(data) - set(SCHEMA) else frozenset()
     _check_keys("", data, set(SCHEMA) | plugin_tables)
     for sec in REQUIRED:
         if sec not in data:

@@ -196,37 +196,6 @@ def test_jit_and_plain_python_agree():
     assert n_events > 0
 
 
-_BLAS_SCRIPT = r"""
-import sys
-import numpy as np
-import controller as C
-from controller import se3
-g = C.Graph(3, [(1, 2), (2, 3)])
-q = se3.rot_to_quat(np.eye(3))                  # a compiled kernel: numba's registries load
-before = "scipy.linalg" in sys.modules
-import numba
-@numba.njit
-def gemv(a, x):
-    return np.dot(a, x)
-a = np.arange(12.0).reshape(3, 4)
-x = np.arange(4.0)
-equal = np.array_equal(gemv(a, x), a @ x)
-print(before, "scipy.linalg" in sys.modules, equal, q.tolist())
-"""
-
-
-def test_numba_loads_without_importing_scipy_linalg_and_blas_still_works():
-    """`controller._jit` steps over numba's import-time BLAS probe (the start-up's 0.11 s):
-    the first compiled call leaves scipy.linalg unimported, and a kernel that does call BLAS
-    still compiles (numba's own probe is back in place) and agrees with numpy."""
-    r = subprocess.run([sys.executable, "-c", _BLAS_SCRIPT], capture_output=True, text=True,
-                       timeout=300, env=dict(os.environ, NUMBA_DISABLE_JIT="0"))
-    assert r.returncode == 0, r.stderr
-    before, after, equal, q = r.stdout.split(maxsplit=3)
-    assert (before, after, equal) == ("False", "True", "True")
-    assert json.loads(q) == [1.0, 0.0, 0.0, 0.0]
-
-
 # ---------------------------------------------------------------- Lyapunov function
 def _closed_loop_rhs(ctl, g, wm, des, I, X, xi, theta):
     """Continuous-time closed loop (`hybsys`, flow): Ẋ_i = X_iξ_i^, 𝕀ξ̇ = ad_ξᵀ𝕀ξ + u, θ̇ = −k_θ∇_θU."""

@@ -11,7 +11,6 @@ The rigid motion of the whole group leaves exactly six eigenvalues at 1; they ar
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
 
 from controller import LawParameters, se3
 from controller.layout import pack_state
@@ -81,6 +80,7 @@ def closed_loop(scenario, h: float, Kx, G) -> np.ndarray:
     aug = np.zeros((12 * N + n6, 12 * N + n6))
     aug[:12 * N, :12 * N] = A
     aug[:12 * N, 12 * N:] = B
+    import scipy.linalg            # the dense reference only; `analyse` does not come here
     E = scipy.linalg.expm(aug * h)
     Ad, Bd = E[:12 * N, :12 * N], E[:12 * N, 12 * N:]
     nx = 12 * N + Mt

@@ -29,9 +29,6 @@ from __future__ import annotations
 # the inertia counts are compiled, like the kernels (numba, on-disk cache)
 import numba
 import numpy as np
-import scipy.linalg
-import scipy.sparse as sp
-import scipy.sparse.linalg as sla
 
 from controller import LawParameters
 from controller import se3
@@ -105,8 +102,11 @@ def modal_blocks(J):
 
 def _tree_order(N, edges, root=0):
     """(order, parent): a BFS order from root and each agent's parent (−1 at the root)."""
-    adj = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(N, N))
-    adj = (adj + adj.T).tocsr()
+    src = np.concatenate([edges[:, 0], edges[:, 1]])
+    dst = np.concatenate([edges[:, 1], edges[:, 0]])
+    by = np.lexsort((dst, src))                    # neighbours of each agent, ascending
+    indices = dst[by]
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(src, minlength=N))])
     order = np.empty(N, dtype=np.int64)
     parent = np.full(N, -1, dtype=np.int64)
     seen = np.zeros(N, dtype=bool)
@@ -114,7 +114,7 @@ def _tree_order(N, edges, root=0):
     while head < tail:
         v = order[head]
         head += 1
-        for w in adj.indices[adj.indptr[v]:adj.indptr[v + 1]]:
+        for w in indices[indptr[v]:indptr[v + 1]]:
             if not seen[w]:
                 seen[w] = True
                 parent[w] = v
@@ -208,6 +208,7 @@ def _laplacian_eigenvalues(N, edges, rel_tol):
         L[edges[:, 0], edges[:, 1]] = L[edges[:, 1], edges[:, 0]] = -1.0
         return np.linalg.eigvalsh(L)
     if deg.max() <= 2:   # a path: tridiagonal in path order, LAPACK's stemr does it in O(N²)
+        import scipy.linalg
         order, _ = _tree_order(N, edges, root=int(np.argmin(deg)))
         return scipy.linalg.eigvalsh_tridiagonal(deg[order], -np.ones(N - 1))
     order, parent = _tree_order(N, edges)
@@ -295,6 +296,7 @@ class Linearisation:
 
 def sparse_loop(lin, h, Kfresh=True):
     """Φ (sparse CSR, (12N + M)²): the whole linearised ZOH loop, as `stability.closed_loop`."""
+    import scipy.sparse as sp      # only heterogeneous agents need it: 0.1 s off `run`'s start
     N, M, J, E = lin.N, lin.M, lin.J, lin.edges
     Mt = M if lin.hybrid else 0
     n6 = 6 * N
@@ -349,6 +351,7 @@ def _rigid_basis(N, n):
 def _sparse_radius(Phi, lin, k=6):
     """ρ of Φ with the rigid subspace projected out: Q spans ΦQ = Q, so in the basis [Q, Q⊥]
     Φ is block triangular and (I − QQᵀ)Φ(I − QQᵀ) has the remaining eigenvalues (plus six 0)."""
+    import scipy.sparse.linalg as sla
     n = Phi.shape[0]
     Q = _rigid_basis(lin.N, n)
     if np.abs(Phi @ Q - Q).max() > 1e-9:
