@@ -1,5 +1,5 @@
-"""Start-up time of the command line: `se3sync --help` and `se3sync check` on the paper scenario,
-optionally against another revision in the same run (interleaved, so load affects both alike).
+"""Start-up time of the command line: `se3sync --help`, `se3sync check` on the paper scenario and
+`se3sync run` of its first 0.01 s (analysis, 100 compiled steps, the log), optionally against another revision in the same run (interleaved, so load affects both alike).
 
     python benchmarks/bench_startup.py [--against REV] [--repeat K]
 
@@ -12,13 +12,16 @@ import argparse
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _revisions import trees as revision_trees  # noqa: E402
-COMMANDS = {"--help": ["--help"], "check paper": ["check", "scenarios/paper_6uav.toml"]}
+COMMANDS = {"--help": ["--help"], "check paper": ["check", "scenarios/paper_6uav.toml"],
+            "run paper": ["run", "scenarios/paper_6uav.toml", "--duration", "0.01",
+                          "--log", "{tmp}/run.mcap"]}
 
 
 def once(tree: Path, args) -> float:
@@ -33,8 +36,9 @@ def main() -> int:
     ap.add_argument("--against", metavar="REV", help="also time this revision (git worktree)")
     ap.add_argument("--repeat", type=int, default=7)
     args = ap.parse_args()
-    with revision_trees(args.against) as trees:
+    with revision_trees(args.against) as trees, tempfile.TemporaryDirectory() as tmp:
         for name, cmd in COMMANDS.items():
+            cmd = [c.format(tmp=tmp) for c in cmd]
             times = {k: [] for k in trees}
             for tree in trees.values():
                 once(tree, cmd)  # warm the numba cache and the file system
