@@ -39,3 +39,20 @@ def test_check_rejects_a_bad_from_error(capsys):
     assert main(["check", "scenarios/hil_6uav.toml", "--from-error", "-1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--from-error" in err[0]
+
+
+def test_check_skips_the_delay_margin_above_its_agent_limit(tmp_path, capsys):
+    """One agent above DELAY_MAX_AGENTS: the margin is reported as not computed, and why, while
+    the spectral radius and the convergence rate are still there."""
+    from cosim.analysis.stability_cases import tree_scenario_text
+    from cosim.analysis.stability_report import DELAY_MAX_AGENTS
+
+    n = DELAY_MAX_AGENTS + 1
+    path = tmp_path / "tree.toml"
+    path.write_text(tree_scenario_text(n, "random", 0))
+    assert main(["check", str(path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    dm = out["delay_margin"]
+    assert dm["delay_margin_steps"] is None
+    assert dm["delay_method"] == f"not computed: {n} agents > {DELAY_MAX_AGENTS}"
+    assert out["stable"] and out["convergence"]["rate"] > 0.0

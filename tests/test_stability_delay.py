@@ -9,6 +9,7 @@ Two independent simulations, each following the delay contract of `cosim.delay_m
   integrated by RK4 here.
 Stable at d = ⌈0.8 d_max⌉, unstable at ⌈1.2 d_max⌉ (delays of 0.8× and 1.2× the margin in s).
 """
+import functools
 import math
 
 import numpy as np
@@ -129,13 +130,61 @@ def test_delay_radius_dense_equals_arpack(monkeypatch):
 @pytest.mark.parametrize("sets", [["gains.k_X=30", "gains.k_e=1"], ["gains.k_X=20"],
                                   ["gains.k_X=30", "gains.k_e=1", "simulation.step=0.002"]])
 def test_secant_search_finds_the_bisection_margin(sets):
-    """`_probe`'s secant narrows the bracket to the same margin (and radii) as bisection."""
+    """`_probe`'s secant narrows the bracket to the same margin (and radii) as bisection, and the
+    search started from `crossing_delay`'s guess ends there too."""
     sc = load_scenario(HIL, sets)
     lin = Linearisation(sc, True, force_sparse=True)
-    a = delay_margin(sc, lin=lin)
-    b = delay_margin(sc, lin=lin, secant=False)
+    a = delay_margin(sc, lin=lin, guess=False)
+    b = delay_margin(sc, lin=lin, secant=False, guess=False)
+    c = delay_margin(sc, lin=lin)
     assert a["delay_margin_steps"] == b["delay_margin_steps"] and a["delay_margin_steps"] >= 2
     assert a["rho_at_margin"] == b["rho_at_margin"] and a["rho_beyond"] == b["rho_beyond"]
+    assert (c["delay_margin_steps"], c["rho_at_margin"], c["rho_beyond"]) == \
+        (a["delay_margin_steps"], a["rho_at_margin"], a["rho_beyond"])
+
+
+def test_crossing_delay_predicts_the_root_that_leaves_the_circle():
+    """The frequency-domain guess against the exact eigenproblems: on hil_6uav, ⌊τ⌋ is the
+    margin the search finds without it, and the loop with one step more has an eigenvalue
+    outside the unit circle at the angle ω where T(e^{jω}) has |μ| = 1 (LAPACK on the whole
+    augmented matrix, the six rigid 1's set aside)."""
+    from cosim.analysis import delay_margin as dm
+
+    sc, lin, ref = _hil_without_guess()
+    loop = delayed_parts(lin, sc.step)
+    tau, w = dm.crossing_delay(*loop)
+    assert math.floor(tau) == ref["delay_margin_steps"] == 24
+    lam = np.linalg.eigvals(augmented(*loop, ref["delay_margin_steps"] + 1).toarray())
+    out = lam[(np.abs(lam) > 1.0) & (np.abs(lam - 1.0) > 1e-6)]
+    assert out.size and np.abs(np.abs(np.angle(out)) - w).min() < 0.02 * w, (w, out)
+    # with d = τ the crossing root sits on the circle: T(e^{jω}) has μ with μ e^{−jωτ} ≈ 1
+    n = loop[0].shape[0]
+    T = loop[2].toarray() @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - loop[0].toarray(),
+                                            loop[1].toarray())
+    mu = np.linalg.eigvals(T)
+    assert np.abs(mu * np.exp(-1j * w * tau) - 1.0).min() < 0.02
+
+
+@functools.lru_cache(maxsize=1)
+def _hil_without_guess():
+    sc = load_scenario(HIL)
+    lin = Linearisation(sc, True, force_sparse=True)
+    return sc, lin, delay_margin(sc, lin=lin, guess=False)
+
+
+@pytest.mark.parametrize("tau", [3.5, 20.5, 40.5])
+def test_a_wrong_guess_still_ends_at_the_margin(monkeypatch, tau):
+    """A guess far below the margin (24), just below it and far above it: the search recovers
+    from each and ends with the same margin and radii as the search without a guess."""
+    from cosim.analysis import delay_margin as dm
+
+    sc, lin, ref = _hil_without_guess()
+    monkeypatch.setattr(dm, "crossing_delay", lambda *a, **k: (tau, 0.1))
+    got = []
+    out = dm.delay_margin(sc, lin=lin, progress=lambda d, r, s: got.append(d))
+    assert (out["delay_margin_steps"], out["rho_at_margin"], out["rho_beyond"]) == \
+        (ref["delay_margin_steps"], ref["rho_at_margin"], ref["rho_beyond"])
+    assert got[1] == math.floor(tau)            # the guess is probed first, after d = 0
 
 
 def test_ten_agent_tree_radius_equals_the_plain_companion_spectrum():

@@ -13,9 +13,10 @@ from .delay_margin import delay_margin
 # degree and its neighbours' delayed ones by the adjacency, and D and Adj do not commute), so
 # its augmented state has 12N + M + d(6N + M) entries, and its radius needs dense eigenproblems
 # (`delay_margin.DENSE_MAX`: ARPACK misses eigenvalues in this clustered spectrum). Above this N,
-# `check` skips it: on 2 cores `check` takes 5 s on hil_6uav, 11 s on a 10-agent and 16 s on a
-# 12-agent random tree, but 50 s on a 16-agent one.
-DELAY_MAX_AGENTS = 12
+# `check` skips it. On 2 cores, with the search started from `crossing_delay`'s guess, `check`
+# takes 6.6 s on a 12-agent and 12.8 s on a 16-agent random tree (16 s and 50 s without it); at
+# 20 agents the augmented state passes DENSE_MAX.
+DELAY_MAX_AGENTS = 16
 
 
 def check_extras(sc, st: dict, law, from_error=None) -> dict:
