@@ -224,9 +224,9 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
     """The largest d with ρ(d) < 1 and ρ(d + 1) ≥ 1, found by growing d from 0 until the loop
     is unstable and then narrowing the last bracket (`_probe`: by the secant, or by bisection
     with ``secant=False``). With ``guess=True`` the search starts from `crossing_delay`'s τ:
-    ⌊τ⌋ and ⌊τ⌋ + 1 first, then on from the bracket they leave. This assumes that ρ(d) crosses 1 once, which is
-    what we observed: ρ(d) increases with d on every case we scanned d by d. ``progress(d, ρ,
-    seconds)``, if given, is called after each eigenproblem.
+    ⌊τ⌋ and ⌊τ⌋ + 1 first, then on from the bracket they leave. This assumes that ρ(d) crosses
+    1 once, which is what we observed: ρ(d) increases with d on every case we scanned d by d.
+    ``progress(d, ρ, seconds)``, if given, is called after each eigenproblem.
 
     Returns {"delay_margin_steps", "delay_margin_s", "rho_at_margin", "rho_beyond",
     "delay_method"}; steps = −1 when the loop is unstable even without delay, and None when
