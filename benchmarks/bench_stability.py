@@ -1,11 +1,16 @@
 """Stability analysis at scale: `se3sync check` on chains and random trees, time and peak memory.
 
     python benchmarks/bench_stability.py [--sizes 1000 10000] [--dense-n 60]
+    python benchmarks/bench_stability.py --delay 6 12 16     (only the delay-margin search)
 
 Each `check` runs in its own process under /usr/bin/time -v (wall time, maximum resident set
 size). Then the new analysis is compared with the dense one (`cosim.stability.linearise`,
 `closed_loop`, `eigvals`) on a random tree of --dense-n agents and on a heterogeneous one, at
 three steps, and the dense run's time is given as a ratio to the new one (same process).
+
+--delay N …: the delay margin of hil_6uav (N = 6) or a seeded N-agent random tree, searched from
+`crossing_delay`'s guess and by doubling (``guess=False``) in the same process: the delays tried,
+the wall time of each search and their ratio; the margins and radii must be identical.
 """
 from __future__ import annotations
 
@@ -65,11 +70,42 @@ def agreement(N):
     return out
 
 
+def delay_search(N):
+    from cosim.analysis.delay_margin import delay_margin
+    from cosim.analysis.stability_cases import tree_scenario_text
+    from cosim.analysis.stability_sparse import Linearisation
+    from cosim.scenario import load_scenario, parse_scenario
+
+    sc = (load_scenario(os.path.join(ROOT, "scenarios", "hil_6uav.toml")) if N == 6 else
+          parse_scenario(tree_scenario_text(N, "random", 0), "tree", "tree.toml"))
+    lin = Linearisation(sc, True, force_sparse=True)
+    res = {}
+    for guess in (True, False):
+        tried = []
+        t0 = time.perf_counter()
+        out = delay_margin(sc, lin=lin, guess=guess, progress=lambda d, r, s: tried.append(d))
+        res[guess] = (time.perf_counter() - t0, tried, out)
+    (tg, dg, og), (td, dd, od) = res[True], res[False]
+    key = ("delay_margin_steps", "rho_at_margin", "rho_beyond")
+    same = all(og[k] == od[k] for k in key)
+    return (f"delay N = {N}: margin {og['delay_margin_steps']} steps; guess {tg:.1f} s (tried "
+            f"{dg}), doubling {td:.1f} s (tried {dd}); ratio {tg / td:.2f}; "
+            f"{'identical' if same else 'DIFFERENT'} margin and radii")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000])
     ap.add_argument("--dense-n", type=int, default=60)
+    ap.add_argument("--delay", type=int, nargs="+", metavar="N",
+                    help="only compare the delay-margin searches on these agent counts")
     a = ap.parse_args()
+    if a.delay:
+        for N in a.delay:
+            if N < 2:
+                ap.error(f"--delay: agent counts must be >= 2, got {N}")
+            print(delay_search(N), flush=True)
+        return
     with tempfile.TemporaryDirectory() as tmp:
         for N in a.sizes:
             for kind in ("chain", "random"):
