@@ -162,7 +162,33 @@ def test_crossing_delay_predicts_the_root_that_leaves_the_circle():
     T = loop[2].toarray() @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - loop[0].toarray(),
                                             loop[1].toarray())
     mu = np.linalg.eigvals(T)
-    assert np.abs(mu * np.exp(-1j * w * tau) - 1.0).min() < 0.02
+    assert np.abs(mu * np.exp(-1j * w * tau) - 1.0).min() < 1e-4
+
+
+def test_counted_crossing_floors_to_the_margin(tmp_path):
+    """A 6-agent random tree (seed 3) on which following eigenvalues across the coarse grid put
+    the crossing at τ = 34.04, one step past the margin (33): counting |μ| > 1 and bisecting the
+    change gives a τ whose floor is the margin (ρ(33) < 1 ≤ ρ(34)), where T(e^{jω}) has an
+    eigenvalue on the unit circle at angle ωτ, and the search needs only d = 0, ⌊τ⌋, ⌊τ⌋ + 1."""
+    from cosim.analysis import delay_margin as dm
+    from cosim.analysis.stability_cases import tree_scenario_text
+
+    path = tmp_path / "tree.toml"
+    path.write_text(tree_scenario_text(6, "random", 3))
+    sc = load_scenario(str(path))
+    lin = Linearisation(sc, True, force_sparse=True)
+    loop = delayed_parts(lin, sc.step)
+    tau, w = dm.crossing_delay(*loop)
+    n = loop[0].shape[0]
+    T = loop[2].toarray() @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - loop[0].toarray(),
+                                            loop[1].toarray())
+    assert np.abs(np.linalg.eigvals(T) * np.exp(-1j * w * tau) - 1.0).min() < 1e-4
+    got = []
+    out = delay_margin(sc, lin=lin, progress=lambda d, r, s: got.append(d))
+    # 33 is also what the search without a guess finds (doubling to 64, then the secant; 15 s)
+    assert math.floor(tau) == out["delay_margin_steps"] == 33
+    assert out["rho_at_margin"] < 1.0 <= out["rho_beyond"]
+    assert got == [0, 33, 34]
 
 
 @functools.lru_cache(maxsize=1)

@@ -183,38 +183,78 @@ def _probe(lo: int, hi: int, r_lo: float, r_hi: float, secant: bool) -> int:
     return min(max(mid, lo + 1), hi - 1)
 
 
-def crossing_delay(Phi0, B, C, n_omega: int = 200):
+def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = 12):
     """A guess of the margin from the loop transfer T(z) = C (zI − Φ₀)⁻¹ B (m × m): a root of the
     loop with delay τ sits on the unit circle at z = e^{jω} exactly when T(e^{jω}) has an
-    eigenvalue μ with |μ| = 1 and arg μ = ωτ (mod 2π). On a log-spaced grid of ω the
-    eigenvalues are matched to their nearest neighbours at the next ω, and where |μ| crosses 1
-    the crossing is interpolated linearly. Returns (τ, ω) of the crossing with the smallest
-    τ = (arg μ mod 2π)/ω, in steps and rad/step; None if no eigenvalue reaches |μ| = 1 on
-    1e-3 ≤ ω ≤ π, or if the loop is too large for dense eigenvalues (m > 1500).
+    eigenvalue μ with |μ| = 1 and arg μ = ωτ (mod 2π).
 
-    Only a guess: the matching and the interpolation can be wrong, so `delay_margin` verifies it
-    with the exact eigenproblems at ⌊τ⌋ and ⌊τ⌋ + 1 and searches on from there if they do not
-    bracket the margin. Why: the search's probes cost (n + d·m)³ each, and growing d by doubling
-    overshoots the margin by up to 2× (hil_6uav: 32 for a margin of 24, a third of the time)."""
+    On a log-spaced grid of ω the number of eigenvalues with |μ| > 1 is counted; where it
+    changes between two points, bisection (at most ``depth`` halvings, recursing into both
+    halves when both change) narrows each change until the eigenvalues that cross |μ| = 1 match
+    their nearest neighbours at the other end unambiguously, as many as the count changed by;
+    there the crossing is interpolated.
+    Returns (τ, ω) of the crossing with the smallest τ = (arg μ mod 2π)/ω, in steps and
+    rad/step; None if no eigenvalue reaches |μ| = 1 on 1e-3 ≤ ω ≤ π, or if the loop is too
+    large for dense eigenvalues (m > 1500).
+
+    Only a guess: a crossing and its return between two grid points cancel in the count, so
+    `delay_margin` verifies ⌊τ⌋ and ⌊τ⌋ + 1 with the exact eigenproblems and searches on from
+    there if they do not bracket the margin. Why a guess: the search's probes cost (n + d·m)³
+    each, and growing d by doubling overshoots the margin by up to 2× (hil_6uav: 32 for a
+    margin of 24, a third of the time). Why counts, not eigenvalues followed across the grid:
+    the grid's 4 % steps are too coarse to match eigenvalues reliably where they move fast, and
+    matching put the crossing a step past the margin on a 6-agent tree (34.04 for 33; counted:
+    33.82) and missed the one that sets it on a 24-agent tree (23.48 for 22; counted: 22.70)."""
     m, n = C.shape
     if m > 1500:
         return None
     P0 = Phi0.toarray()
     Bd, Cd = B.toarray(), C.toarray()
+    cache = {}
+
+    def eig(w):
+        if w not in cache:
+            cache[w] = np.linalg.eigvals(Cd @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - P0,
+                                                              Bd))
+        return cache[w]
+
+    def count(w):
+        return int((np.abs(eig(w)) > 1.0).sum())
+
     best = (math.inf, None)
-    prev = None
-    for w in np.geomspace(1e-3, math.pi, n_omega):
-        mu = np.linalg.eigvals(Cd @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - P0, Bd))
-        if prev is not None:
-            wa, ma = prev
-            nb = mu[np.abs(ma[:, None] - mu[None, :]).argmin(axis=1)]
-            ra, rb = np.abs(ma), np.abs(nb)
-            for k in np.nonzero((ra - 1.0) * (rb - 1.0) < 0.0)[0]:
-                t = (1.0 - ra[k]) / (rb[k] - ra[k])
-                wc = wa + t * (w - wa)
+
+    def narrow(wa, wb, ca, cb, level):
+        nonlocal best
+        ma, mb = eig(wa), eig(wb)
+        dist = np.abs(ma[:, None] - mb[None, :])
+        near = np.argsort(dist, axis=1)[:, :2]
+        nb = mb[near[:, 0]]
+        ra, rb = np.abs(ma), np.abs(nb)
+        cross = np.nonzero((ra - 1.0) * (rb - 1.0) <= 0.0)[0]
+        rows = np.arange(ma.size)
+        d1, d2 = dist[rows, near[:, 0]], dist[rows, near[:, 1]]
+        # stop halving once every crossing eigenvalue's match is unambiguous (its nearest
+        # neighbour at the other end 5× closer than the next) and the count agrees
+        sure = cross.size == abs(cb - ca) and bool(np.all(d1[cross] < 0.2 * d2[cross]))
+        if level == 0 or sure:
+            for k in cross:
+                t = (1.0 - ra[k]) / (rb[k] - ra[k]) if rb[k] != ra[k] else 0.5
+                wc = wa + t * (wb - wa)
                 ph = np.angle(ma[k]) + t * np.angle(nb[k] / ma[k])
                 best = min(best, ((ph % (2 * math.pi)) / wc, wc))
-        prev = (w, mu)
+            return
+        wm = 0.5 * (wa + wb)
+        cm = count(wm)
+        if cm != ca:
+            narrow(wa, wm, ca, cm, level - 1)
+        if cm != cb:
+            narrow(wm, wb, cm, cb, level - 1)
+
+    grid = np.geomspace(1e-3, math.pi, n_omega)
+    counts = [count(w) for w in grid]
+    for k in range(n_omega - 1):
+        if counts[k] != counts[k + 1]:
+            narrow(grid[k], grid[k + 1], counts[k], counts[k + 1], depth)
     return best if math.isfinite(best[0]) else None
 
 
@@ -272,8 +312,12 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
             lo = mid
         else:
             hi = mid
+    how = _method(n, hi)
+    if guessed:
+        how += (f"; search started from the frequency-sweep guess τ = {cross[0]:.2f} steps "
+                f"(ω = {cross[1]:.4g} rad/step), {len(rho)} eigenproblems")
     return {"delay_margin_steps": lo, "delay_margin_s": lo * h, "rho_at_margin": r(lo),
-            "rho_beyond": r(hi), "delay_method": _method(n, hi)}
+            "rho_beyond": r(hi), "delay_method": how}
 
 
 def _method(n, d):
