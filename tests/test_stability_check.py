@@ -1,6 +1,7 @@
 """`se3sync check`: the delay margin and convergence lines, and their consistency."""
 import json
 import math
+import sys
 
 import pytest
 
@@ -54,5 +55,62 @@ def test_check_skips_the_delay_margin_above_its_agent_limit(tmp_path, capsys):
     out = json.loads(capsys.readouterr().out)
     dm = out["delay_margin"]
     assert dm["delay_margin_steps"] is None
-    assert dm["delay_method"] == f"not computed: {n} agents > {DELAY_MAX_AGENTS}"
+    assert dm["delay_method"] == f"not computed: {n} agents > {DELAY_MAX_AGENTS} (--delay-agents)"
     assert out["stable"] and out["convergence"]["rate"] > 0.0
+
+
+QUICK = ["scenarios/hil_6uav.toml", "--json", "--set", "gains.k_X=30", "--set", "gains.k_e=1"]
+
+
+def test_delay_agents_sets_the_limit_and_nothing_else(capsys):
+    """hil_6uav has 6 agents: --delay-agents 5 and 0 skip the margin and say why; the default
+    computes it; the rest of the report is the same either way."""
+    reports = {}
+    for extra in ([], ["--delay-agents", "5"], ["--delay-agents", "0"], ["--delay-agents", "6"]):
+        assert main(["check", *QUICK, *extra]) == 0
+        reports[tuple(extra)] = json.loads(capsys.readouterr().out)
+    base = reports[()]["delay_margin"]
+    assert base["delay_margin_steps"] == 5 and base["rho_at_margin"] < 1.0 <= base["rho_beyond"]
+    assert reports[("--delay-agents", "6")]["delay_margin"] == base
+    assert reports[("--delay-agents", "5")]["delay_margin"]["delay_method"] == \
+        "not computed: 6 agents > 5 (--delay-agents)"
+    assert reports[("--delay-agents", "0")]["delay_margin"]["delay_method"] == \
+        "not computed: --delay-agents 0"
+    for r in reports.values():
+        r.pop("delay_margin")
+    assert all(r == reports[()] for r in reports.values())
+
+
+@pytest.mark.parametrize("value", ["-1", "x", "2.5"])
+def test_delay_agents_rejects_what_is_not_a_count(capsys, value):
+    try:
+        rc = main(["check", *QUICK, "--delay-agents", value])
+    except SystemExit as exc:      # argparse: not an integer
+        rc = exc.code
+    assert rc == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and "--delay-agents" in err[0] and captured.out == ""
+
+
+def test_delay_margin_progress_lines_on_a_terminal(capsys, monkeypatch):
+    """One line per eigenproblem on a terminal, none otherwise; the lines at the margin and one
+    step beyond carry the radii of the report."""
+    assert main(["check", *QUICK]) == 0
+    quiet = capsys.readouterr()
+    assert quiet.err == ""
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    assert main(["check", *QUICK]) == 0
+    cap = capsys.readouterr()
+    dm = json.loads(cap.out)["delay_margin"]
+    assert dm == json.loads(quiet.out)["delay_margin"]
+    seen = {}
+    for line in cap.err.strip().splitlines():
+        assert line.startswith("se3sync check: delay margin: d = ")
+        d = int(line.split("d = ")[1].split()[0])
+        seen[d] = float(line.split("spectral radius ")[1].split()[0])
+    d = dm["delay_margin_steps"]
+    assert 0 in seen and d in seen and d + 1 in seen
+    assert seen[d] == pytest.approx(dm["rho_at_margin"], abs=1e-8)
+    assert seen[d + 1] == pytest.approx(dm["rho_beyond"], abs=1e-8)
+    assert f"{len(seen)} eigenproblems" in dm["delay_method"]

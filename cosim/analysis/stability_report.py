@@ -6,31 +6,34 @@ import math
 from controller.errors import Se3SyncError
 
 from ..controllers import make_controller
+from . import DELAY_MAX_AGENTS
 from .convergence_rate import convergence
 from .delay_margin import delay_margin
 
-# The delayed loop does not decouple by graph modes (agent i weighs its own fresh state by its
-# degree and its neighbours' delayed ones by the adjacency, and D and Adj do not commute), so
-# its augmented state has 12N + M + d(6N + M) entries, and its radius needs dense eigenproblems
-# (`delay_margin.DENSE_MAX`: ARPACK misses eigenvalues in this clustered spectrum). Above this N,
-# `check` skips it. On 2 cores, with the search started from `crossing_delay`'s guess, `check`
-# takes 6.6 s on a 12-agent and 12.8 s on a 16-agent random tree (16 s and 50 s without it); at
-# 20 agents the augmented state passes DENSE_MAX.
-DELAY_MAX_AGENTS = 16
 
 
-def check_extras(sc, st: dict, law, from_error=None) -> dict:
-    """law: a registered law name (decides whether θ is a state of the loop) or a bool."""
-    hybrid = make_controller(law, sc).hybrid if isinstance(law, str) else bool(law)
-
+def check_options(from_error=None, delay_agents: int = DELAY_MAX_AGENTS) -> None:
+    """The options of `check_extras`, refused before any work (Se3SyncError, one line)."""
     if from_error is not None and not (math.isfinite(from_error) and from_error > 0):
         raise Se3SyncError(f"--from-error: must be a finite number > 0, got {from_error:g}")
+    if isinstance(delay_agents, bool) or not isinstance(delay_agents, int) or delay_agents < 0:
+        raise Se3SyncError(f"--delay-agents: must be an integer >= 0, got {delay_agents!r}")
+
+
+def check_extras(sc, st: dict, law, from_error=None, delay_agents: int = DELAY_MAX_AGENTS,
+                 progress=None) -> dict:
+    """law: a registered law name (decides whether θ is a state of the loop) or a bool.
+    delay_agents: compute the delay margin only up to this many agents (0: never);
+    progress(d, ρ, seconds) is called after each of its eigenproblems."""
+    hybrid = make_controller(law, sc).hybrid if isinstance(law, str) else bool(law)
+    check_options(from_error, delay_agents)
     out = {"method": st.get("method")}
-    if sc.graph.n <= DELAY_MAX_AGENTS and st["stable"]:
-        out["delay_margin"] = delay_margin(sc, hybrid=hybrid)
+    if sc.graph.n <= delay_agents and st["stable"]:
+        out["delay_margin"] = delay_margin(sc, hybrid=hybrid, progress=progress)
     else:
-        why = (f"not computed: {sc.graph.n} agents > {DELAY_MAX_AGENTS}" if st["stable"]
-               else "not computed: unstable without delay")
+        why = ("not computed: unstable without delay" if not st["stable"]
+               else "not computed: --delay-agents 0" if delay_agents == 0
+               else f"not computed: {sc.graph.n} agents > {delay_agents} (--delay-agents)")
         out["delay_margin"] = {"delay_margin_steps": None, "delay_margin_s": None,
                                "delay_method": why}
     out["convergence"] = convergence(sc, hybrid=hybrid, e0=from_error)
