@@ -14,7 +14,7 @@ import signal
 import threading
 
 __all__ = ["install", "uninstall", "note", "requested", "pending", "received", "exit_status", "reset",
-           "catching"]
+           "catching", "interruptible"]
 
 _received: list = []
 _installed: list = []
@@ -96,3 +96,28 @@ class catching:
         for s, h in self.old.items():
             signal.signal(s, h)
         return False
+
+
+def interruptible(fn, *args):
+    """fn(*args), computed in a daemon thread while this one waits in short joins.
+
+    For the long LAPACK calls of the analysis: a dense eigenproblem of 4000 states is one call
+    of 20–30 s, and Python runs a signal handler only between bytecodes, so Ctrl-C or SIGTERM
+    would wait for it to return. LAPACK runs without the GIL, so the waiting thread takes the
+    signal at once; the abandoned computation ends with the process (`se3sync` exits with
+    os._exit after a signal)."""
+    box = {}
+
+    def work():
+        try:
+            box["value"] = fn(*args)
+        except BaseException as exc:   # handed to the caller, whatever it is
+            box["error"] = exc
+
+    t = threading.Thread(target=work, name="se3sync-lapack", daemon=True)
+    t.start()
+    while t.is_alive():
+        t.join(0.1)
+    if "error" in box:
+        raise box["error"]
+    return box["value"]

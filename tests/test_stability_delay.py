@@ -340,3 +340,39 @@ def test_delay_margin_matches_the_nonlinear_law_with_delayed_neighbour_data():
     d_hi = steps_of_delay(1.2 * dm * sc.step, sc.step)
     assert _nonlinear_growth(sc, d_lo, 4000) < 0.1
     assert _nonlinear_growth(sc, d_hi, 4000) > 10.0
+
+
+def test_interruptible_runs_the_eigenproblem_beside_a_waiting_thread():
+    """The value and the exception of fn come back; fn runs in another thread; and an interrupt
+    reaches the waiting caller while fn is still running (a 4000-state eigvals is one 20–30 s
+    LAPACK call that would otherwise hold Ctrl-C and SIGTERM until it returns)."""
+    import _thread
+    import threading
+
+    from cosim.signals import interruptible
+
+    A = np.diag([0.5, -2.0, 1.5])
+    assert sorted(np.abs(interruptible(np.linalg.eigvals, A))) == [0.5, 1.5, 2.0]
+    assert interruptible(threading.get_ident) != threading.get_ident()
+    boom = ValueError("from the worker")
+
+    def fail():
+        raise boom
+
+    with pytest.raises(ValueError) as info:
+        interruptible(fail)
+    assert info.value is boom
+    release = threading.Event()
+    started = threading.Event()
+
+    def blocked():
+        started.set()
+        release.wait()
+        return 1
+
+    threading.Thread(target=lambda: (started.wait(), _thread.interrupt_main()),
+                     daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        interruptible(blocked)
+    assert not release.is_set()          # fn was still running when the caller let go
+    release.set()

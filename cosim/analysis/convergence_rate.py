@@ -20,6 +20,7 @@ import numpy as np
 
 from controller import layout
 
+from ..signals import interruptible
 from .stability_sparse import (
     DENSE_MAX,
     Linearisation,
@@ -76,7 +77,7 @@ def slowest_mode(lin: Linearisation, h: float) -> dict:
             A = Phi.toarray()
             A -= (A @ Q) @ Q.T
             A -= Q @ (Q.T @ A)
-            w, V = np.linalg.eig(A)
+            w, V = interruptible(np.linalg.eig, A)
             m = int(np.argmax(np.abs(w)))
         else:
             import scipy.sparse.linalg as sla

@@ -27,6 +27,7 @@ import scipy.sparse.linalg as sla
 
 from controller.errors import Se3SyncError
 
+from ..signals import interruptible
 from .stability_sparse import Linearisation
 
 # Dense eigvals costs O(m³) in the augmented size m. ARPACK is unreliable here: the dominant
@@ -153,7 +154,7 @@ def delay_radius(lin: Linearisation, h: float, d: int, loop=None) -> float:
         D = A.toarray()
         D -= (D @ Q) @ Q.T
         D -= Q @ (Q.T @ D)
-        return float(np.abs(np.linalg.eigvals(D)).max())
+        return float(np.abs(interruptible(np.linalg.eigvals, D)).max())
 
     def mv(x):
         x = np.asarray(x).ravel()

@@ -36,6 +36,8 @@ from controller.errors import Se3SyncError
 from controller.layout import pack_state
 from controller.kernels import network_step
 
+from ..signals import interruptible
+
 __all__ = ["edge_jacobian", "modal_blocks", "laplacian_eigenvalues", "sparse_loop",
            "spectral_radius_fast", "analyse_fast", "params_of", "DENSE_MAX"]
 
@@ -360,7 +362,7 @@ def _sparse_radius(Phi, lin, k=6):
         A = Phi.toarray()
         A -= (A @ Q) @ Q.T
         A -= Q @ (Q.T @ A)
-        return float(np.abs(np.linalg.eigvals(A)).max())
+        return float(np.abs(interruptible(np.linalg.eigvals, A)).max())
 
     def mv(x):
         x = np.asarray(x).ravel()
