@@ -7,6 +7,6 @@
 # (`delay_margin.DENSE_MAX`: ARPACK misses eigenvalues in this clustered spectrum). On 2 cores,
 # with the search started from `crossing_delay`'s guess, `check` takes 7.2 s on a 12-agent,
 # 13.8 s on a 16-agent and 30 s on a 20-agent random tree (16 s and 50 s without the guess at 12
-# and 16); a little above 20 agents the augmented state passes DENSE_MAX. Kept here, not in `stability_report`, so that the command line can show it
-# without importing scipy.
+# and 16); a little above 20 agents the augmented state passes DENSE_MAX. Kept here, not in
+# `stability_report`, so that the command line can show it without importing scipy.
 DELAY_MAX_AGENTS = 16
