@@ -11,7 +11,6 @@ from .convergence_rate import convergence
 from .delay_margin import delay_margin
 
 
-
 def check_options(from_error=None, delay_agents: int = DELAY_MAX_AGENTS) -> None:
     """The options of `check_extras`, refused before any work (Se3SyncError, one line)."""
     if from_error is not None and not (math.isfinite(from_error) and from_error > 0):
