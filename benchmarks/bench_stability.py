@@ -2,6 +2,7 @@
 
     python benchmarks/bench_stability.py [--sizes 1000 10000] [--dense-n 60]
     python benchmarks/bench_stability.py --delay 6 12 16     (only the delay-margin search)
+    python benchmarks/bench_stability.py --crossing 12 24 50 (only `crossing_delay`)
 
 Each `check` runs in its own process under /usr/bin/time -v (wall time, maximum resident set
 size). Then the new analysis is compared with the dense one (`cosim.stability.linearise`,
@@ -11,6 +12,11 @@ three steps, and the dense run's time is given as a ratio to the new one (same p
 --delay N …: the delay margin of hil_6uav (N = 6) or a seeded N-agent random tree, searched from
 `crossing_delay`'s guess and by doubling (``guess=False``) in the same process: the delays tried,
 the wall time of each search and their ratio; the margins and radii must be identical.
+
+--crossing N …: `crossing_delay` on a seeded N-agent random tree with T's eigenvalues in ±μ
+pairs (ν = μ² of T₁₂T₂₁, half the size) against those of T itself (``paired=False``), and one
+T(e^{jω}) assembled per agent block (`LoopTransfer.matrix`) against a dense n × n solve: times,
+their ratios and the two guesses τ.
 """
 from __future__ import annotations
 
@@ -93,13 +99,53 @@ def delay_search(N):
             f"{'identical' if same else 'DIFFERENT'} margin and radii")
 
 
+def crossing(N):
+    import numpy as np
+
+    from cosim.analysis import delay_margin as dm
+    from cosim.analysis.stability_cases import tree_scenario_text
+    from cosim.analysis.stability_sparse import Linearisation
+    from cosim.scenario import parse_scenario
+
+    sc = parse_scenario(tree_scenario_text(N, "random", 0), "tree", "tree.toml")
+    loop = dm.delayed_parts(Linearisation(sc, True, force_sparse=True), sc.step)
+    out = {}
+    for paired in (True, False):
+        t0 = time.perf_counter()
+        out[paired] = (dm.crossing_delay(*loop, paired=paired), time.perf_counter() - t0)
+    (cp, tp), (cf, tf) = out[True], out[False]
+    P0, B, C = (x.toarray() for x in loop)
+    blocks = dm.LoopTransfer(*loop)
+    w, reps = 0.03, 20
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        blocks.matrix(w)
+    t_block = (time.perf_counter() - t0) / reps
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        C @ np.linalg.solve(np.exp(1j * w) * np.eye(P0.shape[0]) - P0, B)
+    t_dense = (time.perf_counter() - t0) / reps
+    return (f"crossing N = {N} (m = {C.shape[0]}): paired {tp:.2f} s (tau {cp[0]:.4f}), "
+            f"full T {tf:.2f} s (tau {cf[0]:.4f}); ratio {tp / tf:.2f}. One T(e^jw): per block "
+            f"{1e3 * t_block:.2f} ms, dense solve {1e3 * t_dense:.2f} ms; ratio "
+            f"{t_block / t_dense:.2f}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1000, 10000])
     ap.add_argument("--dense-n", type=int, default=60)
     ap.add_argument("--delay", type=int, nargs="+", metavar="N",
                     help="only compare the delay-margin searches on these agent counts")
+    ap.add_argument("--crossing", type=int, nargs="+", metavar="N",
+                    help="only compare crossing_delay's eigenvalue routes on these agent counts")
     a = ap.parse_args()
+    if a.crossing:
+        for N in a.crossing:
+            if N < 2:
+                ap.error(f"--crossing: agent counts must be >= 2, got {N}")
+            print(crossing(N), flush=True)
+        return
     if a.delay:
         for N in a.delay:
             if N < 2:

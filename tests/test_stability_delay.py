@@ -191,6 +191,120 @@ def test_counted_crossing_floors_to_the_margin(tmp_path):
     assert got == [0, 33, 34]
 
 
+def _tree_loop(tmp_path, N, seed):
+    from cosim.analysis.stability_cases import tree_scenario_text
+
+    path = tmp_path / f"tree{N}_{seed}.toml"
+    path.write_text(tree_scenario_text(N, "random", seed))
+    sc = load_scenario(str(path))
+    lin = Linearisation(sc, True, force_sparse=True)
+    return sc, lin, delayed_parts(lin, sc.step)
+
+
+def _same_multiset(a, b, tol):
+    """Every element of a has one of b within tol, and the other way round (equal sizes)."""
+    assert a.size == b.size
+    dist = np.abs(a[:, None] - b[None, :])
+    return dist.min(axis=1).max() < tol and dist.min(axis=0).max() < tol
+
+
+def test_loop_transfer_per_block_equals_the_dense_solve_and_pairs_its_eigenvalues(tmp_path):
+    """`LoopTransfer` on an 8-agent random tree: T(e^{jω}) from one solve per agent block equals
+    C (e^{jω}I − Φ₀)⁻¹ B from a dense solve; the slots split into two sides with Σ T Σ = −T; and
+    the eigenvalues of T are ±√ν for the eigenvalues ν of T₁₂T₂₁, plus zeros for the larger side."""
+    from cosim.analysis import delay_margin as dm
+
+    sc, lin, (P0, B, C) = _tree_loop(tmp_path, 8, 1)
+    tf = dm.LoopTransfer(P0, B, C)
+    n, m = P0.shape[0], C.shape[0]
+    S = np.where(tf.side == 0, 1.0, -1.0)
+    assert 0 < (tf.side == 0).sum() < m
+    for w in (0.003, 0.03, 0.5, 3.0):
+        ref = C.toarray() @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - P0.toarray(),
+                                            B.toarray())
+        T = tf.matrix(w)
+        assert np.abs(T - ref).max() < 1e-12 * np.abs(ref).max()
+        assert np.abs(S[:, None] * T * S[None, :] + T).max() == 0.0
+        nu, p = tf.eigenvalues(w)
+        assert p == 2
+        mu = np.sqrt(nu.astype(complex))
+        pairs = np.concatenate([mu, -mu, np.zeros(m - 2 * nu.size)])
+        assert _same_multiset(np.linalg.eigvals(ref), pairs, 1e-7 * np.abs(ref).max())
+
+
+@pytest.mark.parametrize("N, seed", [(6, 3), (10, 2)])
+def test_paired_crossing_equals_the_one_from_t_itself(tmp_path, N, seed):
+    """`crossing_delay` counting and matching ν = μ² finds the crossing it finds on the
+    eigenvalues of T itself: the same frequency and delay (the bisections stop at different
+    depths, hence 1e-3), the same floor."""
+    from cosim.analysis import delay_margin as dm
+
+    sc, lin, loop = _tree_loop(tmp_path, N, seed)
+    tau, w = dm.crossing_delay(*loop)
+    tau_full, w_full = dm.crossing_delay(*loop, paired=False)
+    assert abs(tau - tau_full) < 1e-3 * tau and abs(w - w_full) < 1e-3 * w
+    assert math.floor(tau) == math.floor(tau_full)
+
+
+def test_loop_transfer_falls_back_to_t_where_the_blocks_are_not_two_sided():
+    """Three one-state blocks coupled in a triangle (not bipartite): no sides, and the
+    eigenvalues returned are those of T itself."""
+    import scipy.sparse as sp
+
+    from cosim.analysis import delay_margin as dm
+
+    P0 = sp.csr_matrix(np.diag([0.5, 0.2, -0.1]))
+    C = sp.csr_matrix(np.ones((3, 3)) - np.eye(3))
+    tf = dm.LoopTransfer(P0, sp.identity(3, format="csr"), C)
+    assert tf.side is None
+    w = 0.7
+    T = C.toarray() @ np.linalg.inv(np.exp(1j * w) * np.eye(3) - P0.toarray())
+    lam, p = tf.eigenvalues(w)
+    assert p == 1 and _same_multiset(lam, np.linalg.eigvals(T), 1e-12)
+
+
+def test_shift_invert_at_the_crossing_finds_the_root_largest_modulus_misses(tmp_path,
+                                                                            monkeypatch):
+    """A 12-agent random tree one step past its margin (d = 23): the shift-invert search at the
+    crossing angle alone gives the radius that LAPACK gives on the whole augmented matrix (> 1).
+    On this case ARPACK's largest-modulus search with 3 eigenvalues returned 0.99928 (stable);
+    a largest-modulus search that misses (a stand-in returning 0.5 here, so that the test does
+    not rest on ARPACK's random start) no longer hides the root when the angle is given."""
+    from cosim.analysis import delay_margin as dm
+
+    sc, lin, loop = _tree_loop(tmp_path, 12, 0)
+    tau, w = dm.crossing_delay(*loop)
+    d = math.floor(tau) + 1
+    exact = dm.delay_radius(lin, sc.step, d, loop)
+    assert d == 23 and exact > 1.0
+    assert abs(dm._radius_near(augmented(*loop, d), w, d) - exact) < 1e-10
+    eigs = dm.sla.eigs
+
+    def missing(op, **kw):       # the largest-modulus search runs on the real operator
+        return np.full(kw["k"], 0.5 + 0j) if op.dtype == float else eigs(op, **kw)
+
+    monkeypatch.setattr(dm, "DENSE_MAX", 10)
+    monkeypatch.setattr(dm.sla, "eigs", missing)
+    assert dm.delay_radius(lin, sc.step, d, loop) == 0.5
+    assert abs(dm.delay_radius(lin, sc.step, d, loop, near=w) - exact) < 1e-10
+
+
+def test_delay_method_names_each_solver_when_they_differ(monkeypatch):
+    """With DENSE_MAX between the augmented sizes at the margin (24) and one step past it,
+    the search gives the same margin and radii, and `delay_method` names both solvers."""
+    from cosim.analysis import delay_margin as dm
+
+    sc, lin, ref = _hil_without_guess()
+    n0, m = dm.delayed_parts(lin, sc.step)[0].shape[0], dm.delayed_parts(lin, sc.step)[2].shape[0]
+    monkeypatch.setattr(dm, "DENSE_MAX", n0 + 24 * m)
+    out = dm.delay_margin(sc, lin=lin)
+    assert (out["delay_margin_steps"], out["rho_at_margin"]) == \
+        (ref["delay_margin_steps"], ref["rho_at_margin"])
+    assert abs(out["rho_beyond"] - ref["rho_beyond"]) < 1e-10
+    assert "d = 24: dense eigvals; d = 25: ARPACK (largest modulus, and shift-invert at the " \
+           "crossing angle" in out["delay_method"], out["delay_method"]
+
+
 @functools.lru_cache(maxsize=1)
 def _hil_without_guess():
     sc = load_scenario(HIL)
