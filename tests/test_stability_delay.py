@@ -263,27 +263,46 @@ def test_loop_transfer_falls_back_to_t_where_the_blocks_are_not_two_sided():
     assert p == 1 and _same_multiset(lam, np.linalg.eigvals(T), 1e-12)
 
 
+def test_two_shift_invert_searches_give_lapacks_radius():
+    """hil_6uav well below its margin (d = 1, 10), where the largest eigenvalue is a slow real
+    mode near z = 1, and one step past it (d = 25), where it is the root that left the circle
+    at the crossing angle: the larger modulus of the shift-invert searches near z = 1 and near
+    e^{jω} equals LAPACK's radius on the whole augmented matrix, and each search is the one
+    that finds it in its case."""
+    from cosim.analysis import delay_margin as dm
+
+    sc = load_scenario(HIL)
+    lin = Linearisation(sc, True, force_sparse=True)
+    loop = delayed_parts(lin, sc.step)
+    tau, w = dm.crossing_delay(*loop)
+    for d, which in ((1, 0), (10, 0), (25, 1)):
+        A = augmented(*loop, d)
+        near = (dm._radius_near(A, 0.0, d), dm._radius_near(A, w, d))
+        exact = dm.delay_radius(lin, sc.step, d, loop)
+        assert abs(near[which] - exact) < 1e-10 and near[1 - which] < exact - 1e-5, (d, near)
+
+
 def test_shift_invert_at_the_crossing_finds_the_root_largest_modulus_misses(tmp_path,
                                                                             monkeypatch):
-    """A 12-agent random tree one step past its margin (d = 23): the shift-invert search at the
-    crossing angle alone gives the radius that LAPACK gives on the whole augmented matrix (> 1).
-    On this case ARPACK's largest-modulus search with 3 eigenvalues returned 0.99928 (stable);
-    a largest-modulus search that misses (a stand-in returning 0.5 here, so that the test does
-    not rest on ARPACK's random start) no longer hides the root when the angle is given."""
+    """A 12-agent random tree one step past its margin (d = 23, 2064 states, above DENSE_MAX):
+    with the crossing angle, `delay_radius` gives the radius LAPACK gives on the whole augmented
+    matrix (> 1). On this case ARPACK's largest-modulus search with 3 eigenvalues returned
+    0.99928 (stable); that search (a stand-in returning 0.5 here, so that the test does not rest
+    on ARPACK's random start) is what `delay_radius` falls back to without the angle."""
     from cosim.analysis import delay_margin as dm
 
     sc, lin, loop = _tree_loop(tmp_path, 12, 0)
     tau, w = dm.crossing_delay(*loop)
     d = math.floor(tau) + 1
+    monkeypatch.setattr(dm, "DENSE_MAX", 10_000)
     exact = dm.delay_radius(lin, sc.step, d, loop)
-    assert d == 23 and exact > 1.0
-    assert abs(dm._radius_near(augmented(*loop, d), w, d) - exact) < 1e-10
+    monkeypatch.undo()
+    assert d == 23 and exact > 1.0 and augmented(*loop, d).shape[0] > dm.DENSE_MAX
     eigs = dm.sla.eigs
 
     def missing(op, **kw):       # the largest-modulus search runs on the real operator
         return np.full(kw["k"], 0.5 + 0j) if op.dtype == float else eigs(op, **kw)
 
-    monkeypatch.setattr(dm, "DENSE_MAX", 10)
     monkeypatch.setattr(dm.sla, "eigs", missing)
     assert dm.delay_radius(lin, sc.step, d, loop) == 0.5
     assert abs(dm.delay_radius(lin, sc.step, d, loop, near=w) - exact) < 1e-10
@@ -301,7 +320,7 @@ def test_delay_method_names_each_solver_when_they_differ(monkeypatch):
     assert (out["delay_margin_steps"], out["rho_at_margin"]) == \
         (ref["delay_margin_steps"], ref["rho_at_margin"])
     assert abs(out["rho_beyond"] - ref["rho_beyond"]) < 1e-10
-    assert "d = 24: dense eigvals; d = 25: ARPACK (largest modulus, and shift-invert at the " \
+    assert "d = 24: dense eigvals; d = 25: shift-invert ARPACK near z = 1 and near the " \
            "crossing angle" in out["delay_method"], out["delay_method"]
 
 

@@ -30,16 +30,20 @@ from controller.errors import Se3SyncError
 from ..signals import interruptible
 from .stability_sparse import Linearisation
 
-# Dense eigvals costs O(m³) in the augmented size m. ARPACK is unreliable here: the dominant
-# eigenvalues cluster near 1 (slow modes at a small step), and asked for the 6 largest it can
-# return converged Ritz values that are not the largest. On a 16-agent random tree (hil_6uav's
-# gains, h = 4 ms) it gave ρ = 0.998905 at d = 16 and 0.999483 at d = 20 where dense eigvals gives
-# 0.999821 and 0.999845 (k = 12 found them, k = 16 with tol 1e-9 missed one again, 1–15 s each).
-# A missed eigenvalue can report an unstable delay as stable, so dense is used as far as it is
-# affordable (2 cores: 0.4 / 1.4 / 2.3 / 7 / 17 s at m = 733 / 1389 / 1983 / 2871 / 3759), which
-# covers the margins `check` computes (up to 16 agents); above it ARPACK with k = 12, and the
-# report says so.
-DENSE_MAX = 4000
+# Dense eigvals costs O(m³) in the augmented size m (2 cores: 0.4 / 1.4 / 2.3 / 7 / 17 s at
+# m = 733 / 1389 / 1983 / 2871 / 3759), so it is used up to about 2.5 s a probe. Above, the
+# largest-modulus ARPACK search is unreliable: the dominant eigenvalues cluster near 1 (slow
+# modes at a small step), and asked for the 6 largest it can return converged Ritz values that
+# are not the largest (16-agent tree, d = 16: 0.998905 for LAPACK's 0.999821; with k = 12 and
+# a 24-agent tree at d = 22 it returned 0.99990706 and missed a real mode at 0.99993175). The
+# spectrum meets the unit circle in two places only, so two shift-invert searches are used
+# instead (`_radius_near`, one sparse LU each): near z = 1, where the undelayed loop's slow
+# modes sit, and near e^{jω} at the angle where `crossing_delay` saw the delay push roots out.
+# Their larger modulus equalled LAPACK's radius at every probe compared (hil_6uav at d = 1, 5,
+# 10, 16, 20, 24, 25, to 1e-10; random trees of 12, 16, 20, 24 and 50 agents at the margin and
+# one past it, to the 8 digits `check` prints), in 0.03–0.6 s where dense took up to 2 min and
+# ARPACK up to 2.5 min (100 agents, 16,000 states).
+DENSE_MAX = 2000
 ARPACK_K = 12
 
 __all__ = ["delayed_loop", "delayed_parts", "augmented", "delay_radius", "delay_margin",
@@ -145,11 +149,11 @@ def _rigid_basis_aug(N, C, d):
 def delay_radius(lin: Linearisation, h: float, d: int, loop=None, near: float | None = None):
     """Spectral radius of the delayed loop without the rigid motion's six eigenvalues 1.
 
-    Above `DENSE_MAX` states: ARPACK's largest-modulus eigenvalues and, with ``near`` = ω,
-    also the eigenvalues nearest e^{jω} by shift-invert (`_radius_near`); the larger modulus
-    counts. `delay_margin` passes the angle where `crossing_delay` saw a root leave the circle,
-    so the root that decides the margin is found even where the largest-modulus search misses
-    it in the cluster near 1."""
+    Up to `DENSE_MAX` states: LAPACK on the whole matrix. Above, with ``near`` = ω (the angle
+    where `crossing_delay` saw a root leave the circle): the larger modulus of the eigenvalues
+    nearest z = 1 (the undelayed loop's slow modes) and nearest e^{jω} (the roots the delay
+    pushes out), by shift-invert (`_radius_near`); without it, ARPACK's largest-modulus
+    search, which can miss the largest on this clustered spectrum."""
     Phi0, B, C = loop if loop is not None else delayed_parts(lin, h)
     A = augmented(Phi0, B, C, d)
     Q = _rigid_basis_aug(lin.N, C, d)
@@ -161,6 +165,8 @@ def delay_radius(lin: Linearisation, h: float, d: int, loop=None, near: float | 
         D -= (D @ Q) @ Q.T
         D -= Q @ (Q.T @ D)
         return float(np.abs(interruptible(np.linalg.eigvals, D)).max())
+    if near is not None:
+        return max(_radius_near(A, 0.0, d), _radius_near(A, near, d))
 
     def mv(x):
         x = np.asarray(x).ravel()
@@ -174,17 +180,18 @@ def delay_radius(lin: Linearisation, h: float, d: int, loop=None, near: float | 
                        maxiter=20000, return_eigenvectors=False)
     except sla.ArpackNoConvergence as exc:
         raise Se3SyncError(f"delay margin: ARPACK did not converge at d = {d} ({exc})") from None
-    rho = float(np.abs(lam).max())
-    return rho if near is None else max(rho, _radius_near(A, near, d))
+    return float(np.abs(lam).max())
 
 
 def _radius_near(A, w: float, d: int, k: int = ARPACK_K) -> float:
-    """Largest modulus among the k eigenvalues of A nearest σ = e^{jω} (ARPACK on the
-    shift-inverted (A − σI)⁻¹, one sparse LU), the rigid motion's eigenvalues 1 left out.
+    """Largest modulus among the k eigenvalues of A nearest σ (ARPACK on the shift-inverted
+    (A − σI)⁻¹, one sparse LU), the rigid motion's eigenvalues 1 left out: σ = e^{jω} for
+    ω > 0; for ω = 0, σ = 1 + 1e-3, since A − I is singular (the rigid motion), and k + 6.
     Shift-invert converges fastest on the eigenvalues nearest σ, which is where a root that
     leaves the unit circle at angle ω sits while d is near the margin."""
     m = A.shape[0]
-    sigma = complex(np.exp(1j * w))
+    sigma = complex(np.exp(1j * w)) if w > 0 else 1.0 + 1e-3
+    k = k if w > 0 else k + 6
     lu = sla.splu((A - sigma * sp.identity(m, format="csc")).tocsc().astype(complex))
     op = sla.LinearOperator((m, m), matvec=lambda x: lu.solve(np.asarray(x, dtype=complex)),
                             dtype=complex)
@@ -455,8 +462,8 @@ def _method(n, lo, hi=None, near=None):
             return "dense eigvals"
         if near is None:
             return "ARPACK (largest modulus; on this clustered spectrum it can miss the largest)"
-        return (f"ARPACK (largest modulus, and shift-invert at the crossing angle "
-                f"ω = {near:.4g} rad/step)")
+        return (f"shift-invert ARPACK near z = 1 and near the crossing angle ω = {near:.4g} "
+                f"rad/step")
 
     hi = lo if hi is None else hi
     solver = how(hi) if how(lo) == how(hi) else f"d = {lo}: {how(lo)}; d = {hi}: {how(hi)}"
