@@ -246,6 +246,31 @@ def test_paired_crossing_equals_the_one_from_t_itself(tmp_path, N, seed):
     assert math.floor(tau) == math.floor(tau_full)
 
 
+def test_loop_transfer_where_an_agents_block_splits():
+    """scenarios/sweep_small.toml: its gains leave parts of each agent's Φ₀ block uncoupled (12
+    blocks for 4 agents) and B stores zeros where 𝕀⁻¹ is diagonal. T per block still equals the
+    dense solve, the slots still split into two sides, and the search from the guess ends at
+    the margin the search without it finds."""
+    from cosim.analysis import delay_margin as dm
+    from scipy.sparse.csgraph import connected_components
+
+    sc = load_scenario("scenarios/sweep_small.toml")
+    lin = Linearisation(sc, True, force_sparse=True)
+    P0, B, C = delayed_parts(lin, sc.step)
+    assert connected_components(abs(P0) + abs(P0.T), directed=False)[0] > lin.N
+    assert (B.data == 0).any()
+    tf = dm.LoopTransfer(P0, B, C)
+    assert tf.side is not None
+    n = P0.shape[0]
+    for w in (0.01, 0.5):
+        ref = C.toarray() @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - P0.toarray(),
+                                            B.toarray())
+        assert np.abs(tf.matrix(w) - ref).max() < 1e-12 * np.abs(ref).max()
+    a, b = delay_margin(sc, lin=lin), delay_margin(sc, lin=lin, guess=False)
+    assert a["delay_margin_steps"] == b["delay_margin_steps"] >= 1
+    assert (a["rho_at_margin"], a["rho_beyond"]) == (b["rho_at_margin"], b["rho_beyond"])
+
+
 def test_loop_transfer_falls_back_to_t_where_the_blocks_are_not_two_sided():
     """Three one-state blocks coupled in a triangle (not bipartite): no sides, and the
     eigenvalues returned are those of T itself."""

@@ -237,17 +237,20 @@ class LoopTransfer:
     def __init__(self, Phi0, B, C):
         from scipy.sparse.csgraph import connected_components
 
-        P0, Bc, Cc = Phi0.tocsr(), B.tocsr(), C.tocsc()
+        P0, Bc, Cc = Phi0.tocsr(copy=True), B.tocsr(copy=True), C.tocsc(copy=True)
+        for X in (P0, Bc, Cc):      # the blocks come from the pattern: stored zeros are not in it
+            X.eliminate_zeros()
         self.m, self.n = C.shape
-        nb, lab = connected_components(abs(P0) + abs(P0.T), directed=False)
+        # blocks of Φ₀ (an agent's block may split, e.g. a rotation axis its gains do not couple),
+        # merged where one delayed input enters several (𝕀⁻¹ coupling what Φ₀ does not)
+        absB = abs(Bc)
+        nb, lab = connected_components(abs(P0) + abs(P0.T) + absB @ absB.T, directed=False)
         inj = np.full(self.m, -1)           # the block each delayed slot enters
         groups, reads = {}, []
         for b in range(nb):
             idx = np.flatnonzero(lab == b)
             Bb = Bc[idx]
-            cols = np.unique(Bb.indices)
-            if np.any(inj[cols] >= 0):
-                raise RuntimeError("delayed loop: a delayed input enters two blocks of Φ₀")
+            cols = np.unique(Bb.indices)    # disjoint across blocks, by the merge above
             inj[cols] = b
             Cb = Cc[:, idx]
             rows = np.unique(Cb.indices)
