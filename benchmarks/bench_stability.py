@@ -11,7 +11,8 @@ three steps, and the dense run's time is given as a ratio to the new one (same p
 
 --delay N …: the delay margin of hil_6uav (N = 6) or a seeded N-agent random tree, searched from
 `crossing_delay`'s guess and by doubling (``guess=False``) in the same process: the delays tried,
-the wall time of each search and their ratio; the margins and radii must be identical.
+the wall time of each search and their ratio; the margins must be equal and the radii
+equal to 1e-9 (above 2000 states the two use different eigensolvers).
 
 --crossing N …: `crossing_delay` on a seeded N-agent random tree with T's eigenvalues in ±μ
 pairs (ν = μ² of T₁₂T₂₁, half the size) against those of T itself (``paired=False``), and one
@@ -92,11 +93,13 @@ def delay_search(N):
         out = delay_margin(sc, lin=lin, guess=guess, progress=lambda d, r, s: tried.append(d))
         res[guess] = (time.perf_counter() - t0, tried, out)
     (tg, dg, og), (td, dd, od) = res[True], res[False]
-    key = ("delay_margin_steps", "rho_at_margin", "rho_beyond")
-    same = all(og[k] == od[k] for k in key)
+    # above DENSE_MAX the two searches use different solvers (shift-invert at the guess's
+    # crossing angle, ARPACK's largest-modulus search without it): radii agree to rounding
+    dr = max(abs(og[k] - od[k]) for k in ("rho_at_margin", "rho_beyond"))
+    same = og["delay_margin_steps"] == od["delay_margin_steps"] and dr < 1e-9
     return (f"delay N = {N}: margin {og['delay_margin_steps']} steps; guess {tg:.1f} s (tried "
             f"{dg}), doubling {td:.1f} s (tried {dd}); ratio {tg / td:.2f}; "
-            f"{'identical' if same else 'DIFFERENT'} margin and radii")
+            f"{'same' if same else 'DIFFERENT'} margin, radii within {dr:.1e}")
 
 
 def crossing(N):
