@@ -3,9 +3,12 @@ import json
 import math
 import sys
 
+import numpy as np
 import pytest
 
+from cosim.analysis.stability_sparse import Linearisation
 from cosim.cli import main
+from cosim.scenario import load_scenario
 
 
 def test_check_json_reports_delay_margin_and_rate(capsys):
@@ -93,6 +96,34 @@ def test_delay_agents_rejects_what_is_not_a_count(capsys, value):
     assert len(err) == 1 and "--delay-agents" in err[0] and captured.out == ""
 
 
+def test_frequency_sweep_progress(capsys, monkeypatch):
+    """`crossing_delay` reports each of its eigenproblems in order, the grid first; `check` on a
+    terminal turns them into lines (here with no pause between lines), all before the
+    eigenproblems at the guess, the last one after the grid."""
+    from cosim.analysis import delay_margin as dm
+    from cosim.cli import run as run_cli
+
+    sc = load_scenario(QUICK[0], [QUICK[3], QUICK[5]])
+    lin = Linearisation(sc, True, force_sparse=True)
+    calls = []
+    guess = dm.crossing_delay(*dm.delayed_parts(lin, sc.step), sweep=lambda *a: calls.append(a))
+    assert guess == dm.crossing_delay(*dm.delayed_parts(lin, sc.step))
+    k, g, n = (np.array(c) for c in zip(*calls))
+    assert list(k) == list(range(1, len(calls) + 1)) and set(n) == {200}
+    assert np.all(np.diff(g) >= 0) and g[0] == 0 and g[-1] == 200
+    assert (g < 200).sum() == 200 and len(calls) > 200       # the grid, then the bisections
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    monkeypatch.setattr(run_cli, "SWEEP_EVERY", 0.0)
+    assert main(["check", *QUICK]) == 0
+    lines = capsys.readouterr().err.strip().splitlines()
+    sweep = [i for i, line in enumerate(lines) if "frequency sweep" in line]
+    assert len(sweep) == len(calls)
+    assert lines[sweep[-1]].startswith(f"se3sync check: delay margin: frequency sweep, "
+                                       f"{len(calls)} eigenproblems of T, grid done")
+    later = [i for i, line in enumerate(lines) if "d = " in line and "d = 0 " not in line]
+    assert later and min(later) > max(sweep)
+
+
 def test_delay_margin_progress_lines_on_a_terminal(capsys, monkeypatch):
     """One line per eigenproblem on a terminal, none otherwise; the lines at the margin and one
     step beyond carry the radii of the report."""
@@ -106,6 +137,8 @@ def test_delay_margin_progress_lines_on_a_terminal(capsys, monkeypatch):
     assert dm == json.loads(quiet.out)["delay_margin"]
     seen = {}
     for line in cap.err.strip().splitlines():
+        if "frequency sweep" in line:         # one every 2 s: none here unless the machine stalls
+            continue
         assert line.startswith("se3sync check: delay margin: d = ")
         d = int(line.split("d = ")[1].split()[0])
         seen[d] = float(line.split("spectral radius ")[1].split()[0])

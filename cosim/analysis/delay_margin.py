@@ -314,7 +314,8 @@ class LoopTransfer:
         return np.linalg.eigvals(T[np.ix_(a, b)] @ T[np.ix_(b, a)]), 2
 
 
-def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = 12, paired: bool = True):
+def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = 12, paired: bool = True,
+                   sweep=None):
     """A guess of the margin from the loop transfer T(z) = C (zI − Φ₀)⁻¹ B (m × m): a root of the
     loop with delay τ sits on the unit circle at z = e^{jω} exactly when T(e^{jω}) has an
     eigenvalue μ with |μ| = 1 and arg μ = ωτ (mod 2π).
@@ -327,6 +328,8 @@ def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = 12, paired: bool
     (`LoopTransfer`), and the count and the matching run on ν = μ²; of a pair the one with the
     smaller angle crosses first, arg μ mod π = (arg ν mod 2π)/2 (``paired=False``: the
     eigenvalues of T itself, the reference the benchmark compares with).
+    ``sweep(k, g, n_omega)``, if given, is called after each eigenproblem: k of them so far, g
+    grid points done (the bisections follow the grid).
     Returns (τ, ω) of the crossing with the smallest τ = (arg μ mod 2π)/ω, in steps and
     rad/step; None if no eigenvalue reaches |μ| = 1 on 1e-3 ≤ ω ≤ π, or if the loop is too
     large for dense eigenvalues (m > 1500).
@@ -346,10 +349,13 @@ def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = 12, paired: bool
     if not paired:
         tf.side = None
     cache = {}
+    done = 0                                    # grid points counted
 
     def eig(w):
         if w not in cache:
             cache[w] = tf.eigenvalues(w)[0]
+            if sweep is not None:
+                sweep(len(cache), done, n_omega)
         return cache[w]
 
     power = 1 if tf.side is None else 2         # eig() returns μ, or ν = μ² on a tree
@@ -387,7 +393,10 @@ def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = 12, paired: bool
             narrow(wm, wb, cm, cb, level - 1)
 
     grid = np.geomspace(1e-3, math.pi, n_omega)
-    counts = [count(w) for w in grid]
+    counts = []
+    for w in grid:
+        counts.append(count(w))
+        done += 1
     for k in range(n_omega - 1):
         if counts[k] != counts[k + 1]:
             narrow(grid[k], grid[k + 1], counts[k], counts[k + 1], depth)
@@ -396,13 +405,14 @@ def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = 12, paired: bool
 
 def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: int = 1024,
                  lin: Linearisation | None = None, secant: bool = True, guess: bool = True,
-                 progress=None) -> dict:
+                 progress=None, sweep=None) -> dict:
     """The largest d with ρ(d) < 1 and ρ(d + 1) ≥ 1, found by growing d from 0 until the loop
     is unstable and then narrowing the last bracket (`_probe`: by the secant, or by bisection
     with ``secant=False``). With ``guess=True`` the search starts from `crossing_delay`'s τ:
     ⌊τ⌋ and ⌊τ⌋ + 1 first, then on from the bracket they leave. This assumes that ρ(d) crosses
     1 once, which is what we observed: ρ(d) increases with d on every case we scanned d by d.
-    ``progress(d, ρ, seconds)``, if given, is called after each eigenproblem.
+    ``progress(d, ρ, seconds)``, if given, is called after each eigenproblem, and ``sweep``
+    is handed to `crossing_delay`.
 
     Returns {"delay_margin_steps", "delay_margin_s", "rho_at_margin", "rho_beyond",
     "delay_method"}; steps = −1 when the loop is unstable even without delay, and None when
@@ -429,7 +439,7 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
         return {"delay_margin_steps": -1, "delay_margin_s": None, "rho_at_margin": None,
                 "rho_beyond": r(0), "delay_method": _method(n, 0)}
     lo, hi = 0, 1
-    cross = crossing_delay(*loop) if guess else None
+    cross = crossing_delay(*loop, sweep=sweep) if guess else None
     guessed = cross is not None and cross[0] < d_cap
     near = cross[1] if cross is not None else None
     if guessed:

@@ -20,15 +20,16 @@ def check_options(from_error=None, delay_agents: int = DELAY_MAX_AGENTS) -> None
 
 
 def check_extras(sc, st: dict, law, from_error=None, delay_agents: int = DELAY_MAX_AGENTS,
-                 progress=None) -> dict:
+                 progress=None, sweep=None) -> dict:
     """law: a registered law name (decides whether θ is a state of the loop) or a bool.
     delay_agents: compute the delay margin only up to this many agents (0: never);
-    progress(d, ρ, seconds) is called after each of its eigenproblems."""
+    progress(d, ρ, seconds) is called after each of its eigenproblems, sweep(k, g, n) after
+    each eigenproblem of its frequency sweep (`delay_margin.crossing_delay`)."""
     hybrid = make_controller(law, sc).hybrid if isinstance(law, str) else bool(law)
     check_options(from_error, delay_agents)
     out = {"method": st.get("method")}
     if sc.graph.n <= delay_agents and st["stable"]:
-        out["delay_margin"] = delay_margin(sc, hybrid=hybrid, progress=progress)
+        out["delay_margin"] = delay_margin(sc, hybrid=hybrid, progress=progress, sweep=sweep)
     else:
         why = ("not computed: unstable without delay" if not st["stable"]
                else "not computed: --delay-agents 0" if delay_agents == 0

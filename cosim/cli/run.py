@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 
 from controller.errors import Se3SyncError
 
@@ -13,6 +14,7 @@ from ..registry import LAWS, PLANTS
 __all__ = ["register", "add_log_encoding", "EXIT_UNSTABLE"]
 
 EXIT_UNSTABLE = 3   # `check`: the sampled loop is unstable at the step checked
+SWEEP_EVERY = 2.0   # `check` on a terminal: seconds between lines of the delay margin's sweep
 PLOT_FORMATS = (".png", ".pdf", ".svg", ".eps", ".ps")
 
 
@@ -83,7 +85,8 @@ def register(sub) -> None:
                         "guesses the margin grows as N³; above 2000 augmented states ρ comes from "
                         "shift-invert searches near z = 1 and near the angle where the sweep saw "
                         "the root leave the unit circle (the report names the solver). On a "
-                        "terminal, each eigenproblem prints a progress line to stderr")
+                        "terminal, each eigenproblem prints a progress line to stderr, and the "
+                        "sweep prints one every 2 s")
     _add_set(p)
     p.set_defaults(func=_cmd_check)
 
@@ -174,13 +177,23 @@ def _cmd_check(args) -> int:
     out = {"scenario": sc.name, "design": design_summary(sc), "step": sc.step,
            "spectral_radius": st["spectral_radius"], "stable": st["stable"],
            "max_stable_step": st["max_stable_step"]}
-    progress = None
+    progress = sweep = None
     if sys.stderr.isatty():
         def progress(d, rho, seconds):
             print(f"se3sync check: delay margin: d = {d} steps, spectral radius {rho:.8f} "
                   f"({seconds:.1f} s)", file=sys.stderr, flush=True)
+
+        t0 = [time.perf_counter()] * 2          # start, last line
+
+        def sweep(k, g, n):
+            now = time.perf_counter()
+            if now - t0[1] >= SWEEP_EVERY:
+                t0[1] = now
+                stage = f"{g}/{n} grid points" if g < n else "grid done, narrowing the crossings"
+                print(f"se3sync check: delay margin: frequency sweep, {k} eigenproblems of T, "
+                      f"{stage} ({now - t0[0]:.0f} s)", file=sys.stderr, flush=True)
     out.update(check_extras(sc, st, args.controller, args.from_error, args.delay_agents,
-                            progress))
+                            progress, sweep))
     rc = 0 if st["stable"] else EXIT_UNSTABLE
     if args.json:
         print(json.dumps(out, indent=1))
