@@ -143,18 +143,15 @@ def main():
     ap.add_argument("--crossing", type=int, nargs="+", metavar="N",
                     help="only compare crossing_delay's eigenvalue routes on these agent counts")
     a = ap.parse_args()
-    if a.crossing:
-        for N in a.crossing:
-            if N < 2:
-                ap.error(f"--crossing: agent counts must be >= 2, got {N}")
-            print(crossing(N), flush=True)
-        return
-    if a.delay:
-        for N in a.delay:
-            if N < 2:
-                ap.error(f"--delay: agent counts must be >= 2, got {N}")
-            print(delay_search(N), flush=True)
-        return
+    for option, job in (("crossing", crossing), ("delay", delay_search)):
+        counts = getattr(a, option)
+        if counts:
+            bad = [N for N in counts if N < 2]
+            if bad:
+                ap.error(f"--{option}: agent counts must be >= 2, got {bad[0]}")
+            for N in counts:
+                print(job(N), flush=True)
+            return
     with tempfile.TemporaryDirectory() as tmp:
         for N in a.sizes:
             for kind in ("chain", "random"):
