@@ -222,10 +222,10 @@ def _probe(lo: int, hi: int, r_lo: float, r_hi: float, secant: bool) -> int:
 class LoopTransfer:
     """T(e^{jω}) = C (e^{jω}I − Φ₀)⁻¹ B, m × m, and the eigenvalues that `crossing_delay` needs.
 
-    Φ₀ is block-diagonal, one block per agent (its δ, ξ and the θ_k it owns): every coupling
-    between agents is delayed, so it sits in B C. T is therefore assembled from one small solve
-    per block, batched over blocks of equal shape, instead of one dense n × n solve (24 agents:
-    0.5 ms against 8 ms per frequency).
+    Φ₀ is block-diagonal, a block per agent (its δ, ξ and the θ_k it owns; finer where its
+    gains leave parts uncoupled): every coupling between agents is delayed, so it sits in B C.
+    T is therefore assembled from one small solve per block, batched over blocks of equal
+    shape, instead of one dense n × n solve (24 agents: 0.4 ms against 8 ms per frequency).
 
     The agents' graph is a tree, so it is bipartite. T(z) maps a slot (a delayed input of agent
     i) only to slots of i's neighbours, which lie on the other side; with Σ = ±1 by side,
