@@ -143,6 +143,12 @@ def test_secant_search_finds_the_bisection_margin(sets):
         (a["delay_margin_steps"], a["rho_at_margin"], a["rho_beyond"])
 
 
+def _dense_transfer(loop, w):
+    """T(e^{jω}) = C (e^{jω}I − Φ₀)⁻¹ B from one dense solve: the reference for `LoopTransfer`."""
+    P0, B, C = (x.toarray() for x in loop)
+    return C @ np.linalg.solve(np.exp(1j * w) * np.eye(P0.shape[0]) - P0, B)
+
+
 def test_crossing_delay_predicts_the_root_that_leaves_the_circle():
     """The frequency-domain guess against the exact eigenproblems: on hil_6uav, ⌊τ⌋ is the
     margin the search finds without it, and the loop with one step more has an eigenvalue
@@ -158,9 +164,7 @@ def test_crossing_delay_predicts_the_root_that_leaves_the_circle():
     out = lam[(np.abs(lam) > 1.0) & (np.abs(lam - 1.0) > 1e-6)]
     assert out.size and np.abs(np.abs(np.angle(out)) - w).min() < 0.02 * w, (w, out)
     # with d = τ the crossing root sits on the circle: T(e^{jω}) has μ with μ e^{−jωτ} ≈ 1
-    n = loop[0].shape[0]
-    T = loop[2].toarray() @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - loop[0].toarray(),
-                                            loop[1].toarray())
+    T = _dense_transfer(loop, w)
     mu = np.linalg.eigvals(T)
     assert np.abs(mu * np.exp(-1j * w * tau) - 1.0).min() < 1e-4
 
@@ -179,9 +183,7 @@ def test_counted_crossing_floors_to_the_margin(tmp_path):
     lin = Linearisation(sc, True, force_sparse=True)
     loop = delayed_parts(lin, sc.step)
     tau, w = dm.crossing_delay(*loop)
-    n = loop[0].shape[0]
-    T = loop[2].toarray() @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - loop[0].toarray(),
-                                            loop[1].toarray())
+    T = _dense_transfer(loop, w)
     assert np.abs(np.linalg.eigvals(T) * np.exp(-1j * w * tau) - 1.0).min() < 1e-4
     got = []
     out = delay_margin(sc, lin=lin, progress=lambda d, r, s: got.append(d))
@@ -216,12 +218,11 @@ def test_loop_transfer_per_block_equals_the_dense_solve_and_pairs_its_eigenvalue
 
     sc, lin, (P0, B, C) = _tree_loop(tmp_path, 8, 1)
     tf = dm.LoopTransfer(P0, B, C)
-    n, m = P0.shape[0], C.shape[0]
+    m = C.shape[0]
     S = np.where(tf.side == 0, 1.0, -1.0)
     assert 0 < (tf.side == 0).sum() < m
     for w in (0.003, 0.03, 0.5, 3.0):
-        ref = C.toarray() @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - P0.toarray(),
-                                            B.toarray())
+        ref = _dense_transfer((P0, B, C), w)
         T = tf.matrix(w)
         assert np.abs(T - ref).max() < 1e-12 * np.abs(ref).max()
         assert np.abs(S[:, None] * T * S[None, :] + T).max() == 0.0
@@ -261,10 +262,8 @@ def test_loop_transfer_where_an_agents_block_splits():
     assert (B.data == 0).any()
     tf = dm.LoopTransfer(P0, B, C)
     assert tf.side is not None
-    n = P0.shape[0]
     for w in (0.01, 0.5):
-        ref = C.toarray() @ np.linalg.solve(np.exp(1j * w) * np.eye(n) - P0.toarray(),
-                                            B.toarray())
+        ref = _dense_transfer((P0, B, C), w)
         assert np.abs(tf.matrix(w) - ref).max() < 1e-12 * np.abs(ref).max()
     a, b = delay_margin(sc, lin=lin), delay_margin(sc, lin=lin, guess=False)
     assert a["delay_margin_steps"] == b["delay_margin_steps"] >= 1
