@@ -4,13 +4,15 @@
 `install` (called by the command line) makes both signals note themselves and raise
 KeyboardInterrupt, as Ctrl-C does by default. The master loop swaps in `note_only` while it runs,
 so that a signal stops it between two blocks instead of in the middle of an FMU call; a second
-signal there raises at once. A signal that arrives while Python runs inside a ctypes callback
-(where KeyboardInterrupt is printed and swallowed) is still noted, and the master stops as soon as
-it starts: nothing is lost silently.
+signal there raises at once. A signal that arrives while Python runs inside a callback from C
+(a ctypes callback, or llvmlite's as numba writes its cache) raises a KeyboardInterrupt that
+Python can only swallow; `install`'s unraisable hook keeps it from printing a traceback, the
+signal is still noted, and the master stops as soon as it starts: nothing is lost silently.
 """
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 
 __all__ = ["install", "uninstall", "note", "requested", "pending", "received", "exit_status", "reset",
@@ -53,6 +55,18 @@ def _raise(signum, frame):
     raise KeyboardInterrupt
 
 
+def _unraisable(hook):
+    """sys.unraisablehook that drops the KeyboardInterrupt `_raise` raised inside a callback
+    from C (numba writing its cache through llvmlite, a ctypes callback): Python can only print
+    it there, with a traceback, and the signal is already noted, so the command stops as soon
+    as it is back in Python. Every other exception goes to ``hook``."""
+    def unraisable(info):
+        if issubclass(info.exc_type, KeyboardInterrupt) and _received:
+            return
+        hook(info)
+    return unraisable
+
+
 def install() -> dict:
     """SIGINT and SIGTERM: note, then raise KeyboardInterrupt (main thread only). Returns the
     previous handlers for `uninstall`."""
@@ -61,13 +75,18 @@ def install() -> dict:
         reset()
         for s in (signal.SIGINT, signal.SIGTERM):
             old[s] = signal.signal(s, _raise)
+        old["unraisablehook"] = sys.unraisablehook
+        sys.unraisablehook = _unraisable(sys.unraisablehook)
         _installed[:] = [True]
     return old
 
 
 def uninstall(old: dict) -> None:
     for s, h in old.items():
-        signal.signal(s, h)
+        if s == "unraisablehook":
+            sys.unraisablehook = h
+        else:
+            signal.signal(s, h)
     _installed.clear()
 
 
