@@ -14,6 +14,11 @@ three steps, and the dense run's time is given as a ratio to the new one (same p
 the wall time of each search and their ratio; the margins must be equal and the radii
 equal to 1e-9 (above 2000 states the two use different eigensolvers).
 
+--shift-invert N …: one shift-invert search of the delayed loop (`_radius_near`, near e^{jω} with
+ω = 0.03 rad/step, where these trees' roots cross, at d = 20) with `_shift_inverse`'s LU of the
+(12N + M)-square M(σ) against an LU of the whole augmented A − σI (the code before it): times,
+their ratio and the two radii.
+
 --crossing N …: `crossing_delay` on a seeded N-agent random tree with T's eigenvalues in ±μ
 pairs (ν = μ² of T₁₂T₂₁, half the size) against those of T itself (``paired=False``), and one
 T(e^{jω}) assembled per agent block (`LoopTransfer.matrix`) against a dense n × n solve: times,
@@ -102,6 +107,41 @@ def delay_search(N):
             f"{'same' if same else 'DIFFERENT'} margin, radii within {dr:.1e}")
 
 
+def shift_invert(N):
+    import numpy as np
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    from cosim.analysis import delay_margin as dm
+    from cosim.analysis.stability_cases import tree_scenario_text
+    from cosim.analysis.stability_sparse import Linearisation
+    from cosim.scenario import parse_scenario
+
+    sc = parse_scenario(tree_scenario_text(N, "random", 0), "tree", "tree.toml")
+    loop = dm.delayed_parts(Linearisation(sc, True, force_sparse=True), sc.step)
+    d, w, k = 20, 0.03, dm.ARPACK_K
+    sigma = complex(np.exp(1j * w))
+
+    def whole():            # the LU of the whole augmented matrix, as before _shift_inverse
+        A = dm.augmented(*loop, d)
+        lu = sla.splu((A - sigma * sp.identity(A.shape[0], format="csc")).tocsc().astype(complex))
+        op = sla.LinearOperator(A.shape, matvec=lambda x: lu.solve(np.asarray(x, dtype=complex)),
+                                dtype=complex)
+        theta = sla.eigs(op, k=k, which="LM", tol=1e-12, ncv=4 * k, maxiter=20000,
+                         return_eigenvectors=False)
+        lam = sigma + 1.0 / theta
+        return float(np.abs(lam[np.abs(lam - 1.0) > 1e-8]).max())
+
+    out = {}
+    for name, f in (("small", lambda: dm._radius_near(loop, w, d)), ("whole", whole)):
+        t0 = time.perf_counter()
+        out[name] = (f(), time.perf_counter() - t0)
+    (rs, ts), (rw, tw) = out["small"], out["whole"]
+    return (f"shift-invert N = {N} ({loop[0].shape[0] + d * loop[2].shape[0]} states at d = {d}): "
+            f"LU of M(sigma) {ts:.2f} s, LU of A - sigma I {tw:.2f} s, ratio {ts / tw:.2f}; "
+            f"radii {rs:.10f} and {rw:.10f}")
+
+
 def crossing(N):
     import numpy as np
 
@@ -142,13 +182,17 @@ def main():
                     help="only compare the delay-margin searches on these agent counts")
     ap.add_argument("--crossing", type=int, nargs="+", metavar="N",
                     help="only compare crossing_delay's eigenvalue routes on these agent counts")
+    ap.add_argument("--shift-invert", type=int, nargs="+", metavar="N", dest="shift_invert",
+                    help="only compare the two LUs of a shift-invert search on these agent counts")
     a = ap.parse_args()
-    for option, job in (("crossing", crossing), ("delay", delay_search)):
+    for option, job in (("crossing", crossing), ("delay", delay_search),
+                        ("shift_invert", shift_invert)):
         counts = getattr(a, option)
         if counts:
             bad = [N for N in counts if N < 2]
             if bad:
-                ap.error(f"--{option}: agent counts must be >= 2, got {bad[0]}")
+                ap.error(f"--{option.replace('_', '-')}: agent counts must be >= 2, "
+                         f"got {bad[0]}")
             for N in counts:
                 print(job(N), flush=True)
             return

@@ -300,10 +300,31 @@ def test_two_shift_invert_searches_give_lapacks_radius():
     loop = delayed_parts(lin, sc.step)
     tau, w = dm.crossing_delay(*loop)
     for d, which in ((1, 0), (10, 0), (25, 1)):
-        A = augmented(*loop, d)
-        near = (dm._radius_near(A, 0.0, d), dm._radius_near(A, w, d))
+        near = (dm._radius_near(loop, 0.0, d), dm._radius_near(loop, w, d))
         exact = dm.delay_radius(lin, sc.step, d, loop)
         assert abs(near[which] - exact) < 1e-10 and near[1 - which] < exact - 1e-5, (d, near)
+
+
+@pytest.mark.parametrize("d", [0, 1, 7])
+def test_shift_inverse_from_the_small_lu_inverts_the_augmented_loop(d):
+    """`_shift_inverse` (one LU of Φ₀ − σI + σ^{−d}BC, the delay line solved by recursion) is
+    (A − σI)⁻¹ for the augmented A: applied to (A − σI)z it gives z back, for σ on the unit
+    circle and just off it, and (A − σI) applied to its output gives y back."""
+    from cosim.analysis import delay_margin as dm
+
+    sc = load_scenario(HIL)
+    loop = delayed_parts(Linearisation(sc, True, force_sparse=True), sc.step)
+    A = augmented(*loop, d)
+    m = A.shape[0]
+    rng = np.random.default_rng(d)
+    for sigma in (np.exp(0.03j), 1.0 + 1e-3, 0.7 - 0.2j):
+        op = dm._shift_inverse(*loop, d, complex(sigma))
+        assert op.shape == (m, m)
+        z = rng.standard_normal(m) + 1j * rng.standard_normal(m)
+        y = A @ z - sigma * z
+        assert np.abs(op.matvec(y) - z).max() < 1e-8 * np.abs(z).max()
+        x = op.matvec(z)
+        assert np.abs(A @ x - sigma * x - z).max() < 1e-8 * np.abs(z).max()
 
 
 def test_shift_invert_at_the_crossing_finds_the_root_largest_modulus_misses(tmp_path,

@@ -166,7 +166,8 @@ def delay_radius(lin: Linearisation, h: float, d: int, loop=None, near: float | 
         D -= Q @ (Q.T @ D)
         return float(np.abs(interruptible(np.linalg.eigvals, D)).max())
     if near is not None:
-        return max(_radius_near(A, 0.0, d), _radius_near(A, near, d))
+        loop = (Phi0, B, C)
+        return max(_radius_near(loop, 0.0, d), _radius_near(loop, near, d))
 
     def mv(x):
         x = np.asarray(x).ravel()
@@ -183,18 +184,49 @@ def delay_radius(lin: Linearisation, h: float, d: int, loop=None, near: float | 
     return float(np.abs(lam).max())
 
 
-def _radius_near(A, w: float, d: int, k: int = ARPACK_K) -> float:
-    """Largest modulus among the k eigenvalues of A nearest σ (ARPACK on the shift-inverted
-    (A − σI)⁻¹, one sparse LU), the rigid motion's eigenvalues 1 left out: σ = e^{jω} for
-    ω > 0; for ω = 0, σ = 1 + 1e-3, since A − I is singular (the rigid motion), and k + 6.
-    Shift-invert converges fastest on the eigenvalues nearest σ, which is where a root that
-    leaves the unit circle at angle ω sits while d is near the margin."""
-    m = A.shape[0]
+def _shift_inverse(Phi0, B, C, d: int, sigma: complex):
+    """(A − σI)⁻¹ for the augmented A of `augmented`, as a LinearOperator, from one sparse LU of
+    the n × n matrix M(σ) = Φ₀ − σI + σ^{−d} B C instead of the (n + d·m)-square A − σI.
+
+    Why: the shift registers only pass w along, so with r_1 = y_1/σ, r_k = (r_{k−1} + y_k)/σ,
+    (A − σI) z = y gives w_k = σ^{−k} C s − r_k, and the first block row leaves
+    M(σ) s = y_0 + B r_d. The LU is d + 1 times smaller, and so is its fill (1000-agent tree,
+    d = 20: 13,000 states instead of 153,000)."""
+    n, m = Phi0.shape[0], C.shape[0]
+    if d == 0:
+        M = (Phi0 + B @ C).tocsc() - sigma * sp.identity(n, format="csc")
+    else:
+        M = Phi0.tocsc() - sigma * sp.identity(n, format="csc") + sigma ** (-d) * (B @ C).tocsc()
+    lu = sla.splu(M.astype(complex).tocsc())
+    powers = sigma ** -np.arange(1, d + 1)
+
+    def solve(y):
+        y = np.asarray(y, dtype=complex).ravel()
+        if d == 0:
+            return lu.solve(y)
+        Y = y[n:].reshape(d, m)
+        R = np.empty_like(Y)
+        r = np.zeros(m, dtype=complex)
+        for k in range(d):
+            r = (r + Y[k]) / sigma
+            R[k] = r
+        s = lu.solve(y[:n] + B @ r)
+        W = np.outer(powers, C @ s) - R
+        return np.concatenate([s, W.ravel()])
+
+    return sla.LinearOperator((n + d * m, n + d * m), matvec=solve, dtype=complex)
+
+
+def _radius_near(loop, w: float, d: int, k: int = ARPACK_K) -> float:
+    """Largest modulus among the k eigenvalues of the augmented loop nearest σ (ARPACK on the
+    shift-inverted (A − σI)⁻¹, `_shift_inverse`), the rigid motion's eigenvalues 1 left out:
+    σ = e^{jω} for ω > 0; for ω = 0, σ = 1 + 1e-3, since A − I is singular (the rigid motion),
+    and k + 6. Shift-invert converges fastest on the eigenvalues nearest σ, which is where a
+    root that leaves the unit circle at angle ω sits while d is near the margin."""
     sigma = complex(np.exp(1j * w)) if w > 0 else 1.0 + 1e-3
     k = k if w > 0 else k + 6
-    lu = sla.splu((A - sigma * sp.identity(m, format="csc")).tocsc().astype(complex))
-    op = sla.LinearOperator((m, m), matvec=lambda x: lu.solve(np.asarray(x, dtype=complex)),
-                            dtype=complex)
+    op = _shift_inverse(*loop, d, sigma)
+    m = op.shape[0]
     try:
         theta = sla.eigs(op, k=min(k, m - 2), which="LM", tol=1e-12, ncv=min(4 * k, m - 1),
                          maxiter=20000, return_eigenvectors=False)
