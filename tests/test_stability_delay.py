@@ -353,6 +353,28 @@ def test_shift_invert_at_the_crossing_finds_the_root_largest_modulus_misses(tmp_
     assert abs(dm.delay_radius(lin, sc.step, d, loop, near=w) - exact) < 1e-10
 
 
+def test_margin_declines_above_the_sweeps_size_without_an_eigenproblem(monkeypatch):
+    """Above `CROSSING_MAX` delayed inputs the guided search declines at once (no eigenproblem,
+    the count named), rather than fall back on the largest-modulus search; the reference search
+    without a guess still runs."""
+    from cosim.analysis import delay_margin as dm
+
+    sc = load_scenario(HIL)
+    lin = Linearisation(sc, True, force_sparse=True)
+    m = delayed_parts(lin, sc.step)[2].shape[0]
+    monkeypatch.setattr(dm, "CROSSING_MAX", m - 1)
+    seen = []
+    out = dm.delay_margin(sc, lin=lin, progress=lambda d, r, s: seen.append(d))
+    assert out["delay_margin_steps"] is None and seen == []
+    assert out["delay_method"].startswith(f"not computed: {m} delayed inputs, more than the {m - 1}")
+    assert dm.crossing_delay(*delayed_parts(lin, sc.step)) is None
+    monkeypatch.setattr(dm, "CROSSING_MAX", m)
+    assert dm.crossing_delay(*delayed_parts(lin, sc.step)) is not None
+    monkeypatch.setattr(dm, "CROSSING_MAX", m - 1)
+    ref = dm.delay_margin(sc, lin=lin, guess=False, d_cap=4)
+    assert ref["delay_margin_steps"] is None and ref["rho_at_margin"] < 1.0
+
+
 def test_delay_method_names_each_solver_when_they_differ(monkeypatch):
     """With DENSE_MAX between the augmented sizes at the margin (24) and one step past it,
     the search gives the same margin and radii, and `delay_method` names both solvers."""

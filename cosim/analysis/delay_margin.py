@@ -45,6 +45,12 @@ from .stability_sparse import Linearisation
 # ARPACK up to 2.5 min (100 agents, 16,000 states).
 DENSE_MAX = 2000
 ARPACK_K = 12
+# `crossing_delay` takes every eigenvalue of T₁₂T₂₁ (m/2 square) at several hundred frequencies:
+# 350-square took 0.13 s each (100 agents, 81 s in all), 750-square 0.8 s, so m = 1500 (about 214
+# agents on a tree) costs about 8 minutes. Above it `delay_margin` declines rather than search without the crossing
+# angle: ARPACK's largest-modulus search then decides, and it can call an unstable delay stable
+# (a 220-agent tree ran past 5 minutes on 2 cores with it).
+CROSSING_MAX = 1500
 
 __all__ = ["delayed_loop", "delayed_parts", "augmented", "delay_radius", "delay_margin",
            "crossing_delay", "LoopTransfer", "steps_of_delay"]
@@ -364,7 +370,7 @@ def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = 12, paired: bool
     grid points done (the bisections follow the grid).
     Returns (τ, ω) of the crossing with the smallest τ = (arg μ mod 2π)/ω, in steps and
     rad/step; None if no eigenvalue reaches |μ| = 1 on 1e-3 ≤ ω ≤ π, or if the loop is too
-    large for dense eigenvalues (m > 1500).
+    large for dense eigenvalues (m > `CROSSING_MAX`).
 
     Only a guess: a crossing and its return between two grid points cancel in the count, so
     `delay_margin` verifies ⌊τ⌋ and ⌊τ⌋ + 1 with the exact eigenproblems and searches on from
@@ -375,7 +381,7 @@ def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = 12, paired: bool
     matching put the crossing a step past the margin on a 6-agent tree (34.04 for 33; counted:
     33.82) and missed the one that sets it on a 24-agent tree (23.48 for 22; counted: 22.70)."""
     m = C.shape[0]
-    if m > 1500:
+    if m > CROSSING_MAX:
         return None
     tf = LoopTransfer(Phi0, B, C)
     if not paired:
@@ -448,7 +454,8 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
 
     Returns {"delay_margin_steps", "delay_margin_s", "rho_at_margin", "rho_beyond",
     "delay_method"}; steps = −1 when the loop is unstable even without delay, and None when
-    every d ≤ d_cap is stable."""
+    every d ≤ d_cap is stable, or (with ``guess``) when the loop has more than `CROSSING_MAX`
+    delayed inputs."""
     h = float(scenario.step if h is None else h)
     if scenario.graph.M == 0:
         return {"delay_margin_steps": None, "delay_margin_s": None, "rho_at_margin": None,
@@ -466,6 +473,13 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
         return rho[d]
 
     n = (loop[0].shape[0], loop[2].shape[0])
+    if guess and n[1] > CROSSING_MAX:
+        return {"delay_margin_steps": None, "delay_margin_s": None, "rho_at_margin": None,
+                "rho_beyond": None,
+                "delay_method": f"not computed: {n[1]} delayed inputs, more than the "
+                                f"{CROSSING_MAX} the frequency sweep takes (its eigenproblems "
+                                f"grow as the cube); without its crossing angle the radius "
+                                f"search can miss roots outside the circle"}
     near = None                     # the crossing angle, once `crossing_delay` has one
     if r(0) >= 1.0:
         return {"delay_margin_steps": -1, "delay_margin_s": None, "rho_at_margin": None,
