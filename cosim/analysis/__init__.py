@@ -5,8 +5,8 @@
 # degree and its neighbours' delayed ones by the adjacency, and D and Adj do not commute), so
 # its augmented state has 12N + M + d(6N + M) entries. On 2 cores, with the search started from
 # `crossing_delay`'s guess and the radii above 2000 states from two shift-invert searches,
-# `check` takes 3 s on hil_6uav, 1.7–3.7 s on random trees of 12–24 agents, 4.2 s at 32, 12 s at
-# 50 and 81 s at 100 agents (the guess's dense eigenproblems of T, (3N)³ each, dominate there).
+# `check` takes 2.6 s on hil_6uav, 1.5–3.5 s on random trees of 12–32 agents, 6.9 s at 50, 11 s
+# at 64 and 32 s at 100 agents (the guess's dense eigenproblems of T, (3N)³ each, dominate there).
 # Kept here, not in `stability_report`, so that the command line can show it without importing
 # scipy.
-DELAY_MAX_AGENTS = 32
+DELAY_MAX_AGENTS = 50

@@ -80,8 +80,8 @@ def register(sub) -> None:
     p.add_argument("--delay-agents", type=int, metavar="N", dest="delay_agents",
                    default=DELAY_MAX_AGENTS,
                    help="compute the delay margin only for graphs of at most N agents (default "
-                        f"{DELAY_MAX_AGENTS}; 0 never). On 2 cores about 3 s at 6 to 24 agents, "
-                        "4 s at 32, 12 s at 50 and 80 s at 100 agents: the frequency sweep that "
+                        f"{DELAY_MAX_AGENTS}; 0 never). On 2 cores about 3 s at 6 to 32 agents, "
+                        "7 s at 50, 11 s at 64 and 32 s at 100 agents: the frequency sweep that "
                         "guesses the margin grows as N³; above 2000 augmented states ρ comes from "
                         "shift-invert searches near z = 1 and near the angle where the sweep saw "
                         "the root leave the unit circle (the report names the solver). Not "
