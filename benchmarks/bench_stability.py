@@ -107,18 +107,25 @@ def delay_search(N):
             f"{'same' if same else 'DIFFERENT'} margin, radii within {dr:.1e}")
 
 
-def shift_invert(N):
-    import numpy as np
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as sla
-
+def _tree_loop(N):
+    """(Φ₀, B, C) of the delayed loop of the seeded N-agent random tree (seed 0)."""
     from cosim.analysis import delay_margin as dm
     from cosim.analysis.stability_cases import tree_scenario_text
     from cosim.analysis.stability_sparse import Linearisation
     from cosim.scenario import parse_scenario
 
     sc = parse_scenario(tree_scenario_text(N, "random", 0), "tree", "tree.toml")
-    loop = dm.delayed_parts(Linearisation(sc, True, force_sparse=True), sc.step)
+    return dm.delayed_parts(Linearisation(sc, True, force_sparse=True), sc.step)
+
+
+def shift_invert(N):
+    import numpy as np
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    from cosim.analysis import delay_margin as dm
+
+    loop = _tree_loop(N)
     d, w, k = 20, 0.03, dm.ARPACK_K
     sigma = complex(np.exp(1j * w))
 
@@ -146,12 +153,8 @@ def crossing(N):
     import numpy as np
 
     from cosim.analysis import delay_margin as dm
-    from cosim.analysis.stability_cases import tree_scenario_text
-    from cosim.analysis.stability_sparse import Linearisation
-    from cosim.scenario import parse_scenario
 
-    sc = parse_scenario(tree_scenario_text(N, "random", 0), "tree", "tree.toml")
-    loop = dm.delayed_parts(Linearisation(sc, True, force_sparse=True), sc.step)
+    loop = _tree_loop(N)
     out = {}
     for paired in (True, False):
         t0 = time.perf_counter()
