@@ -45,9 +45,9 @@ from .stability_sparse import Linearisation
 # ARPACK up to 2.5 min (100 agents, 16,000 states).
 DENSE_MAX = 2000
 ARPACK_K = 12
-# `crossing_delay` takes every eigenvalue of T₁₂T₂₁ (m/2 square) at several hundred frequencies:
-# 350-square took 0.13 s each (100 agents, 81 s in all), 750-square 0.8 s, so m = 1500 (about 214
-# agents on a tree) costs about 8 minutes. Above it `delay_margin` declines rather than search without the crossing
+# `crossing_delay` takes every eigenvalue of T₁₂T₂₁ (m/2 square) at several hundred frequencies,
+# O(m³) each: `check` took 32 s at 100 agents and 4 minutes at 210 (m = 1469). Above 1500
+# (about 214 agents on a tree) `delay_margin` declines rather than search without the crossing
 # angle: ARPACK's largest-modulus search then decides, and it can call an unstable delay stable
 # (a 220-agent tree ran past 5 minutes on 2 cores with it).
 CROSSING_MAX = 1500

@@ -86,7 +86,7 @@ def register(sub) -> None:
                         "shift-invert searches near z = 1 and near the angle where the sweep saw "
                         "the root leave the unit circle (the report names the solver). Not "
                         "above about 214 agents on a tree (1500 delayed inputs: the sweep would "
-                        "take over 10 minutes, and without it the search can miss roots). On a "
+                        "take over 4 minutes, and without it the search can miss roots). On a "
                         "terminal, each eigenproblem prints a progress line to stderr, and the "
                         "sweep prints one every 2 s")
     _add_set(p)
