@@ -373,9 +373,10 @@ def test_shift_invert_at_the_crossing_finds_the_root_largest_modulus_misses(tmp_
 
 
 def test_margin_declines_above_the_sweeps_size_without_an_eigenproblem(monkeypatch):
-    """Above `CROSSING_MAX` delayed inputs the guided search declines at once (no eigenproblem,
-    the count named), rather than fall back on the largest-modulus search; the reference search
-    without a guess still runs."""
+    """Above `CROSSING_MAX` delayed inputs the guided search without counting (``count=False``;
+    by default a tree's roots are counted instead, `test_delay_count`) declines at once (no
+    eigenproblem, the count named), rather than fall back on the largest-modulus search; the
+    reference search without a guess still runs."""
     from cosim.analysis import delay_margin as dm
 
     sc = load_scenario(HIL)
@@ -383,14 +384,14 @@ def test_margin_declines_above_the_sweeps_size_without_an_eigenproblem(monkeypat
     m = delayed_parts(lin, sc.step)[2].shape[0]
     monkeypatch.setattr(dm, "CROSSING_MAX", m - 1)
     seen = []
-    out = dm.delay_margin(sc, lin=lin, progress=lambda d, r, s: seen.append(d))
+    out = dm.delay_margin(sc, lin=lin, progress=lambda d, r, s: seen.append(d), count=False)
     assert out["delay_margin_steps"] is None and seen == []
     assert out["delay_method"].startswith(f"not computed: {m} delayed inputs, more than the {m - 1}")
     assert dm.crossing_delay(*delayed_parts(lin, sc.step)) is None
     monkeypatch.setattr(dm, "CROSSING_MAX", m)
     assert dm.crossing_delay(*delayed_parts(lin, sc.step)) is not None
     monkeypatch.setattr(dm, "CROSSING_MAX", m - 1)
-    ref = dm.delay_margin(sc, lin=lin, guess=False, d_cap=4)
+    ref = dm.delay_margin(sc, lin=lin, guess=False, d_cap=4, count=False)
     assert ref["delay_margin_steps"] is None and ref["rho_at_margin"] < 1.0
 
 

@@ -50,8 +50,13 @@ def check_lines(out: dict) -> list:
         lines.append(f"delay_margin    {dm['delay_method']}")
     else:
         d = dm["delay_margin_steps"]
-        lines.append(f"delay_margin    {d} steps = {d * h:.4g} s (spectral radius "
-                     f"{dm['rho_at_margin']:.8f} at {d}, {dm['rho_beyond']:.8f} at {d + 1})")
+        if dm.get("rho_at_margin") is None:         # counted, not radii
+            at = (f"roots outside the unit circle: {dm['outside_at_margin']} at {d}, "
+                  f"{dm['outside_beyond']} at {d + 1}")
+        else:
+            at = (f"spectral radius {dm['rho_at_margin']:.8f} at {d}, "
+                  f"{dm['rho_beyond']:.8f} at {d + 1}")
+        lines.append(f"delay_margin    {d} steps = {d * h:.4g} s ({at})")
         lines.append(f"                {dm['delay_method']}")
     fr = c["slowest_mode"]
     lines.append(f"slowest_rate    {c['rate']:.6g} /s (time constant {c['time_constant']:.4g} s; "
