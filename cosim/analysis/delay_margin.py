@@ -455,7 +455,9 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
     ⌊τ⌋ and ⌊τ⌋ + 1 first, then on from the bracket they leave. This assumes that ρ(d) crosses
     1 once, which is what we observed: ρ(d) increases with d on every case we scanned d by d.
     ``progress(d, ρ, seconds)``, if given, is called after each eigenproblem, and ``sweep``
-    is handed to `crossing_delay`.
+    is handed to `crossing_delay`. ``count`` (default: trees of `COUNT_FROM_AGENTS` agents or
+    more, or above `CROSSING_MAX` delayed inputs) searches on exact counts of the roots outside
+    the unit circle instead (`_margin_by_count`; ``progress(d, None, seconds, outside=k)``).
 
     Returns {"delay_margin_steps", "delay_margin_s", "rho_at_margin", "rho_beyond",
     "delay_method"}; steps = −1 when the loop is unstable even without delay, and None when
@@ -535,14 +537,17 @@ def _margin_by_count(lin, loop, h, d_cap, progress):
     def k(d):
         if d not in found:
             t0 = time.perf_counter()
-            found[d], f = roots_outside(tdet, n, d)
+            try:
+                found[d], f = roots_outside(tdet, n, d)
+            except ValueError as exc:           # a count that is not a whole number
+                raise Se3SyncError(f"delay margin: {exc}") from None
             freqs[0] += f
             if progress is not None:
                 progress(d, None, time.perf_counter() - t0, outside=found[d])
         return found[d]
 
-    how = (f"roots outside the unit circle counted by the argument principle, the determinant "
-           f"factored along the tree ({{}} delays, {{}} frequencies)")
+    how = ("roots outside the unit circle counted by the argument principle, the determinant "
+           "factored along the tree ({} delays, {} frequencies)")
     none = {"delay_margin_steps": None, "delay_margin_s": None, "rho_at_margin": None,
             "rho_beyond": None}
     if k(0) > 0:
