@@ -95,7 +95,8 @@ def delay_search(N):
     for guess in (True, False):
         tried = []
         t0 = time.perf_counter()
-        out = delay_margin(sc, lin=lin, guess=guess, progress=lambda d, r, s: tried.append(d))
+        out = delay_margin(sc, lin=lin, guess=guess, count=False,
+                           progress=lambda d, r, s: tried.append(d))
         res[guess] = (time.perf_counter() - t0, tried, out)
     (tg, dg, og), (td, dd, od) = res[True], res[False]
     # above DENSE_MAX the two searches use different solvers (shift-invert at the guess's
@@ -105,6 +106,39 @@ def delay_search(N):
     return (f"delay N = {N}: margin {og['delay_margin_steps']} steps; guess {tg:.1f} s (tried "
             f"{dg}), doubling {td:.1f} s (tried {dd}); ratio {tg / td:.2f}; "
             f"{'same' if same else 'DIFFERENT'} margin, radii within {dr:.1e}")
+
+
+def count_search(N):
+    """The margin from counts of the roots outside the circle against the sweep and the radii
+    (the sweep only up to 100 agents: it grows as N³), on the seeded random tree."""
+    import resource
+
+    from cosim.analysis.delay_margin import delay_margin
+    from cosim.analysis.stability_cases import tree_scenario_text
+    from cosim.analysis.stability_sparse import Linearisation
+    from cosim.scenario import load_scenario, parse_scenario
+
+    sc = (load_scenario(os.path.join(ROOT, "scenarios", "hil_6uav.toml")) if N == 6 else
+          parse_scenario(tree_scenario_text(N, "random", 0), "tree", "tree.toml"))
+    t0 = time.perf_counter()
+    lin = Linearisation(sc, True, force_sparse=True)
+    tl = time.perf_counter() - t0
+    tried = []
+    t0 = time.perf_counter()
+    out = delay_margin(sc, lin=lin, count=True,
+                       progress=lambda d, r, s, outside=None: tried.append(f"{d}:{outside}"))
+    tc = time.perf_counter() - t0
+    line = (f"count N = {N}: margin {out['delay_margin_steps']} steps in {tc:.2f} s (+{tl:.2f} s "
+            f"linearising; counts d:outside {' '.join(tried)}); peak RSS "
+            f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MiB")
+    if N <= 100:
+        t0 = time.perf_counter()
+        ref = delay_margin(sc, lin=lin, count=False)
+        ts = time.perf_counter() - t0
+        same = ref["delay_margin_steps"] == out["delay_margin_steps"]
+        line += (f"; sweep and radii {ts:.2f} s, ratio {tc / ts:.2f}, "
+                 f"{'same' if same else 'DIFFERENT'} margin")
+    return line
 
 
 def _tree_loop(N):
@@ -187,9 +221,13 @@ def main():
                     help="only compare crossing_delay's eigenvalue routes on these agent counts")
     ap.add_argument("--shift-invert", type=int, nargs="+", metavar="N", dest="shift_invert",
                     help="only compare the two LUs of a shift-invert search on these agent counts")
+    ap.add_argument("--count", type=int, nargs="+", metavar="N",
+                    help="only time the delay margin from counts of the roots outside the unit "
+                         "circle on these agent counts (6: hil_6uav), against the sweep and the "
+                         "radii up to 100 agents")
     a = ap.parse_args()
     for option, job in (("crossing", crossing), ("delay", delay_search),
-                        ("shift_invert", shift_invert)):
+                        ("shift_invert", shift_invert), ("count", count_search)):
         counts = getattr(a, option)
         if counts:
             bad = [N for N in counts if N < 2]

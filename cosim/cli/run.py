@@ -80,14 +80,14 @@ def register(sub) -> None:
     p.add_argument("--delay-agents", type=int, metavar="N", dest="delay_agents",
                    default=DELAY_MAX_AGENTS,
                    help="compute the delay margin only for graphs of at most N agents (default "
-                        f"{DELAY_MAX_AGENTS}; 0 never). On 2 cores about 3 s at 6 to 32 agents "
-                        "and 7 s at 50: a frequency sweep guesses the margin (it grows as N³), "
-                        "spectral radii decide. On a tree of 64 agents or more the roots outside "
-                        "the unit circle are counted exactly instead (argument principle, O(N) "
-                        "per frequency): 10 s at 64, 20 s at 100 and about 6 minutes at 1000 "
-                        "agents. Other graphs above about 214 agents: not computed. On a "
-                        "terminal, each delay tried prints a progress line to stderr, and the "
-                        "sweep prints one every 2 s")
+                        f"{DELAY_MAX_AGENTS}; 0 never). On a tree of 16 agents or more the roots "
+                        "outside the unit circle are counted exactly (argument principle, O(N) "
+                        "per frequency): on 2 cores under 1 s to 100 agents, 6-10 s at 1000 and "
+                        "about 80 s at 10,000. Below 16 agents a frequency sweep guesses the "
+                        "margin and spectral radii decide (about 2 s). Graphs that are not "
+                        "trees above about 214 agents: not computed. On a terminal, each delay "
+                        "tried prints a progress line to stderr, and the sweep prints one every "
+                        "2 s")
     _add_set(p)
     p.set_defaults(func=_cmd_check)
 
