@@ -135,3 +135,20 @@ def test_margin_by_count_from_below_and_from_above(monkeypatch, start):
     capped = dm.delay_margin(sc, lin=lin, count=True, d_cap=10)
     assert capped["delay_margin_steps"] is None
     assert capped["delay_method"].startswith("stable for every delay up to 10 steps")
+
+
+@pytest.mark.parametrize("hybrid,masses", [(False, False), (True, True)])
+def test_count_equals_the_sweep_without_theta_and_with_unequal_vehicles(hybrid, masses):
+    """Without θ (every agent's inputs are its wrench alone) and with a different mass on every
+    vehicle (every agent its own kind, no T shared): the counted margin equals the sweep's and
+    radii's on a 20-agent tree."""
+    m = np.random.default_rng(5).uniform(1.5, 4.0, 20) if masses else None
+    sc = parse_scenario(tree_scenario_text(20, "random", 2, m), "t", "t.toml")
+    lin = Linearisation(sc, hybrid, force_sparse=True)
+    a = dm.delay_margin(sc, hybrid=hybrid, lin=lin, count=True)
+    b = dm.delay_margin(sc, hybrid=hybrid, lin=lin, count=False)
+    assert a["delay_margin_steps"] == b["delay_margin_steps"] > 0
+    assert b["rho_at_margin"] < 1.0 <= b["rho_beyond"] and a["outside_beyond"] > 0
+    if masses:
+        P, B, C = dm.delayed_parts(lin, sc.step)
+        assert len(InputDeterminant(lin, P, B, C).tb) == 20
