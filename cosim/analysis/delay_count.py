@@ -123,17 +123,18 @@ class TreeDeterminant:
 
 # ---- the input-space elimination, compiled ------------------------------------------------
 #
-# Why numba and hand-written LU: the pivot blocks are 6–16 square, where LAPACK's per-call
-# overhead and numpy's batching (padding every block to the largest, np.add.at for the parents)
-# cost more than the arithmetic; scalar loops over the exact sizes did one elimination at 1000
-# agents in about a twentieth of the batched numpy's time.
+# Why numba and a hand-written LU: the pivot blocks are 6–16 square, where LAPACK's per-call
+# overhead and numpy's batching (every block padded to the largest, np.add.at for the parents)
+# cost more than the arithmetic. At 1000 agents one frequency takes 1.9 ms on one core here,
+# against 40 ms for `TreeDeterminant`'s batched numpy on the whole state.
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy",
             fastmath={"reassoc", "contract", "arcp", "nsz"})
 def _lu(A, n, piv):
     """In-place LU with partial pivoting of A[:n, :n]; log det A (complex, phase mod 2π)."""
-    det = 1.0 + 0.0j                        # one log per block: a complex log costs ~25 flops
+    det = 1.0 + 0.0j                        # logs only when needed: a complex log costs ~25 flops
+    ld = 0.0 + 0.0j
     flips = 0
     for k in range(n):
         p, big = k, abs(A[k, k])
@@ -148,13 +149,16 @@ def _lu(A, n, piv):
                 A[k, j], A[p, j] = A[p, j], A[k, j]
         akk = A[k, k]
         det *= akk
+        if not 1e-100 < abs(det) < 1e100:   # a hub's many pivots would overflow the product
+            ld += np.log(det)
+            det = 1.0 + 0.0j
         inv = 1.0 / akk
         for i in range(k + 1, n):
             f = A[i, k] * inv
             A[i, k] = f
             for j in range(k + 1, n):
                 A[i, j] -= f * A[k, j]
-    return np.log(-det if flips % 2 else det)
+    return ld + np.log(-det if flips % 2 else det)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy",
