@@ -259,6 +259,10 @@ def _input_log_dets(zs, lams, Pt, Bt, tb, tr, Ce, e_type, e_rows, t_off, r, s_of
                            r[root], piv)
 
 
+class PoleOnCircle(ValueError):
+    """Φ₀ has an eigenvalue on the unit circle: T(z) has a pole there."""
+
+
 class InputDeterminant:
     """det M(z) = det(zI − Φ₀) · det(I − z^{−d} T(z)) with T = C (zI − Φ₀)⁻¹ B, the second factor
     eliminated leaves-first along the tree in the delayed inputs' coordinates.
@@ -327,7 +331,7 @@ class InputDeterminant:
         ev = [np.linalg.eigvals(P[:k, :k]) for P, k in zip(self.Pt, self.tb)]
         gap = min(float(np.abs(np.abs(e) - 1.0).min()) for e in ev)
         if gap < 1e-9:
-            raise ValueError("InputDeterminant: Φ₀ has an eigenvalue on the unit circle")
+            raise PoleOnCircle("InputDeterminant: Φ₀ has an eigenvalue on the unit circle")
         per_type = np.bincount(atype, minlength=len(first))
         self.fixed_half_turns = int(sum(c * int((np.abs(e) < 1.0).sum())
                                         for c, e in zip(per_type, ev)))
@@ -396,9 +400,7 @@ def determinant_on_tree(lin, Phi0, B, C, root: int = 0):
     """`InputDeterminant`, or `TreeDeterminant` where Φ₀ has an eigenvalue on the circle."""
     try:
         return InputDeterminant(lin, Phi0, B, C, root)
-    except ValueError as exc:
-        if "unit circle" not in str(exc):
-            raise
+    except PoleOnCircle:
         return TreeDeterminant(lin, Phi0, B, C, root)
 
 
