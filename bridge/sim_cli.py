@@ -58,13 +58,13 @@ def run_sim_cli(args) -> int:
     except OSError as exc:
         raise Se3SyncError(f"--sim-port: cannot listen on {host}:{args.sim_port or 'default'}: "
                            f"{exc.strerror or exc}") from None
-    print(f"se3sync vehicle: {args.sim_protocol} simulator interface for {sc.n_agents} vehicle(s) on {where} "
-          "(no authentication: anyone who reaches the port drives the vehicle)", file=sys.stderr, flush=True)
-    if np.any(sc.gravity) and not sc.plant_terms.get("ground"):
-        print("se3sync vehicle: note: gravity without [plant] ground = true: the bodies are held at their initial "
-              "poses until the stack spins the motors, then fall freely", file=sys.stderr, flush=True)
     old = signal.signal(signal.SIGTERM, lambda signum, frame: (signals.note(signum), srv.stop()))
     try:
+        print(f"se3sync vehicle: {args.sim_protocol} simulator interface for {sc.n_agents} vehicle(s) on {where} "
+              "(no authentication: anyone who reaches the port drives the vehicle)", file=sys.stderr, flush=True)
+        if np.any(sc.gravity) and not sc.plant_terms.get("ground"):
+            print("se3sync vehicle: note: gravity without [plant] ground = true: the bodies are held at their "
+                  "initial poses until the stack spins the motors, then fall freely", file=sys.stderr, flush=True)
         st = srv.run(args.duration)
     finally:
         signal.signal(signal.SIGTERM, old)

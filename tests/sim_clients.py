@@ -59,7 +59,7 @@ class Autopilot:
     weight and |v| < 0.1 m/s for 0.5 s; the ground holds the vehicle then) → disarmed."""
 
     def __init__(self, frame, mass, J, *, arm=0.25, max_thrust=15.0, torque_coeff=0.016, height=2.0,
-                 hold=4.0, descent=0.5, spin_arm=0.1, spool=2.0):
+                 hold=3.0, descent=0.5, spin_arm=0.1, spool=2.0):
         self.mix = stack_mixer(frame, arm, max_thrust, torque_coeff)
         self.n = len(STACK_FRAMES[frame])
         self.m, self.J = mass, np.asarray(J, float)
