@@ -14,7 +14,6 @@ import os
 import select
 import socket
 import struct
-import time
 
 import numpy as np
 
@@ -67,6 +66,7 @@ class Autopilot:
         self.phase, self.t_phase = "disarmed", 0.0
         self.z_ref = 0.0
         self.low_since = None
+        self.touchdown_detected = None   # time the land detector fired
         self.log = []           # (t, phase, p, v, thrust demand / weight)
 
     @property

@@ -20,7 +20,6 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from test_bridge_helpers import load  # noqa: E402
 
-from bridge.link import mavlink2 as M  # noqa: E402
 
 H = 0.004
 MASS = 2.4

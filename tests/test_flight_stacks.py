@@ -20,7 +20,7 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from sim_clients import ArduPilotClient, Px4Client, fly, servo_packet  # noqa: E402
+from sim_clients import ArduPilotClient, Px4Client, fly  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SITL = str(ROOT / "scenarios" / "sitl_1uav.toml")
