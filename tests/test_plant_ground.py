@@ -252,3 +252,32 @@ def test_scenario_keys_are_checked_with_one_line(overrides, key):
     with pytest.raises(ScenarioError) as exc:
         load_scenario(HIL, overrides)
     assert key in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_loopback_vehicle_stands_on_the_ground():
+    """The loopback vehicle (`se3sync vehicle --scenario`) uses the same plant terms: with zero thrust
+    it rests on the plane; 1.2× its weight of thrust lifts it at (T − m g)/m."""
+    import socket
+
+    from bridge.vehicle import VehicleServer
+    from cosim.scenario import load_scenario
+
+    sc = load_scenario(str(Path(HIL).with_name("sitl_1uav.toml")), ["plant.drag_linear=0.0"])
+    free = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    free.bind(("127.0.0.1", 0))
+    srv = VehicleServer(scenario=sc, endpoints=[f"udpout:127.0.0.1:{free.getsockname()[1]}"], lockstep=True)
+    try:
+        v = srv.vehicles[0]
+        v.armed, v.failsafe = True, False
+        for k in range(250):
+            v.step(sc.step)
+        assert v.fmu.get_contact()[0] and np.abs(v.S[0:3]).max() == 0.0
+        m = float(sc.masses[0])
+        v.wrench[:] = [0.0, 0.0, 0.0, 0.0, 0.0, -1.2 * m * G]
+        for k in range(100):
+            v.step(sc.step)
+        t = 100 * sc.step
+        assert not v.fmu.get_contact()[0] and abs(-v.S[2] - 0.5 * 0.2 * G * t ** 2) < 1e-9
+    finally:
+        srv.close()
+        free.close()
