@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .airframes import allocation_matrix
+
 DIRECT, ALLOCATION = "direct", "allocation"
 MAPPINGS = (DIRECT, ALLOCATION)
 
@@ -54,8 +56,6 @@ class MappingSpec:
 def hexarotor_matrix(spec: AllocationSpec) -> np.ndarray:
     """6×6 A with w_frd = A c, c the normalised thrusts of the rotors (`bridge.airframes`; columns
     past the frame's rotor count are zero)."""
-    from .airframes import allocation_matrix
-
     return allocation_matrix(spec)
 
 

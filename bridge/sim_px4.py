@@ -57,6 +57,7 @@ import time
 import numpy as np
 
 from controller import layout
+from controller.errors import Se3SyncError
 
 from .link import mavlink2
 from .sim_body import (G0, B_NED, Diverged, Noise, bodies_from_scenario, isa_pressure_hpa, isa_temperature_c,
@@ -113,8 +114,6 @@ class Px4SimServer:
                  gps_period: float = 0.1, noise: bool = True, seed: int = 0,
                  lockstep_timeout: float = LOCKSTEP_TIMEOUT, idle_timeout: float = IDLE_TIMEOUT,
                  send_buffer: int = SEND_BUFFER, on_event=None):
-        from controller.errors import Se3SyncError
-
         self.h = float(step)
         self.h_us = int(round(self.h * 1e6))
         if self.h_us < 1 or abs(self.h_us - self.h * 1e6) > 1e-6:
