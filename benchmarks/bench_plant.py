@@ -1,4 +1,4 @@
-"""Benchmark of the plant FMU.  Run: /work/venv/bin/python benchmarks/bench_plant.py [--quick]
+"""Benchmark of the plant FMU.  Run: python benchmarks/bench_plant.py [--quick] [--against REV]
 
 Prints a table:
   * C cost per body per internal step (1000-body fleet, one big communication step), with
@@ -6,8 +6,12 @@ Prints a table:
     same run;
   * cost per communication step (h = 1e-4 = one internal step) of a 6-body FMU:
     fmpy's high-level API (setReal(36) + doStep + getReal(108)) versus the FleetFMU fast path;
-  * a 1000-body fleet per communication step (fast path).
-Times are the best of several repeats (wall clock, perf_counter).
+  * a 1000-body fleet per communication step (fast path);
+  * the optional plant terms: the same per-body cost with the ground and drag on (the bodies fly
+    high above the plane), and, with ``--against REV``, the plant compiled from REV's C sources in
+    the same run (the terms off must cost what REV costs).
+Times are the best of several repeats (wall clock, perf_counter); the cases of one comparison are
+timed alternately, so that load on a shared machine hits them alike.
 """
 from __future__ import annotations
 
@@ -31,21 +35,65 @@ def best_of(fn, number, repeat=5):
     return best
 
 
-def fleet(n, fmu_path=None):
+def fleet(n, fmu_path=None, **terms):
     rng = np.random.default_rng(0)
     f = FleetFMU(n, fmu_path=fmu_path)
     J = np.array([np.diag(rng.uniform(1.0, 1.4, 3)) + 0.05 * (np.ones((3, 3)) - np.eye(3)) for _ in range(n)])
-    f.set_parameters(J=J, xi0=rng.normal(size=(n, 6)), gravity=[0.0, 0.0, -9.81])
+    p0 = np.zeros((n, 3))
+    p0[:, 2] = 1e4        # far above a ground at 0 (gravity along -z): the bodies fly
+    f.set_parameters(J=J, xi0=rng.normal(size=(n, 6)), p0=p0, gravity=[0.0, 0.0, -9.81], **terms)
     f.initialize()
     return f
+
+
+def _fmu_from(tree: Path, n: int, out: Path) -> Path:
+    """The plant FMU compiled from the C sources of another tree (this tree's build.py)."""
+    old = build.C_DIR
+    build.C_DIR = tree / "plant_fmu" / "c"
+    try:
+        return build.build_fmu(n, out)
+    finally:
+        build.C_DIR = old
+
+
+def compare_terms(against: str | None, steps: int) -> list:
+    """Per body per internal step: terms off, ground + drag on, and (optionally) REV's plant."""
+    from _revisions import trees
+
+    n = 1000
+    rows = []
+    with trees(against) as tr, tempfile.TemporaryDirectory() as tmp:
+        cases = {"terms off (this tree)": fleet(n),
+                 "ground + drag on (this tree)": fleet(n, ground=True, ground_height=0.0, drag_linear=0.1,
+                                                      drag_angular=0.01)}
+        if against:
+            cases[f"plant of {against}"] = fleet(n, _fmu_from(tr[against], n, Path(tmp) / "old.fmu"))
+        best = dict.fromkeys(cases, float("inf"))
+        for _ in range(5):
+            for name, f in cases.items():
+                t0 = time.perf_counter()
+                f.do_step(0.0, steps * 1e-4)
+                best[name] = min(best[name], (time.perf_counter() - t0) / (n * steps))
+        for name, f in cases.items():
+            rows.append((f"C integrator, per body per internal step (1000 bodies), {name}", best[name]))
+            f.close()
+        if against:
+            print(f"terms off / {against}: {best['terms off (this tree)'] / best[f'plant of {against}']:.3f}")
+        print(f"ground + drag on / off: {best['ground + drag on (this tree)'] / best['terms off (this tree)']:.2f}")
+    return rows
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fewer iterations")
+    ap.add_argument("--against", metavar="REV", help="also time the plant compiled from REV's C sources")
+    ap.add_argument("--terms-only", action="store_true", help="only the optional-terms comparison")
     args = ap.parse_args(argv)
     k = 0.2 if args.quick else 1.0
-    rows = []
+    rows = compare_terms(args.against, int(1000 * k))
+    if args.terms_only:
+        _print(rows)
+        return
 
     # 1. C cost per body per internal step
     n_big = 1000
@@ -121,10 +169,14 @@ def main(argv=None):
     rows.append(("1000 bodies, fast path per communication step (1 internal step)", best_of(fast_big, int(500 * k))))
     f.close()
 
+    _print(rows)
+
+
+def _print(rows) -> None:
     print(f"plant FMU benchmark ({build.platform_tag()}, FMU compiled with {' '.join(build.CFLAGS)})")
-    print(f"{'case':<70} {'time':>12}")
+    print(f"{'case':<80} {'time':>12}")
     for name, sec in rows:
-        print(f"{name:<70} {sec * 1e6:>9.3f} us")
+        print(f"{name:<80} {sec * 1e6:>9.3f} us")
 
 
 if __name__ == "__main__":

@@ -22,8 +22,8 @@ def register(sub) -> None:
                     "ATTITUDE_QUATERNION and LOCAL_POSITION_NED; takes SET_ACTUATOR_CONTROL_TARGET or "
                     "COMMAND_LONG DO_SET_ACTUATOR; fails safe (zero wrench) when commands time out. "
                     "Ctrl-C or SIGTERM stops it.")
-    p.add_argument("--count", type=int, default=1, metavar="N", help="number of vehicles (default 1; "
-                   "with --scenario: the scenario's agent count)")
+    p.add_argument("--count", type=int, default=None, metavar="N", help="number of vehicles (default 1; "
+                   "with --scenario: the scenario's agent count, and a different N is refused)")
     p.add_argument("--scenario", metavar="FILE", help="take masses, inertias, initial poses, gravity, "
                    "mapping and control step from this scenario")
     p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
@@ -72,6 +72,13 @@ def register(sub) -> None:
                    help="px4: simulation step per HIL_SENSOR (default 0.004; ardupilot takes 1/frame_rate)")
     p.add_argument("--sim-no-noise", action="store_true", help="ideal sensors (no white noise)")
     p.add_argument("--sim-seed", type=int, default=0, help="sensor noise seed (default 0)")
+    p.add_argument("--sim-idle-timeout", type=float, default=30.0, metavar="S",
+                   help="px4: drop a connection that sent no HIL_ACTUATOR_CONTROLS for S s of wall time "
+                        "(default 30), so that an idle client cannot hold its vehicle")
+    p.add_argument("--write-params", metavar="FILE",
+                   help="with --sim-protocol: write the stack's parameters that make its mixer match the "
+                        "scenario's allocation (ArduPilot: a .parm file for --defaults; PX4: param set-default "
+                        "lines) and exit; '{i}' in FILE writes one file per vehicle")
     p.set_defaults(func=_cmd_vehicle)
 
     p = sub.add_parser(

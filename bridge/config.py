@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from .frames import WORLD_FRAMES
+from .airframes import FRAMES
 from .mapping import DIRECT, MAPPINGS, AllocationSpec, MappingSpec
 from .output import PROFILES, WRENCH_PROFILES
 
@@ -53,7 +54,7 @@ DEFAULTS = {
     "odometry_rate": 0.0,
     "vehicle": None,
 }
-ALLOCATION_KEYS = {"arm_length", "tilt_deg", "max_thrust", "torque_coeff", "reversible"}
+ALLOCATION_KEYS = {"arm_length", "tilt_deg", "max_thrust", "torque_coeff", "reversible", "frame"}
 VEHICLE_KEYS = {"id", "system_id", "endpoint", "mapping", "max_wrench", "allocation", "output"}
 
 
@@ -185,10 +186,17 @@ def _allocation(key, v, base: AllocationSpec) -> AllocationSpec:
     for k in ("arm_length", "max_thrust"):
         if k in v:
             kw[k] = _float(f"{key}.{k}", v[k], positive=True)
+    if "frame" in v:
+        if v["frame"] not in FRAMES:
+            raise ScenarioError(f"{key}.frame", f"must be one of {', '.join(repr(f) for f in FRAMES)}, "
+                                f"got {v['frame']!r}")
+        kw["frame"] = v["frame"]
+        kw["tilt_deg"] = FRAMES[v["frame"]].default_tilt
     if "tilt_deg" in v:
         t = _float(f"{key}.tilt_deg", v["tilt_deg"])
-        if not 0 < t < 90:
-            raise ScenarioError(f"{key}.tilt_deg", f"must be in (0, 90) (0 is not fully actuated), got {t:g}")
+        if not -90 < t < 90:
+            raise ScenarioError(f"{key}.tilt_deg", f"must be in (-90, 90) (0: untilted, not fully actuated; "
+                                f"< 0: tilted the other way), got {t:g}")
         kw["tilt_deg"] = t
     if "torque_coeff" in v:
         kw["torque_coeff"] = _float(f"{key}.torque_coeff", v["torque_coeff"], nonneg=True)

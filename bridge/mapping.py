@@ -7,11 +7,14 @@ once (the reference co-simulation, `bridge.transport`) round identically, bit fo
 Wrenches here are in the vehicle's FRD body frame, [τ; f] (N·m, N).
 
 * ``direct``: controls = clip((w + w_ff) ./ max_wrench, −1, 1), order (τx, τy, τz, fx, fy, fz).
-* ``allocation``: a fully actuated multirotor, w = A c with c the rotor thrusts normalised by the
-  maximum thrust. The default airframe is a hexarotor with alternately tilted arms (rotor k at
-  azimuth 60°·k, its thrust axis, nominally −z (up), tilted by ±tilt about the arm, spin and
-  tilt signs alternating). A is 6×6 and invertible, so the pseudo-inverse is the inverse and
-  there is no null space: a zero wrench means zero thrust. Unidirectional rotors (c ∈ [0, 1])
+* ``allocation``: a multirotor, w = A c with c the rotor thrusts normalised by the maximum
+  thrust; the rotor geometry is a preset of `bridge.airframes` (``allocation.frame``). The default
+  airframe is a hexarotor with alternately tilted arms (rotor k at azimuth 60°·k, its thrust axis,
+  nominally −z (up), tilted by ±tilt about the arm, spin and tilt signs alternating): A is 6×6 and
+  invertible, so the pseudo-inverse is the inverse and there is no null space: a zero wrench means
+  zero thrust. The stacks' standard frames (quad-x, hexa-plus, hexa-x; ``tilt_deg = 0``) are not
+  fully actuated: A⁺ gives the least-squares wrench (no sideways force); they are there for the
+  flight stacks' simulator interfaces, which only decode (controls -> wrench). Unidirectional rotors (c ∈ [0, 1])
   therefore cannot produce every wrench from rest; they work around a positive *baseline*, the
   feed-forward gravity compensation (``gravity_compensation = true``), for which
   c_b = A⁺ w_ff > 0 in hover. The commanded part is scaled by the largest s ∈ [0, 1] with
@@ -23,10 +26,11 @@ Wrenches here are in the vehicle's FRD body frame, [τ; f] (N·m, N).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .airframes import allocation_matrix
 
 DIRECT, ALLOCATION = "direct", "allocation"
 MAPPINGS = (DIRECT, ALLOCATION)
@@ -39,6 +43,7 @@ class AllocationSpec:
     max_thrust: float = 15.0      # N per rotor
     torque_coeff: float = 0.016   # m: rotor drag torque = torque_coeff · thrust
     reversible: bool = False      # thrust range [-1, 1] instead of [0, 1]
+    frame: str = "hexa-tilted"    # rotor geometry preset (bridge.airframes.FRAMES)
 
 
 @dataclass(frozen=True)
@@ -49,21 +54,9 @@ class MappingSpec:
 
 
 def hexarotor_matrix(spec: AllocationSpec) -> np.ndarray:
-    """6×6 A with w_frd = A c, c the normalised thrusts of the six rotors."""
-    A = np.zeros((6, 6))
-    a = math.radians(spec.tilt_deg)
-    for k in range(6):
-        phi = k * math.pi / 3.0
-        er = np.array([math.cos(phi), math.sin(phi), 0.0])       # arm direction (FRD)
-        sgn = 1.0 if k % 2 == 0 else -1.0
-        up = np.array([0.0, 0.0, -1.0])
-        # Rodrigues: rotate `up` about er by sgn·a (er ⟂ up)
-        n = math.cos(sgn * a) * up + math.sin(sgn * a) * np.cross(er, up)
-        r = spec.arm_length * er
-        spin = sgn  # alternating propeller spin; drag torque along ∓n
-        A[3:, k] = spec.max_thrust * n
-        A[:3, k] = spec.max_thrust * (np.cross(r, n) + spin * spec.torque_coeff * n)
-    return A
+    """6×6 A with w_frd = A c, c the normalised thrusts of the rotors (`bridge.airframes`; columns
+    past the frame's rotor count are zero)."""
+    return allocation_matrix(spec)
 
 
 def _matvec(M: np.ndarray, x: np.ndarray) -> np.ndarray:

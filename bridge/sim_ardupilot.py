@@ -16,9 +16,15 @@ PWM -> controls: unidirectional rotors (allocation, not reversible) c = (pwm −
 Out (text, one JSON object preceded and terminated by "\\n"): ``timestamp`` (s, physics time),
 ``imu.gyro`` (rad/s, FRD), ``imu.accel_body`` (m/s², FRD specific force), ``position`` (m, NED),
 ``velocity`` (m/s, NED), ``quaternion`` (w, x, y, z: FRD -> NED). The IMU has the same white noise
-as the PX4 interface (`bridge.sim_body.Noise`). Until a motor PWM exceeds 1000 µs (allocation) —
-ArduPilot spins armed motors at MOT_SPIN_ARM — the body is held on "the ground" (`sim_body`).
-Malformed packets (size, magic, frame_rate 0) are counted and dropped without a reply.
+as the PX4 interface (`bridge.sim_body.Noise`). With ``[plant] ground = true`` the body stands on
+the ground plane and lifts off when the thrust exceeds its weight; without, until a motor PWM
+exceeds 1000 µs (allocation) — ArduPilot spins armed motors at MOT_SPIN_ARM — it is held at its
+initial pose (`sim_body`). Malformed packets (size, magic, frame_rate 0) are counted and dropped
+without a reply. A body that diverges (`sim_body.Diverged`) is put back at its initial state,
+counted per vehicle (``diverged``) and reported; the other vehicles go on.
+
+The protocol has no authentication: whoever can send UDP to the port drives the vehicle (keep it
+on loopback or a trusted network).
 """
 from __future__ import annotations
 
@@ -26,17 +32,18 @@ import json
 import select
 import socket
 import struct
+import sys
 import threading
 import time
-from dataclasses import replace
 
 import numpy as np
 
 from controller import layout
 
+from .airframes import MAX_ROTORS, rotor_count
 from .config import default_config
 from .mapping import ALLOCATION
-from .sim_body import Noise, bodies_from_scenario
+from .sim_body import Diverged, Noise, bodies_from_scenario
 
 MAGIC16, MAGIC32 = 18458, 29569
 PKT16, PKT32 = struct.Struct("<HHI16H"), struct.Struct("<HHI32H")
@@ -66,30 +73,32 @@ def pwm_to_controls(pwm, unidirectional: bool) -> np.ndarray:
 
 
 class _JsonLink:
-    def __init__(self, make_body, host, port, unidirectional):
-        self.make_body = make_body
-        self.body = make_body()
+    def __init__(self, body, host, port, unidirectional, motors):
+        self.body = body
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((host, port))
         self.sock.setblocking(False)
         self.port = self.sock.getsockname()[1]
         self.unidirectional = unidirectional
+        self.motors = motors            # PWM channels that drive rotors (1..motors)
         self.last_count = None
         self.last_reply = None
+        self.diverged = 0
 
 
 class ArduPilotJsonServer:
     """Serves each scenario vehicle as one ArduPilot JSON physics backend (lockstep by frame)."""
 
     def __init__(self, scenario, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, noise: bool = True,
-                 seed: int = 0):
+                 seed: int = 0, on_event=None):
 
         cfg = scenario.bridge or default_config(scenario.n_agents)
         self.scenario = scenario
         self.noise_on, self.seed = noise, seed
         self.noise = None
         self.counters = {"received": 0, "sent": 0, "malformed": 0, "duplicates": 0, "lost_frames": 0,
-                         "resets": 0, "steps": 0}
+                         "resets": 0, "steps": 0, "diverged": 0}
+        self.on_event = on_event or (lambda text: print(f"se3sync vehicle: {text}", file=sys.stderr, flush=True))
         self._stop = threading.Event()
         self.ready = threading.Event()
         self.links: list[_JsonLink] = []
@@ -98,19 +107,13 @@ class ArduPilotJsonServer:
         try:
             for i in range(n):
                 spec = cfg.mappings[i]
-                uni = spec.kind == ALLOCATION and not spec.allocation.reversible
-                self.links.append(_JsonLink(self._factory(i), host, port + 10 * i if port else 0, uni))
+                alloc = spec.kind == ALLOCATION
+                uni = alloc and not spec.allocation.reversible
+                motors = rotor_count(spec.allocation) if alloc else MAX_ROTORS
+                self.links.append(_JsonLink(self._bodies[i], host, port + 10 * i if port else 0, uni, motors))
         except OSError:
             self.close()
             raise
-
-    def _factory(self, i):
-        def make():
-            if self._bodies[i] is not None:   # the first body was built with the others
-                b, self._bodies[i] = self._bodies[i], None
-                return b
-            return bodies_from_scenario(_One(self.scenario, i), "apsim")[0]
-        return make
 
     # ------------------------------------------------------------------ one packet
     def reply(self, ln: _JsonLink, h: float) -> bytes:
@@ -139,14 +142,17 @@ class ArduPilotJsonServer:
         else:
             if ln.last_count is not None and count < ln.last_count:
                 self.counters["resets"] += 1      # SITL restarted: start again from the initial state
-                ln.body.close()
-                ln.body = ln.make_body()
+                ln.body.reset(clock=True)
             elif ln.last_count is not None and count > ln.last_count + 1:
                 self.counters["lost_frames"] += count - ln.last_count - 1
             c = pwm_to_controls(pwm, ln.unidirectional)
-            if ln.body.held and (not ln.unidirectional or np.any(np.asarray(pwm[:6]) > 1000)):
+            c[ln.motors:] = 0.0
+            if ln.body.held and (not ln.unidirectional or np.any(np.asarray(pwm[:ln.motors]) > 1000)):
                 ln.body.release()
-            ln.body.step(c, h)
+            try:
+                ln.body.step(c, h)
+            except Diverged as exc:
+                self._diverged(ln, exc)
             self.counters["steps"] += 1
             ln.last_count = count
             ln.last_reply = self.reply(ln, h)
@@ -155,6 +161,14 @@ class ArduPilotJsonServer:
             self.counters["sent"] += 1
         except OSError:
             pass
+
+    def _diverged(self, ln: _JsonLink, exc) -> None:
+        """The body left any physical range: back to its initial state; counted and said."""
+        ln.diverged += 1
+        self.counters["diverged"] += 1
+        ln.body.reset()
+        i = self.links.index(ln) + 1
+        self.on_event(f"vehicle {i} diverged ({exc}); reset to its initial state ({ln.diverged} so far)")
 
     # ------------------------------------------------------------------ loop
     def stop(self) -> None:
@@ -185,28 +199,11 @@ class ArduPilotJsonServer:
         return self.stats()
 
     def stats(self) -> dict:
-        return dict(self.counters, ports=[ln.port for ln in self.links])
+        return dict(self.counters, ports=[ln.port for ln in self.links],
+                    diverged_vehicles=[ln.diverged for ln in self.links])
 
     def close(self) -> None:
         for ln in self.links:
             ln.sock.close()
-            ln.body.close()
         for b in getattr(self, "_bodies", []):
-            if b is not None:
-                b.close()
-
-
-class _One:
-    """Scenario view with agent i only (to rebuild one body after a SITL restart)."""
-
-    def __init__(self, sc, i):
-
-
-        cfg = sc.bridge or default_config(sc.n_agents)
-        self.n_agents = 1
-        self.S0 = np.asarray(sc.S0)[i:i + 1]
-        self.masses = np.asarray(sc.masses)[i:i + 1]
-        self.inertias = np.asarray(sc.inertias)[i:i + 1]
-        self.gravity = sc.gravity
-        self.internal_step = sc.internal_step
-        self.bridge = replace(cfg, n_agents=1, vehicles=[cfg.vehicles[i]])
+            b.close()

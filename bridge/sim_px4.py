@@ -1,52 +1,83 @@
 """`se3sync vehicle --sim-protocol px4`: the plant as PX4's simulator (the role Gazebo's
 mavlink_interface plugin plays for PX4 SITL's `simulator_mavlink` module).
 
+Read against PX4's own sources (PX4 cannot be built here): ``src/modules/simulation/
+simulator_mavlink/SimulatorMavlink.cpp`` (PX4 connects over TCP; its lockstep clock is HIL_SENSOR
+``time_usec`` of sensor id 0; it answers with HIL_ACTUATOR_CONTROLS = pwm_out_sim's outputs,
+``mode`` bit 128 when armed), ``src/modules/simulation/pwm_out_sim/PWMSim.cpp`` (a non-reversible
+motor's output is (pwm − PWM_MAIN_MINn)/(PWM_MAIN_MAXn − PWM_MAIN_MINn) ∈ [0, 1], others
+[−1, 1]), the ``px4-rc.simulator`` start script (waits for the first HIL_SENSOR before starting the
+other modules) and Gazebo's ``mavlink_interface.cpp`` (streams sensors until the first
+HIL_ACTUATOR_CONTROLS, then lockstep with a 1 s poll timeout after which it steps anyway).
+
 Transport: TCP; vehicle i listens on ``port + i − 1`` (default 4560: PX4 SITL instance n connects
-to 4560 + n). Lockstep, one exchange per simulation step of h seconds:
+to 4560 + n). Per connection:
 
-  simulator -> PX4   HIL_GPS (every ``gps_period``, default 0.1 s), HIL_STATE_QUATERNION (ground
-                     truth, every step), then HIL_SENSOR (every step, time_usec = k·h), all stamped
-                     k·h; HEARTBEAT (1 Hz)
-  PX4 -> simulator   HIL_ACTUATOR_CONTROLS: controls[0:6] -> the scenario's mapping (allocation:
-                     rotor thrusts 0..1 = PX4's motor outputs; direct: the normalised wrench)
+* **start-up** (PX4 needs sensors to flow before its modules produce any actuator output): step k's
+  messages are sent paced by the wall clock, one step per h seconds, the body stepping with zero
+  controls (it stands on the ground, or is held), until the first HIL_ACTUATOR_CONTROLS arrives;
+* **lockstep** from then on: one exchange per step of h seconds,
 
-and only then does the body advance by h. PX4 runs its clock from HIL_SENSOR's time_usec.
+    simulator -> PX4   HIL_GPS (every ``gps_period``, default 0.1 s), HIL_STATE_QUATERNION (ground
+                       truth), then HIL_SENSOR (time_usec = (k+1)·h: PX4 takes 0 as "no time"),
+                       HEARTBEAT (1 Hz)
+    PX4 -> simulator   HIL_ACTUATOR_CONTROLS: controls[0:6] -> the scenario's mapping (allocation:
+                       PX4's motor outputs 0..1 are the rotor thrusts; see --write-params)
 
-Frames and units (common.xml): HIL_SENSOR acc = specific force in FRD (m/s², at rest −g on z),
-gyro FRD (rad/s), mag FRD (gauss), abs_pressure (hPa), pressure_alt (m), temperature (°C),
-fields_updated = 0x1FFF (all 13). HIL_GPS lat/lon (degE7), alt (mm, MSL), eph/epv = 100 (DOP 1.0),
-vel/vn/ve/vd (cm/s, NED), cog (cdeg), fix 3-D, 10 satellites. HIL_STATE_QUATERNION quaternion
-w-first (FRD -> NED), body rates (rad/s), lat/lon/alt as HIL_GPS, vx/vy/vz (cm/s NED), accelerations
-in mG (FRD). Noise: `bridge.sim_body.Noise` (white, on HIL_SENSOR only; GPS and ground truth exact).
-Until PX4 arms (MAV_MODE_FLAG_SAFETY_ARMED in HIL_ACTUATOR_CONTROLS.mode), the body is held on
-"the ground" (`sim_body`).
+  and only then does the body advance by h. If no HIL_ACTUATOR_CONTROLS comes within
+  ``lockstep_timeout`` (1 s of wall time, as Gazebo) the body steps anyway with the last controls,
+  counted (``lockstep_timeouts``) and said once per stall.
 
-Malformed bytes on the stream are counted (``malformed``) and skipped; other messages from PX4
-(HEARTBEAT, …) are counted and ignored.
+Frames and units (common.xml): HIL_SENSOR acc = specific force in FRD (m/s², on the ground −g on
+z), gyro FRD (rad/s), mag FRD (gauss), abs_pressure (hPa), pressure_alt (m), temperature (°C),
+fields_updated = 0x1BFF (accelerometer, gyro, magnetometer, barometer; not the differential
+pressure bit: there is no airspeed sensor), id 0. HIL_GPS time_usec in UTC (µs since 1970: the
+server's start, whole seconds, plus simulated time), lat/lon (degE7), alt (mm, MSL), eph/epv = 100
+(1.0 m), vel/vn/ve/vd (cm/s, NED), cog (cdeg, 65535 below 1 cm/s), fix 3-D, 10 satellites.
+HIL_STATE_QUATERNION quaternion w-first (FRD -> NED), body rates (rad/s), lat/lon/alt as HIL_GPS,
+vx/vy/vz (cm/s NED), accelerations in mG (FRD). Every integer field is clamped to its type (a body
+far away or fast gives a saturated field, never an encoding error). Noise:
+`bridge.sim_body.Noise` (white, on HIL_SENSOR only; GPS and ground truth exact).
+
+Clients are untrusted: sends are non-blocking into a bounded buffer per connection (a client that
+does not read is dropped once ``send_buffer`` bytes are waiting: ``slow_clients``); a connection
+that sends no HIL_ACTUATOR_CONTROLS for ``idle_timeout`` seconds is dropped (``idle_drops``);
+malformed bytes are counted (``malformed``) and skipped; other messages are counted and ignored;
+a diverging body is reset (``diverged``). No client can stop another vehicle. The protocol has no
+authentication: whoever can connect to the port drives the vehicle.
 """
 from __future__ import annotations
 
 import select
 import socket
+import sys
 import threading
 import time
 
 import numpy as np
 
-from controller.errors import Se3SyncError
 from controller import layout
+from controller.errors import Se3SyncError
 
 from .link import mavlink2
-from .sim_body import G0, B_NED, Noise, bodies_from_scenario, isa_pressure_hpa, isa_temperature_c, ned_to_geodetic
+from .sim_body import (G0, B_NED, Diverged, Noise, bodies_from_scenario, isa_pressure_hpa, isa_temperature_c,
+                       ned_to_geodetic)
 
 M = mavlink2
 DEFAULT_PORT = 4560
-FIELDS_ALL = 0x1FFF
+# HIL_SENSOR fields_updated (PX4 SimulatorMavlink.hpp SensorSource): accel 0b111, gyro 0b111000,
+# mag 0b111000000, baro 0b1101000000000; the differential pressure bit 0b10000000000 is left out
+FIELDS_SENSORS = 0x1BFF
+LOCKSTEP_TIMEOUT = 1.0           # s of wall time without HIL_ACTUATOR_CONTROLS before stepping anyway
+IDLE_TIMEOUT = 30.0              # s of wall time without HIL_ACTUATOR_CONTROLS before dropping a client
+SEND_BUFFER = 256 * 1024         # bytes waiting for a client before it is dropped (≈ 1,000 steps)
+KERNEL_SNDBUF = 64 * 1024        # the connection's kernel send buffer
+I16, I32 = (-32768, 32767), (-2 ** 31, 2 ** 31 - 1)
 
 
-def _i16(x: float) -> int:
-    """An int16 field (cm/s, mG): rounded and clamped, never an encoding error."""
-    return int(min(32767, max(-32768, round(x)))) if np.isfinite(x) else 0
+def _int(x: float, lo: int, hi: int) -> int:
+    """An integer field: rounded and clamped to its type, never an encoding error."""
+    return int(min(hi, max(lo, round(x)))) if np.isfinite(x) else 0
 
 
 class _Px4Link:
@@ -57,107 +88,184 @@ class _Px4Link:
         self.lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.lsock.bind((host, port))
-        self.lsock.listen(1)
+        self.lsock.listen(4)
         self.lsock.setblocking(False)
         self.port = self.lsock.getsockname()[1]
+        self.sysid = sysid
         self.conn = None
         self.mav = M.MAVLink(None, srcSystem=sysid, srcComponent=M.MAV_COMP_ID_AUTOPILOT1)
         self.mav.robust_parsing = True
-        self.k = 0
-        self.waiting = False       # HIL_SENSOR of step k sent, HIL_ACTUATOR_CONTROLS awaited
+        self.out = bytearray()      # bytes waiting for the client
+        self.k = 0                  # steps taken in this connection
+        self.lockstep = False       # False: start-up streaming (wall clock), True: lockstep
+        self.waiting = False        # lockstep: step k's HIL_SENSOR sent, HIL_ACTUATOR_CONTROLS awaited
+        self.t_sent = 0.0           # wall time step k's sensors were sent
+        self.next_stream = 0.0      # start-up: wall time of the next streamed step
+        self.last_actuator = 0.0    # wall time of the last HIL_ACTUATOR_CONTROLS (or the accept)
+        self.controls = np.zeros(16)
+        self.stalled = False        # a lockstep timeout was said (once per stall)
         self.next_hb = 0.0
 
 
 class Px4SimServer:
-    """Serves each scenario vehicle as one PX4 simulator endpoint (lockstep over TCP)."""
+    """Serves each scenario vehicle as one PX4 simulator endpoint (TCP; start-up streaming, then lockstep)."""
 
     def __init__(self, scenario, *, host: str = "127.0.0.1", port: int = DEFAULT_PORT, step: float = 0.004,
-                 gps_period: float = 0.1, noise: bool = True, seed: int = 0):
+                 gps_period: float = 0.1, noise: bool = True, seed: int = 0,
+                 lockstep_timeout: float = LOCKSTEP_TIMEOUT, idle_timeout: float = IDLE_TIMEOUT,
+                 send_buffer: int = SEND_BUFFER, on_event=None):
         self.h = float(step)
         self.h_us = int(round(self.h * 1e6))
+        if self.h_us < 1 or abs(self.h_us - self.h * 1e6) > 1e-6:
+            raise Se3SyncError(f"--sim-step: must be a whole number of microseconds > 0, got {step:g}")
         g = gps_period / self.h
         if abs(g - round(g)) > 1e-9 or round(g) < 1:
             raise Se3SyncError(f"--sim-gps-period: must be a whole number of steps of {self.h:g} s, got {gps_period:g}")
         self.gps_every = int(round(g))
+        self.lockstep_timeout = float(lockstep_timeout)
+        self.idle_timeout = float(idle_timeout)
+        self.send_buffer = int(send_buffer)
+        self.epoch_us = int(time.time()) * 1_000_000     # HIL_GPS: UTC of simulated time 0
         self.noise = Noise(self.h, noise, seed)
-        self.counters = {"sent": 0, "received": 0, "malformed": 0, "ignored": 0, "steps": 0, "connections": 0}
+        self.on_event = on_event or (lambda text: print(f"se3sync vehicle: {text}", file=sys.stderr, flush=True))
+        self.counters = {"sent": 0, "received": 0, "malformed": 0, "ignored": 0, "steps": 0, "connections": 0,
+                         "streamed_steps": 0, "lockstep_timeouts": 0, "slow_clients": 0, "idle_drops": 0,
+                         "diverged": 0}
         self._stop = threading.Event()
         self.ready = threading.Event()
         self.links: list[_Px4Link] = []
-        bodies = bodies_from_scenario(scenario, "px4sim")
+        self._bodies = bodies_from_scenario(scenario, "px4sim")
         try:
-            for i, b in enumerate(bodies):
+            for i, b in enumerate(self._bodies):
                 self.links.append(_Px4Link(b, host, port + i if port else 0, i + 1))
         except OSError:
-            for b in bodies[len(self.links):]:
-                b.close()
             self.close()
             raise
 
     # ------------------------------------------------------------------ messages
-    def _send(self, ln: _Px4Link, msg) -> None:
-        buf = msg.pack(ln.mav)
-        ln.mav.seq = (ln.mav.seq + 1) & 0xFF
-        try:
-            ln.conn.sendall(buf)
-            self.counters["sent"] += 1
-        except OSError:
-            self._drop(ln)
-
     def sensor_messages(self, ln: _Px4Link) -> list:
         """The messages of step k: HIL_GPS when due, HIL_STATE_QUATERNION, HIL_SENSOR (last)."""
         b, mav, nz = ln.body, ln.mav, self.noise
-        t_us = ln.k * self.h_us
+        t_us = (ln.k + 1) * self.h_us
         R = b.R
         acc = nz.add(b.specific_force(), nz.accel)
         gyro = nz.add(b.omega, nz.gyro)
         mag = nz.add(R.T @ B_NED, nz.mag)
         p = b.S[layout.P]
         lat, lon, alt = ned_to_geodetic(p)
-        pres = float(nz.add(isa_pressure_hpa(alt), nz.baro))
+        pres = float(nz.add(isa_pressure_hpa(max(-1000.0, min(alt, 40000.0))), nz.baro))
         sensor = mav.hil_sensor_encode(t_us, acc[0], acc[1], acc[2], gyro[0], gyro[1], gyro[2], mag[0], mag[1],
-                                       mag[2], pres, 0.0, alt, isa_temperature_c(alt), FIELDS_ALL, 0)
+                                       mag[2], pres, 0.0, alt, isa_temperature_c(alt), FIELDS_SENSORS, 0)
         v = b.v_ned
-        lat7, lon7, alt_mm = int(round(lat * 1e7)), int(round(lon * 1e7)), int(round(alt * 1000))
-        vcm = [_i16(x * 100) for x in v]
-        sf_mg = [_i16(x / G0 * 1000) for x in b.specific_force()]
+        lat7, lon7, alt_mm = _int(lat * 1e7, *I32), _int(lon * 1e7, *I32), _int(alt * 1000, *I32)
+        vcm = [_int(x * 100, *I16) for x in v]
+        sf_mg = [_int(x / G0 * 1000, *I16) for x in b.specific_force()]
         om = b.omega
         # ground truth and GPS first, HIL_SENSOR last: PX4 advances its clock on HIL_SENSOR, so the
         # other data of the same instant is already there
         out = []
         if ln.k % self.gps_every == 0:
             gs = float(np.hypot(v[0], v[1]))
-            cog = int(round((np.degrees(np.arctan2(v[1], v[0])) % 360.0) * 100)) % 36000 if gs > 0.01 else 65535
-            out.append(mav.hil_gps_encode(t_us, 3, lat7, lon7, alt_mm, 100, 100, int(round(gs * 100)),
-                                          vcm[0], vcm[1], vcm[2], cog, 10, 0, 0))
+            cog = _int((np.degrees(np.arctan2(v[1], v[0])) % 360.0) * 100, 0, 35999) if gs > 0.01 else 65535
+            out.append(mav.hil_gps_encode(self.epoch_us + t_us, 3, lat7, lon7, alt_mm, 100, 100,
+                                          _int(gs * 100, 0, 65534), vcm[0], vcm[1], vcm[2], cog, 10, 0, 0))
         out.append(mav.hil_state_quaternion_encode(t_us, list(b.q), om[0], om[1], om[2], lat7, lon7, alt_mm,
                                                    vcm[0], vcm[1], vcm[2], 0, 0, sf_mg[0], sf_mg[1], sf_mg[2]))
         out.append(sensor)
         return out
 
-    def _send_step(self, ln: _Px4Link) -> None:
+    def _send(self, ln: _Px4Link, msg) -> None:
+        if ln.conn is None:
+            return
+        buf = msg.pack(ln.mav)
+        ln.mav.seq = (ln.mav.seq + 1) & 0xFF
+        ln.out += buf
+        self.counters["sent"] += 1
+        self._flush(ln)
+
+    def _flush(self, ln: _Px4Link) -> None:
+        """Non-blocking: what the client's socket takes now; the rest waits (bounded)."""
+        while ln.out and ln.conn is not None:
+            try:
+                n = ln.conn.send(ln.out)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                self._drop(ln)
+                return
+            del ln.out[:n]
+        if len(ln.out) > self.send_buffer:
+            self.counters["slow_clients"] += 1
+            self.on_event(f"vehicle {ln.sysid}: the client reads nothing ({len(ln.out)} bytes waiting): dropped")
+            self._drop(ln)
+
+    def _send_step(self, ln: _Px4Link, now: float) -> None:
         for m in self.sensor_messages(ln):
             self._send(ln, m)
-            if ln.conn is None:
-                return
-        ln.waiting = True
+        ln.t_sent = now
+        ln.waiting = ln.lockstep and ln.conn is not None
 
-    def _on_message(self, ln: _Px4Link, m) -> None:
+    def _advance(self, ln: _Px4Link, controls) -> None:
+        """One step of h of the body (a diverging body is reset, counted and said)."""
+        try:
+            ln.body.step(controls, self.h)
+        except Diverged as exc:
+            self.counters["diverged"] += 1
+            ln.body.reset()
+            self.on_event(f"vehicle {ln.sysid} diverged ({exc}); reset to its initial state")
+        ln.k += 1
+        self.counters["steps"] += 1
+
+    def _on_message(self, ln: _Px4Link, m, now: float) -> None:
         if m.get_type() == "BAD_DATA":
             self.counters["malformed"] += 1
             return
         self.counters["received"] += 1
-        if m.get_msgId() != M.MAVLINK_MSG_ID_HIL_ACTUATOR_CONTROLS or not ln.waiting:
+        if m.get_msgId() != M.MAVLINK_MSG_ID_HIL_ACTUATOR_CONTROLS:
             self.counters["ignored"] += 1
             return
-        c = np.asarray(m.controls[:6], dtype=np.float64)
+        ln.last_actuator = now
+        if ln.lockstep and not ln.waiting:
+            self.counters["ignored"] += 1       # an extra reply to a step already answered
+            return
+        if not ln.lockstep:
+            ln.lockstep = True                  # the first actuator controls: lockstep from now on
+            self.on_event(f"vehicle {ln.sysid}: first HIL_ACTUATOR_CONTROLS after {ln.k} streamed steps: lockstep")
+        c = np.asarray(m.controls, dtype=np.float64)
+        ln.controls[:len(c)] = c[:16]
         if ln.body.held and (m.mode & M.MAV_MODE_FLAG_SAFETY_ARMED):
             ln.body.release()
-        ln.body.step(c, self.h)
-        ln.k += 1
-        self.counters["steps"] += 1
+        if ln.stalled:
+            ln.stalled = False
+            self.on_event(f"vehicle {ln.sysid}: HIL_ACTUATOR_CONTROLS again: lockstep resumed")
+        self._advance(ln, ln.controls[:6])
         ln.waiting = False
-        self._send_step(ln)
+        self._send_step(ln, now)
+
+    def _accept(self, ln: _Px4Link, now: float) -> None:
+        try:
+            conn, _ = ln.lsock.accept()
+        except OSError:
+            return
+        conn.setblocking(False)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        # a fixed kernel send buffer (no autotuning to megabytes): what a client leaves unread
+        # piles up in ln.out, where it is bounded and counted
+        conn.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, KERNEL_SNDBUF)
+        ln.conn = conn
+        ln.mav = M.MAVLink(None, srcSystem=ln.sysid, srcComponent=M.MAV_COMP_ID_AUTOPILOT1)
+        ln.mav.robust_parsing = True
+        ln.out = bytearray()
+        if ln.k:                       # a new session starts from the initial state at t = 0
+            ln.body.reset(clock=True)
+        ln.k = 0
+        ln.lockstep = ln.waiting = ln.stalled = False
+        ln.controls[:] = 0.0
+        ln.last_actuator = now
+        ln.next_stream = now + self.h
+        ln.next_hb = now
+        self.counters["connections"] += 1
+        self._send_step(ln, now)       # PX4 waits for the first HIL_SENSOR to start its clock
 
     def _drop(self, ln: _Px4Link) -> None:
         if ln.conn is not None:
@@ -167,6 +275,38 @@ class Px4SimServer:
                 pass
         ln.conn = None
         ln.waiting = False
+        ln.out = bytearray()
+
+    def _timers(self, ln: _Px4Link, now: float) -> None:
+        if ln.conn is None:
+            return
+        if now - ln.last_actuator > self.idle_timeout:
+            self.counters["idle_drops"] += 1
+            self.on_event(f"vehicle {ln.sysid}: no HIL_ACTUATOR_CONTROLS for {self.idle_timeout:g} s: "
+                          "connection dropped")
+            self._drop(ln)
+            return
+        if not ln.lockstep:
+            if now - ln.next_stream > 10 * self.h:      # fell far behind (suspended?): no burst
+                ln.next_stream = now
+            while ln.conn is not None and not ln.lockstep and now >= ln.next_stream:
+                self._advance(ln, np.zeros(6))
+                self.counters["streamed_steps"] += 1
+                self._send_step(ln, now)
+                ln.next_stream += self.h
+        elif ln.waiting and now - ln.t_sent > self.lockstep_timeout:
+            self.counters["lockstep_timeouts"] += 1
+            if not ln.stalled:
+                ln.stalled = True
+                self.on_event(f"vehicle {ln.sysid}: no HIL_ACTUATOR_CONTROLS for {self.lockstep_timeout:g} s at "
+                              f"step {ln.k}: stepping anyway with the last controls")
+            self._advance(ln, ln.controls[:6])
+            ln.waiting = False
+            self._send_step(ln, now)
+        if ln.conn is not None and now >= ln.next_hb:
+            ln.next_hb = now + 1.0
+            self._send(ln, ln.mav.heartbeat_encode(M.MAV_TYPE_GENERIC, M.MAV_AUTOPILOT_INVALID, 0, 0,
+                                                   M.MAV_STATE_ACTIVE))
 
     # ------------------------------------------------------------------ loop
     def stop(self) -> None:
@@ -180,26 +320,32 @@ class Px4SimServer:
                 now = time.monotonic()
                 if end is not None and now >= end:
                     break
-                fds = {}
+                fds, wfds = {}, []
+                timeout = 0.05
                 for ln in self.links:
                     fds[(ln.conn or ln.lsock).fileno()] = ln
-                r, _, _ = select.select(list(fds), [], [], 0.05)
+                    if ln.conn is not None:
+                        if ln.out:
+                            wfds.append(ln.conn.fileno())
+                        if not ln.lockstep:
+                            timeout = min(timeout, max(0.0, ln.next_stream - now))
+                        elif ln.waiting:
+                            timeout = min(timeout, max(0.0, ln.t_sent + self.lockstep_timeout - now))
+                r, w, _ = select.select(list(fds), wfds, [], timeout)
+                now = time.monotonic()
+                for fd in w:
+                    self._flush(fds[fd])
                 for fd in r:
                     ln = fds[fd]
                     if ln.conn is None:
-                        try:
-                            conn, _ = ln.lsock.accept()
-                        except OSError:
-                            continue
-                        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-                        ln.conn = conn
-                        ln.mav = M.MAVLink(None, srcSystem=ln.mav.srcSystem, srcComponent=ln.mav.srcComponent)
-                        ln.mav.robust_parsing = True
-                        self.counters["connections"] += 1
-                        self._send_step(ln)   # PX4 waits for the first HIL_SENSOR to start its clock
+                        self._accept(ln, now)
+                        continue
+                    if fd != ln.conn.fileno():
                         continue
                     try:
                         data = ln.conn.recv(65536)
+                    except (BlockingIOError, InterruptedError):
+                        continue
                     except OSError:
                         data = b""
                     if not data:
@@ -211,13 +357,12 @@ class Px4SimServer:
                         self.counters["malformed"] += 1
                         continue
                     for m in msgs:
-                        self._on_message(ln, m)
+                        self._on_message(ln, m, now)
+                        if ln.conn is None:
+                            break
                 now = time.monotonic()
                 for ln in self.links:
-                    if ln.conn is not None and now >= ln.next_hb:
-                        ln.next_hb = now + 1.0
-                        self._send(ln, ln.mav.heartbeat_encode(M.MAV_TYPE_GENERIC, M.MAV_AUTOPILOT_INVALID, 0, 0,
-                                                               M.MAV_STATE_ACTIVE))
+                    self._timers(ln, now)
         except KeyboardInterrupt:
             pass
         return self.stats()
@@ -229,4 +374,5 @@ class Px4SimServer:
         for ln in self.links:
             self._drop(ln)
             ln.lsock.close()
-            ln.body.close()
+        for b in getattr(self, "_bodies", []):
+            b.close()

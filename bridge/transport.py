@@ -103,7 +103,8 @@ class VehicleFleet:
         self.n = n
         self.fmu = FleetFMU(n, fmu_path=fmu_path, instance_name="reference")
         m, J, S0, g = vehicle_setup(scenario, world)
-        self.fmu.set_initial_state(S0, mass=m, J=J, gravity=g, h_internal=scenario.internal_step)
+        self.fmu.set_initial_state(S0, mass=m, J=J, gravity=g, h_internal=scenario.internal_step,
+                                   **scenario.plant_terms)
         self.fmu.initialize(0.0)
         self.k = 0
 

@@ -24,6 +24,7 @@ import time
 import numpy as np
 
 from controller import layout
+from controller.errors import Se3SyncError
 from cosim import signals
 from cosim.files import write_json_atomic
 from cosim.scenario import load_scenario
@@ -53,7 +54,7 @@ class SimVehicle:
     """One vehicle: FMU, socket, MAVLink peer, command state."""
 
     def __init__(self, server, index: int, system_id: int, endpoint: str, mapping_spec: MappingSpec,
-                 mass: float, J, S0_ned, g_ned, h_internal: float):
+                 mass: float, J, S0_ned, g_ned, h_internal: float, terms=None):
         self.server = server
         self.index = index
         self.sysid = system_id
@@ -67,7 +68,7 @@ class SimVehicle:
         self.fmu = FleetFMU(1, instance_name=f"vehicle{system_id}")
         S0 = np.asarray(S0_ned, float).reshape(1, layout.S_WIDTH)
         self.fmu.set_initial_state(S0, mass=[mass], J=np.asarray(J, float).reshape(1, 3, 3),
-                                   gravity=self.g, h_internal=h_internal)
+                                   gravity=self.g, h_internal=h_internal, **(terms or {}))
         self.fmu.initialize(0.0)
         self.k = 0
         self.controls = np.zeros(6)
@@ -389,6 +390,7 @@ class VehicleServer:
             specs = cfg.mappings
             sids = [v.system_id for v in cfg.vehicles]
             h_int = scenario.internal_step
+            terms = scenario.plant_terms     # the optional ground and drag ([plant])
         else:
             masses = np.ones(self.count)
             Js = np.tile(np.diag([0.01, 0.01, 0.02]), (self.count, 1, 1))
@@ -399,6 +401,7 @@ class VehicleServer:
             specs = [MappingSpec()] * self.count
             sids = list(range(first_system_id, first_system_id + self.count))
             h_int = min(self.h, 1e-3)
+            terms = {}
         eps = []
         for i in range(self.count):
             if endpoints:
@@ -411,7 +414,8 @@ class VehicleServer:
         self.signing = open_signing_state(key, signing_state, key_file, "vehicle")
         try:
             for i in range(self.count):
-                self.vehicles.append(SimVehicle(self, i, sids[i], eps[i], specs[i], masses[i], Js[i], S0[i], g, h_int))
+                self.vehicles.append(SimVehicle(self, i, sids[i], eps[i], specs[i], masses[i], Js[i], S0[i], g, h_int,
+                                                terms))
         except Exception:
             self.close()
             raise
@@ -562,14 +566,22 @@ class VehicleServer:
             self.signing = None
 
 
+def check_count(count, scenario) -> None:
+    """--count with --scenario: the scenario decides the vehicles; a different count is refused."""
+    if count is not None and count != scenario.n_agents:
+        raise Se3SyncError(f"--count: {count} contradicts the scenario's {scenario.n_agents} vehicles "
+                           f"(omit --count, or change the scenario's [agents] count)")
+
+
 def run_vehicle_cli(args) -> int:
     """Handler of ``se3sync vehicle``."""
     scenario = None
     if args.scenario:
         scenario = load_scenario(args.scenario, args.set or [])
+        check_count(args.count, scenario)
     key = read_key_file(args.key) if args.key else None
     g = [float(x) for x in args.gravity.split(",")] if args.gravity else (0.0, 0.0, 0.0)
-    srv = VehicleServer(args.count, base_port=args.base_port, host=args.host, endpoints=args.endpoint or None,
+    srv = VehicleServer(args.count or 1, base_port=args.base_port, host=args.host, endpoints=args.endpoint or None,
                         shared_port=args.shared_port, lockstep=args.lockstep, key=key, scenario=scenario,
                         rate=args.rate, aux_rate=args.aux_rate, step=args.step,
                         command_timeout=args.command_timeout, first_system_id=args.first_system_id,

@@ -59,11 +59,12 @@ class FmuPlant:
     """
 
     def __init__(self, masses, inertias, S0, gravity=(0.0, 0.0, 0.0), internal_step=1e-4,
-                 fmu_path=None, instance_name="plant"):
+                 fmu_path=None, instance_name="plant", terms=None):
         S0 = np.asarray(S0, float)
         self.n = n = S0.shape[0]
+        # terms: the optional ground and drag (Scenario.plant_terms; none for the paper's runs)
         self._fixed = dict(mass=np.asarray(masses, float), J=np.asarray(inertias, float),
-                           gravity=np.asarray(gravity, float), h_internal=float(internal_step))
+                           gravity=np.asarray(gravity, float), h_internal=float(internal_step), **(terms or {}))
         self._fmu = fmu = FleetFMU(n, fmu_path=fmu_path, instance_name=instance_name)
         try:
             fmu.set_initial_state(S0, **self._fixed)
@@ -82,7 +83,7 @@ class FmuPlant:
     @classmethod
     def from_scenario(cls, scenario, fmu_path=None):
         return cls(scenario.masses, scenario.inertias, scenario.S0, scenario.gravity,
-                   scenario.internal_step, fmu_path)
+                   scenario.internal_step, fmu_path, terms=scenario.plant_terms)
 
     def advance(self, h: float) -> None:
         k = self._k
@@ -121,7 +122,7 @@ class PerBodyFmuPlant:
     independently)."""
 
     def __init__(self, masses, inertias, S0, gravity=(0.0, 0.0, 0.0), internal_step=1e-4,
-                 fmu_path=None):
+                 fmu_path=None, terms=None):
         S0 = np.asarray(S0, float)
         self.n = n = S0.shape[0]
         masses = np.broadcast_to(np.asarray(masses, float), (n,))
@@ -133,7 +134,7 @@ class PerBodyFmuPlant:
                 self._fmus.append(f)
                 f.set_initial_state(S0[i:i + 1], mass=masses[i:i + 1], J=inertias[i:i + 1],
                                     gravity=np.asarray(gravity, float),
-                                    h_internal=float(internal_step))
+                                    h_internal=float(internal_step), **(terms or {}))
                 f.initialize(0.0)
         except BaseException:
             self.close()
@@ -150,7 +151,7 @@ class PerBodyFmuPlant:
     @classmethod
     def from_scenario(cls, scenario, fmu_path=None):
         return cls(scenario.masses, scenario.inertias, scenario.S0, scenario.gravity,
-                   scenario.internal_step, fmu_path)
+                   scenario.internal_step, fmu_path, terms=scenario.plant_terms)
 
     def read(self) -> np.ndarray:
         copyto = np.copyto

@@ -63,7 +63,7 @@ SCHEMA: dict[str, Any] = {
     "initial": {"generator", "axis", "eigenvector", "seed", "position_box", "velocity_ball",
                 "agent", "theta0"},
     "simulation": {"duration", "step", "log_rate"},
-    "plant": {"gravity", "internal_step", "mode"},
+    "plant": {"gravity", "internal_step", "mode", "ground", "ground_height", "drag_linear", "drag_angular"},
 }
 # Further tables ([bridge], ...) are owned by other packages: see cosim/plugins.py.
 AGENT_KEYS = {"axis_angle", "quaternion", "position", "velocity"}
@@ -224,6 +224,9 @@ class Scenario:
     plant_mode: str              # "fleet" | "per-body"
     tables: dict = field(default_factory=dict)   # parsed tables owned by other packages
     overrides: tuple = field(default=())
+    # the plant's optional terms ([plant] ground, ground_height, drag_linear, drag_angular) as
+    # FleetFMU.set_parameters keywords; empty when all are off (the paper's runs)
+    plant_terms: dict = field(default_factory=dict)
 
     @property
     def bridge(self):
@@ -491,6 +494,7 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
 
     # [initial]
     S0, theta0 = _initial(data["initial"], N, graph, weighting)
+    plant_terms = _plant_terms(pl, gravity, S0, masses, inertias, internal)
 
     # tables owned by other packages ([bridge], ...)
     tables = {}
@@ -504,7 +508,50 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
                     weighting=weighting, design=design, gains=gains, masses=masses,
                     inertias=inertias, S0=S0, theta0=theta0, duration=duration, step=step,
                     log_rate=log_rate, gravity=gravity, internal_step=internal,
-                    plant_mode=mode, tables=tables, overrides=overrides)
+                    plant_mode=mode, tables=tables, overrides=overrides, plant_terms=plant_terms)
+
+
+def _plant_terms(pl: dict, gravity, S0, masses, inertias, internal: float) -> dict:
+    """[plant] ground (bool), ground_height (m along −g), drag_linear (N·s/m), drag_angular
+    (N·m·s/rad): the plant FMU's optional terms (plant_fmu/README.md "Ground and drag"), checked
+    here as the plant checks them. Only the terms that are on are returned."""
+    terms = {}
+    ground = pl.get("ground", False)
+    if not isinstance(ground, bool):
+        raise ScenarioError("plant.ground", f"must be true or false, got {_fmtv(ground)}")
+    height = _num("plant.ground_height", pl.get("ground_height", 0.0), maximum=MAX_MAGNITUDE)
+    if height < -MAX_MAGNITUDE:
+        raise ScenarioError("plant.ground_height", f"must be >= {-MAX_MAGNITUDE:g}, got {height:g}")
+    if "ground_height" in pl and not ground:
+        raise ScenarioError("plant.ground_height", "needs plant.ground = true")
+    if ground:
+        gn = float(np.linalg.norm(gravity))
+        if not gn > 0:
+            raise ScenarioError("plant.ground", "needs a nonzero plant.gravity (it defines which way is up)")
+        up = -np.asarray(gravity, float) / gn
+        hgt = S0[:, layout.P] @ up - height
+        low = np.flatnonzero(hgt < -1e-9 * (1.0 + abs(height)))
+        if low.size:
+            i = int(low[0])
+            raise ScenarioError("plant.ground_height", f"agent {i + 1} starts {-hgt[i]:.6g} m below the ground "
+                                f"at {height:g} m")
+        terms.update(ground=True, ground_height=height)
+    # the plant refuses a drag whose time constant the internal step cannot resolve (RK4 is stable
+    # on x' = -x/T for h/T < 2.78; it asks h/T <= 2.5): said here first, naming the key
+    smallest = {"drag_linear": (lambda: float(np.min(masses)), "mass", "N·s/m"),
+                "drag_angular": (lambda: float(np.linalg.eigvalsh(np.asarray(inertias, float))[:, 0].min()),
+                                 "principal moment", "N·m·s/rad")}
+    for key, (low, what, unit) in smallest.items():
+        if key in pl:
+            c = _num(f"plant.{key}", pl[key], nonneg=True, maximum=MAX_MAGNITUDE)
+            lo = low() if c > 0 else 1.0
+            if c > 0 and c * internal / lo > 2.5:
+                raise ScenarioError(f"plant.{key}", f"{c:g} {unit} with the smallest {what} {lo:g} gives a time "
+                                    f"constant {lo / c:.3g} s, shorter than the internal step / 2.5 "
+                                    f"({internal:g} s / 2.5): use a smaller drag or plant.internal_step")
+            if c > 0:
+                terms[key] = c
+    return terms
 
 
 def _initial(ini: dict, N: int, graph, weighting):

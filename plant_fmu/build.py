@@ -51,6 +51,8 @@ UNITS = {  # name: SI base-unit exponents
     "N": dict(kg=1, m=1, s=-2),
     "N.m": dict(kg=1, m=2, s=-2),
     "s": dict(s=1),
+    "N.s/m": dict(kg=1, s=-1),
+    "N.m.s/rad": dict(kg=1, m=2, s=-1, rad=-1),
 }
 
 LOG_CATEGORIES = (

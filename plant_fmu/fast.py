@@ -187,6 +187,7 @@ class FleetFMU:
         self._vr_state = np.ascontiguousarray(layout.vr_state(n))
         self._vr_quat = np.ascontiguousarray(layout.vr_quat(n))
         self._vr_input = np.ascontiguousarray(layout.vr_input(n))
+        self._vr_contact = np.ascontiguousarray(layout.vr_contact(n))
         self._state = np.zeros((n, layout.N_STATE))
         self._quat = np.zeros((n, 4))
         self._u = np.zeros((n, 6))
@@ -244,9 +245,12 @@ class FleetFMU:
 
     # ------------------------------------------------------------------ setup
     def set_parameters(self, mass=None, J=None, p0=None, R0=None, q0=None, xi0=None, gravity=None,
-                       h_internal=None) -> None:
+                       h_internal=None, ground=None, ground_height=None, drag_linear=None,
+                       drag_angular=None) -> None:
         """Sets the parameters (before ``initialize``); None leaves the FMU's default
-        (m = 1, J = I, p0 = 0, q0 = identity, xi0 = 0, g = 0, h_internal = 1e-4)."""
+        (m = 1, J = I, p0 = 0, q0 = identity, xi0 = 0, g = 0, h_internal = 1e-4; no ground, no drag).
+        ``ground`` (bool), ``ground_height`` (m along −g), ``drag_linear`` (N·s/m) and ``drag_angular``
+        (N·m·s/rad) are the optional plant terms (README "Ground and drag")."""
         n = self.n
         vrs, vals = [], []
         if mass is not None:
@@ -275,6 +279,11 @@ class FleetFMU:
             vrs.append(layout.VR_GRAVITY); vals.append(_as_array(gravity, (3,), "gravity"))
         if h_internal is not None:
             vrs.append(np.array([layout.VR_H_INTERNAL], dtype=np.uint32)); vals.append(np.array([float(h_internal)]))
+        for vr, value in ((layout.VR_GROUND, None if ground is None else float(bool(ground))),
+                          (layout.VR_GROUND_HEIGHT, ground_height), (layout.VR_DRAG_LINEAR, drag_linear),
+                          (layout.VR_DRAG_ANGULAR, drag_angular)):
+            if value is not None:
+                vrs.append(np.array([vr], dtype=np.uint32)); vals.append(np.array([float(value)]))
         if vrs:
             self.set_real(np.concatenate(vrs), np.concatenate(vals))
 
@@ -321,6 +330,10 @@ class FleetFMU:
         if st >= fmi2Error:
             self._fail("fmi2GetReal", st)
         return self._state
+
+    def get_contact(self) -> np.ndarray:
+        """(n,) bool: which bodies rest on the ground (always False without a ground)."""
+        return self.get_real(self._vr_contact) != 0.0
 
     def get_quat(self) -> np.ndarray:
         """(n, 4) unit quaternions (w first, w >= 0) -- a view of a reused buffer."""

@@ -10,6 +10,7 @@ offset          variable             meaning
 3..11           ``body[i].R[r,c]``   rotation matrix, row-major (output)
 12..17          ``body[i].xi[k]``    body velocity [w; v] (output)
 18..21          ``body[i].q[k]``     quaternion, w first, w >= 0 (output)
+22              ``body[i].contact``  1 while resting on the ground, else 0 (output)
 30..35          ``body[i].u[k]``     body wrench [tau; f] (input)
 40              ``body[i].m``        mass (parameter)
 41..49          ``body[i].J[r,c]``   inertia, row-major (parameter)
@@ -18,7 +19,9 @@ offset          variable             meaning
 57..62          ``body[i].xi0[k]``   initial body velocity (parameter)
 ==============  ===================  ==========================================
 
-Globals: ``g[1..3]`` at 1..3 (gravity, world frame) and ``h_internal`` at 4.
+Globals: ``g[1..3]`` at 1..3 (gravity, world frame), ``h_internal`` at 4, and the optional plant
+terms (all 0 = off by default): ``ground`` at 5 (1 = a ground plane), ``ground_height`` at 6,
+``drag_linear`` at 7, ``drag_angular`` at 8.
 """
 from __future__ import annotations
 
@@ -33,12 +36,21 @@ MAX_BODIES = 100_000
 # p, R, xi: the block the controller consumes, laid out as controller.layout defines it
 OFF_P, OFF_R, OFF_XI, N_STATE = S_P, S_R, S_XI, S_WIDTH
 OFF_Q = 18
+OFF_CONTACT = 22
 OFF_U = 30
 OFF_M, OFF_J, OFF_P0, OFF_Q0, OFF_XI0 = 40, 41, 50, 53, 57
 
 VR_GRAVITY = np.array([1, 2, 3], dtype=np.uint32)
 VR_GRAVITY.flags.writeable = False
 VR_H_INTERNAL = 4
+VR_GROUND, VR_GROUND_HEIGHT, VR_DRAG_LINEAR, VR_DRAG_ANGULAR = 5, 6, 7, 8
+# (name, value reference, unit, description) of the optional plant terms (README "Ground and drag")
+TERMS = (
+    ("ground", VR_GROUND, "", "1: a ground plane perpendicular to g (contact model in README.md), 0: none"),
+    ("ground_height", VR_GROUND_HEIGHT, "m", "height of the ground plane along up = -g/|g|"),
+    ("drag_linear", VR_DRAG_LINEAR, "N.s/m", "linear drag on the body velocity: f = -drag_linear v"),
+    ("drag_angular", VR_DRAG_ANGULAR, "N.m.s/rad", "linear drag on the angular rate: tau = -drag_angular omega"),
+)
 
 _PARAM_BLOCKS = {"m": (OFF_M, 1), "J": (OFF_J, 9), "p0": (OFF_P0, 3), "q0": (OFF_Q0, 4), "xi0": (OFF_XI0, 6)}
 
@@ -69,6 +81,11 @@ def vr_state(n: int) -> np.ndarray:
 def vr_quat(n: int) -> np.ndarray:
     """(n*4,) uint32: quaternion outputs (w first) of every body."""
     return _block(n, OFF_Q, 4)
+
+
+def vr_contact(n: int) -> np.ndarray:
+    """(n,) uint32: the contact output (1 resting on the ground, 0 not) of every body."""
+    return _block(n, OFF_CONTACT, 1)
 
 
 def vr_input(n: int) -> np.ndarray:
@@ -111,6 +128,7 @@ _BODY_VARS = (
     (OFF_R, 9, "R", "output", ("",) * 9, "rotation matrix body->world, row-major"),
     (OFF_XI, 6, "xi", "output", ("rad/s",) * 3 + ("m/s",) * 3, "body-frame velocity [omega; v]"),
     (OFF_Q, 4, "q", "output", ("",) * 4, "unit quaternion of R (w first, w >= 0)"),
+    (OFF_CONTACT, 1, "contact", "output", ("",), "1 while resting on the ground plane, else 0"),
     (OFF_U, 6, "u", "input", ("N.m",) * 3 + ("N",) * 3, "body-frame wrench [torque; force]"),
     (OFF_M, 1, "m", "parameter", ("kg",), "mass"),
     (OFF_J, 9, "J", "parameter", ("kg.m2",) * 9, "inertia about the centre of mass, body frame, row-major"),
@@ -158,6 +176,9 @@ def variables(n: int):
                    description=f"gravity, world frame, {axis} component (every body)")
     yield dict(name="h_internal", vr=VR_H_INTERNAL, causality="parameter", variability="fixed", initial="exact",
                unit="s", start=1e-4, description="fixed internal integration step (RKMK4 on SE(3))")
+    for name, vr, unit, desc in TERMS:
+        yield dict(name=name, vr=vr, causality="parameter", variability="fixed", initial="exact", unit=unit,
+                   start=0.0, description=desc)
     for b in range(n):
         base = body_base(b)
         for offset, size, short, kind, units, desc in _BODY_VARS:
@@ -168,7 +189,8 @@ def variables(n: int):
                 v = dict(name=f"body[{b + 1}].{short}{_suffix(short, size, k)}", vr=base + offset + k,
                          causality=kind, unit=units[k], description=f"body {b + 1}: {d}")
                 if kind == "output":
-                    v.update(variability="continuous", initial="calculated", start=None)
+                    v.update(variability="discrete" if short == "contact" else "continuous", initial="calculated",
+                             start=None)
                 elif kind == "input":
                     v.update(variability="continuous", initial=None, start=0.0)
                 else:
@@ -184,6 +206,9 @@ def variable_name(vr: int, n_bodies: int | None = None) -> str:
         return f"g[{vr}]"
     if vr == VR_H_INTERNAL:
         return "h_internal"
+    for name, tvr, _unit, _desc in TERMS:
+        if vr == tvr:
+            return name
     if vr >= BODY_BASE:
         b, off = divmod(vr - BODY_BASE, BODY_STRIDE)
         if b < MAX_BODIES and (n_bodies is None or b < n_bodies):

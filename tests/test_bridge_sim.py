@@ -20,7 +20,6 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from test_bridge_helpers import load  # noqa: E402
 
-from bridge.link import mavlink2 as M  # noqa: E402
 
 H = 0.004
 MASS = 2.4
@@ -61,68 +60,50 @@ def _gravity_scenario(extra=()):
 
 
 # ------------------------------------------------------------------------------------------ PX4
-def _px4_read_step(sock, mav, pending, timeout=10.0):
-    """Messages up to and including the next HIL_SENSOR (the last of a step)."""
-    got = []
-    while True:
-        while pending:
-            m = pending.pop(0)
-            got.append(m)
-            if m.get_type() == "HIL_SENSOR":
-                return got
-        r, _, _ = select.select([sock], [], [], timeout)
-        assert r, "no HIL_SENSOR from the simulator"
-        data = sock.recv(65536)
-        assert data, "simulator closed the connection"
-        pending.extend(mav.parse_buffer(data) or [])
-
-
 def test_px4_simulator_lockstep_1000_steps():
+    """A client that starts as PX4 does (lets the HIL_SENSOR stream advance its clock before it sends
+    any HIL_ACTUATOR_CONTROLS: Px4Client.start) reaches lockstep; then 1,000 exchanges."""
     from bridge.sim_px4 import Px4SimServer
+    from sim_clients import Px4Client
 
     sc = _gravity_scenario()
-    srv = Px4SimServer(sc, port=0, step=H, noise=True, seed=7)
+    srv = Px4SimServer(sc, port=0, step=H, noise=True, seed=7, lockstep_timeout=60.0)
     n, n_held = 1000, 200
     c_free = np.array([1e-4, -2e-4, 1e-4, 0.1, -0.05, -0.3])     # τ = c·MW (N·m), f = c·MW (N)
     f_body = c_free[3:] * MW[3:]
     with _Thread(srv):
-        port = srv.links[0].port
-        sock = socket.create_connection(("127.0.0.1", port), timeout=5)
-        mav = M.MAVLink(None, srcSystem=1, srcComponent=1)   # plays PX4 (system 1, autopilot)
-        pending, sensors, states, gps, other = [], [], [], [], []
+        cl = Px4Client(srv.links[0].port)
         quiet_checks = 0
         try:
+            start = cl.start(start_after=0.02)          # streamed steps, then one answer
+            k0 = sum(m.get_type() == "HIL_SENSOR" for m in start)
             for k in range(n):
-                step = _px4_read_step(sock, mav, pending)
-                for m in step:
-                    t = m.get_type()
-                    (sensors if t == "HIL_SENSOR" else states if t == "HIL_STATE_QUATERNION"
-                     else gps if t == "HIL_GPS" else other).append(m)
-                assert sensors[-1].time_usec == k * 4000
-                if k in (5, 300, 700):   # lockstep: nothing of step k+1 before our reply
-                    r, _, _ = select.select([sock], [], [], 0.1)
-                    if r:
-                        pending.extend(mav.parse_buffer(sock.recv(65536)) or [])
-                    assert not any(m.get_type() in ("HIL_SENSOR", "HIL_STATE_QUATERNION") for m in pending)
+                if k in (5, 300, 700):   # lockstep: nothing of the next step before our reply
+                    cl.drain(0.1)
+                    assert cl.clock_us == (k0 + k) * 4000
                     quiet_checks += 1
                 armed = k >= n_held
-                ctrl = list(c_free) + [0.0] * 10 if armed else [0.0] * 16
-                mode = M.MAV_MODE_FLAG_SAFETY_ARMED | M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED if armed else 0
-                sock.sendall(mav.hil_actuator_controls_encode(k * 4000, ctrl, mode, 1).pack(mav))
-                mav.seq = (mav.seq + 1) & 0xFF
-            step = _px4_read_step(sock, mav, pending)   # step n's sensors: the body did advance n times
-            sensors.append(step[-1])
-            states.extend(m for m in step if m.get_type() == "HIL_STATE_QUATERNION")
+                cl.send(list(c_free) if armed else [0.0] * 6, armed)
+                cl.step()
         finally:
-            sock.close()
+            cl.close()
+    msgs = cl.messages
+    sensors = [m for m in msgs if m.get_type() == "HIL_SENSOR"]
+    states = [m for m in msgs if m.get_type() == "HIL_STATE_QUATERNION"]
+    gps = [m for m in msgs if m.get_type() == "HIL_GPS"]
     st = srv.stats()
-    assert st["steps"] == n and st["malformed"] == 0 and quiet_checks == 3
-    # rates: one HIL_SENSOR and one HIL_STATE_QUATERNION per step, same stamps; HIL_GPS at 10 Hz
-    assert [m.time_usec for m in sensors] == [k * 4000 for k in range(n + 1)]
-    assert [m.time_usec for m in states] == [k * 4000 for k in range(n + 1)]
-    assert [m.time_usec for m in gps] == [k * 4000 for k in range(0, n, 25)]
-    assert all(m.fields_updated == 0x1FFF for m in sensors)
+    total = k0 + n
+    assert k0 >= 6 and st["streamed_steps"] == k0 - 2 and quiet_checks == 3       # ≥ 0.02 s of 4 ms steps, + 1
+    assert st["steps"] == total - 1 and st["malformed"] == 0 and st["ignored"] == 0
+    assert st["lockstep_timeouts"] == 0
+    # rates: one HIL_SENSOR and one HIL_STATE_QUATERNION per step, stamps (k+1)·h (never 0); HIL_GPS at 10 Hz
+    assert [m.time_usec for m in sensors] == [(k + 1) * 4000 for k in range(total)]
+    assert [m.time_usec for m in states] == [(k + 1) * 4000 for k in range(total)]
+    assert [m.time_usec - srv.epoch_us for m in gps] == [(k + 1) * 4000 for k in range(0, total, 25)]
+    assert srv.epoch_us > 1_600_000_000 * 10 ** 6                # HIL_GPS time_usec is UTC, not near 1970
+    assert all(m.fields_updated == 0x1BFF and m.id == 0 for m in sensors)   # no differential pressure
     assert all(m.fix_type == 3 and m.satellites_visible >= 6 for m in gps)
+    F = k0 + n_held                                  # the first state after the first armed reply
 
     q = np.array([m.attitude_quaternion for m in states], dtype=float)
     assert np.allclose(np.linalg.norm(q, axis=1), 1, atol=1e-6)
@@ -134,7 +115,7 @@ def test_px4_simulator_lockstep_1000_steps():
     mag = np.array([[m.xmag, m.ymag, m.zmag] for m in sensors])
     rates = np.array([[m.rollspeed, m.pitchspeed, m.yawspeed] for m in states])
     sig_a, sig_g = 4e-3 / math.sqrt(H), 3.4e-4 / math.sqrt(H)
-    held, free = slice(0, n_held + 1), slice(n_held + 1, n + 1)
+    held, free = slice(0, F), slice(F, total)
     # accelerometer = specific force: −Rᵀg on the ground (z ≈ −9.81 when level), f/m in flight
     e_held = acc[held] - np.array([-(R.T @ G) for R in Rs[held]])
     e_free = acc[free] - f_body / MASS
@@ -146,19 +127,19 @@ def test_px4_simulator_lockstep_1000_steps():
     assert np.all(np.abs(e_mag.std(axis=0) / 5e-3 - 1) < 0.2)
     # rigid-body physics in the frames: ω̇ = J⁻¹(τ − ω×Jω) (body), v̇ = R f/m + g (NED)
     tau = c_free[:3] * MW[:3]
-    om = rates[n_held + 1:]
+    om = rates[F:]
     wd_pred = np.array([np.linalg.solve(J, tau - np.cross(w, J @ w)) for w in om[:-1]])
     wd_meas = np.diff(om, axis=0) / H
     assert np.abs(wd_meas - wd_pred).max() < 2e-3 * np.abs(wd_pred).max() + 1e-4
     v = np.array([[m.vx, m.vy, m.vz] for m in states], dtype=float) / 100     # cm/s -> m/s
     a_ned = np.array([R @ (f_body / MASS) + G for R in Rs])
-    v_pred = np.concatenate([[0.0], np.cumsum(0.5 * (a_ned[n_held + 1:-1, 2] + a_ned[n_held + 2:, 2]) * H)])
-    assert np.all(np.abs(v[n_held + 1:, 2] - v[n_held + 1, 2] - v_pred) <= 0.03)    # down is +z, cm quantisation
+    v_pred = np.concatenate([[0.0], np.cumsum(0.5 * (a_ned[F:-1, 2] + a_ned[F + 1:, 2]) * H)])
+    assert np.all(np.abs(v[F:, 2] - v[F, 2] - v_pred) <= 0.03)    # down is +z, cm quantisation
     assert v[-1, 2] > 1.0                                                            # it does fall (NED)
     # GPS agrees with the ground truth; positions and altitude in the documented geodetic frame
     by_t = {m.time_usec: m for m in states}
     for g in gps:
-        s = by_t[g.time_usec]
+        s = by_t[g.time_usec - srv.epoch_us]
         assert (g.lat, g.lon, g.alt) == (s.lat, s.lon, s.alt) and (g.vn, g.ve, g.vd) == (s.vx, s.vy, s.vz)
     p0 = sc.S0[0, 0:3]
     lat0 = LAT0 + math.degrees(p0[0] / RE)
@@ -166,8 +147,8 @@ def test_px4_simulator_lockstep_1000_steps():
     assert abs(states[0].lat - lat0 * 1e7) <= 1 and abs(states[0].lon - lon0 * 1e7) <= 1
     assert abs(states[0].alt - (ALT0 - p0[2]) * 1000) <= 1
     alt = np.array([m.alt for m in states]) / 1000.0
-    dz = -(alt[-1] - alt[n_held + 1])
-    assert abs(dz - np.sum(0.5 * (v[n_held + 1:-1, 2] + v[n_held + 2:, 2]) * H)) < 0.02
+    dz = -(alt[-1] - alt[F])
+    assert abs(dz - np.sum(0.5 * (v[F:-1, 2] + v[F + 1:, 2]) * H)) < 0.02
     # barometer: ISA pressure at the altitude, σ = 0.01 hPa; pressure_alt = the altitude
     p_isa = 1013.25 * (1 - 2.25577e-5 * alt) ** 5.25588
     e_p = np.array([m.abs_pressure for m in sensors]) - p_isa
@@ -177,20 +158,21 @@ def test_px4_simulator_lockstep_1000_steps():
 
 def test_px4_simulator_survives_garbage_and_reconnects():
     from bridge.sim_px4 import Px4SimServer
+    from sim_clients import Px4Client
 
-    srv = Px4SimServer(load(), port=0, step=H, noise=False)
+    srv = Px4SimServer(load(), port=0, step=H, noise=False, lockstep_timeout=60.0)
     with _Thread(srv):
-        port = srv.links[0].port
         for attempt in range(2):
-            sock = socket.create_connection(("127.0.0.1", port), timeout=5)
-            mav = M.MAVLink(None, srcSystem=1, srcComponent=1)
-            pending = []
-            s0 = _px4_read_step(sock, mav, pending)[-1]
-            sock.sendall(b"\xfd\x09garbage-not-mavlink" * 20)   # counted, skipped
-            sock.sendall(mav.hil_actuator_controls_encode(s0.time_usec, [0.0] * 16, 0, 1).pack(mav))
-            s1 = _px4_read_step(sock, mav, pending)[-1]
-            assert s1.time_usec == s0.time_usec + 4000
-            sock.close()
+            cl = Px4Client(srv.links[0].port)
+            try:
+                cl.start()
+                t0 = cl.clock_us
+                cl.sock.sendall(b"\xfd\x09garbage-not-mavlink" * 20)   # counted, skipped
+                cl.send([0.0] * 16, armed=False)
+                cl.step()
+                assert cl.clock_us == t0 + 4000
+            finally:
+                cl.close()
     assert srv.stats()["malformed"] > 0 and srv.stats()["connections"] == 2
 
 
@@ -310,9 +292,14 @@ def test_sim_cli_errors_are_one_line_exit_2():
     busy.listen(1)
     port = busy.getsockname()[1]
     try:
+        alloc = ["--set", 'bridge.mapping="allocation"']
         for args, key in ((["--sim-protocol", "px4"], "--sim-protocol"),
-                          (["--sim-protocol", "px4", "--scenario", HIL, "--sim-port", str(port)], "--sim-port"),
-                          (["--sim-protocol", "px4", "--scenario", HIL, "--sim-step", "0"], "--sim-step")):
+                          (["--sim-protocol", "px4", "--scenario", HIL, *alloc, "--sim-port", str(port)], "--sim-port"),
+                          (["--sim-protocol", "px4", "--scenario", HIL, *alloc, "--sim-step", "0"], "--sim-step"),
+                          (["--sim-protocol", "px4", "--scenario", HIL], "bridge.mapping"),   # direct: refused
+                          (["--sim-protocol", "ardupilot", "--scenario", HIL, "--count", "1"], "--count"),
+                          (["--sim-protocol", "ardupilot", "--scenario", HIL, "--write-params", "x.parm"],
+                           "--write-params")):    # gravity-free: no hover throttle
             r = subprocess.run([sys.executable, "-m", "cosim.cli", "vehicle", *args], capture_output=True, text=True,
                                timeout=120, cwd=str(ROOT))
             lines = r.stderr.strip().splitlines()

@@ -171,7 +171,7 @@ def test_overflowing_state_fails_the_step_without_crashing(unzipped):
 
 def test_unknown_value_references(unzipped):
     with Plant(unzipped) as p:
-        p.expect_error(p.slave.setReal, [5], [1.0], match="unknown value reference 5")
+        p.expect_error(p.slave.setReal, [9], [1.0], match="unknown value reference 9")
         p.init()
         bad = layout.body_base(N)  # first VR past the last body
         p.expect_error(p.slave.getReal, [1000, bad], match=f"unknown value reference {bad}")

@@ -192,7 +192,7 @@ def _master(spec: SweepSpec, scenario, controller: str, S0) -> Master:
             old.plant.close()
         _MASTERS.clear()
     plant = FmuPlant(scenario.masses, scenario.inertias, S0, scenario.gravity,
-                     scenario.internal_step, instance_name="sweep")
+                     scenario.internal_step, instance_name="sweep", terms=scenario.plant_terms)
     try:
         ctrl = make_controller(controller, scenario)
         ctrl.reset(None)

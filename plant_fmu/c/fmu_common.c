@@ -25,7 +25,7 @@ static const struct {
  * the FMI 2.0 and 3.0 layers' states apart; format is the layout of header + payload; checksum
  * is FNV-1a (64 bit) of the whole serialized state with the checksum field set to 0. */
 #define SERIAL_MAGIC "SE3SYNC\x02"
-#define SERIAL_FORMAT 2u
+#define SERIAL_FORMAT 3u
 
 typedef struct {
     char magic[8];
@@ -255,7 +255,7 @@ static FmuStatus fmu_get_float64(FmuInstance *c, const char *fn, const unsigned 
             FMU_LOG_ERROR(c, "%s: unknown value reference %u", fn, (unsigned)vr[k]);
             return FMU_ERROR;
         }
-        if (kind == VAR_OUTPUT && !d->q_valid && off + run > OFF_Q)
+        if (kind == VAR_OUTPUT && !d->q_valid && off < OFF_Q + 4 && off + run > OFF_Q)
             model_update_quaternions(d); /* quaternions are computed on demand */
         memcpy(values + k, p, run * sizeof(double));
     }

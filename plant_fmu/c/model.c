@@ -110,6 +110,13 @@ double *model_lookup(ModelData *d, unsigned int vr, int *kind)
         *kind = VAR_PARAMETER;
         return &d->h_internal;
     }
+    switch (vr) {
+    case VR_GROUND: *kind = VAR_PARAMETER; return &d->ground;
+    case VR_GROUND_HEIGHT: *kind = VAR_PARAMETER; return &d->ground_height;
+    case VR_DRAG_LINEAR: *kind = VAR_PARAMETER; return &d->drag_linear;
+    case VR_DRAG_ANGULAR: *kind = VAR_PARAMETER; return &d->drag_angular;
+    default: break;
+    }
     if (vr < VR_BODY_BASE) return NULL;
     {
         const unsigned int k = vr - VR_BODY_BASE;
@@ -165,6 +172,13 @@ void model_variable_name(unsigned int vr, char *buf, size_t n)
         snprintf(buf, n, "h_internal");
         return;
     }
+    {
+        static const char *const names[] = {"ground", "ground_height", "drag_linear", "drag_angular"};
+        if (vr >= VR_GROUND && vr <= VR_DRAG_ANGULAR) {
+            snprintf(buf, n, "%s", names[vr - VR_GROUND]);
+            return;
+        }
+    }
     if (vr >= VR_BODY_BASE) {
         const unsigned int k = vr - VR_BODY_BASE;
         const unsigned int b = k / VR_BODY_STRIDE, off = k % VR_BODY_STRIDE;
@@ -176,7 +190,8 @@ void model_variable_name(unsigned int vr, char *buf, size_t n)
                 return;
             }
             if (off < OFF_Q) { snprintf(buf, n, "body[%u].xi[%u]", i, off - OFF_XI + 1); return; }
-            if (off < N_OUT) { snprintf(buf, n, "body[%u].q[%u]", i, off - OFF_Q + 1); return; }
+            if (off < OFF_CONTACT) { snprintf(buf, n, "body[%u].q[%u]", i, off - OFF_Q + 1); return; }
+            if (off == OFF_CONTACT) { snprintf(buf, n, "body[%u].contact", i); return; }
             if (off >= OFF_U && off < OFF_U + N_U) { snprintf(buf, n, "body[%u].u[%u]", i, off - OFF_U + 1); return; }
             if (off >= OFF_PAR && off < OFF_PAR + N_PAR) {
                 const unsigned int j = off - OFF_PAR;
@@ -270,6 +285,8 @@ static void sym3_inverse(const double A0[9], double Ai[9])
 #define J_SYM_TOL     1e-9   /* relative asymmetry allowed in J */
 #define J_TRI_TOL     1e-9   /* relative slack in the triangle inequality */
 #define J_PD_TOL      1e-14  /* smallest eigenvalue must exceed this times the largest */
+#define GROUND_TOL    1e-9   /* m (relative to 1 + |ground_height|): "on the ground" at the start */
+#define DRAG_STEP_MAX 2.5    /* h_internal / T of the fastest drag time constant */
 
 static int validate_body(const ModelData *d, int b, ModelLogger log, void *env, double Jsym[9],
                          double q0n[4], int *normalised)
@@ -358,6 +375,96 @@ static int validate_body(const ModelData *d, int b, ModelLogger log, void *env, 
     return ok;
 }
 
+/* ------------------------------------------------------------------ optional terms: ground and drag */
+
+/* the upward unit vector -g/|g| (only meaningful with g != 0) */
+static void up_vector(const ModelData *d, double e[3])
+{
+    const double gn = sqrt(d->g[0] * d->g[0] + d->g[1] * d->g[1] + d->g[2] * d->g[2]);
+    for (int k = 0; k < 3; k++) e[k] = gn > 0.0 ? -d->g[k] / gn : 0.0;
+}
+
+/* height of the centre of mass above the ground plane */
+static double height_above_ground(const ModelData *d, const double e[3], const double p[3])
+{
+    return e[0] * p[0] + e[1] * p[1] + e[2] * p[2] - d->ground_height;
+}
+
+/* a body starts resting on the ground when it is on the plane (within GROUND_TOL) and at rest */
+static int starts_in_contact(const ModelData *d, const Body *B)
+{
+    double e[3];
+    if (d->ground != 1.0) return 0;
+    up_vector(d, e);
+    if (height_above_ground(d, e, B->par + PAR_P0) > GROUND_TOL * (1.0 + fabs(d->ground_height))) return 0;
+    for (int k = 0; k < 6; k++)
+        if (B->par[PAR_XI0 + k] != 0.0) return 0;
+    return 1;
+}
+
+/* the global terms: ground in {0, 1} (1 needs g != 0), drag coefficients >= 0 */
+static int validate_terms(const ModelData *d, ModelLogger log, void *env)
+{
+    int ok = 1;
+    if (!is_finite(d->ground) || (d->ground != 0.0 && d->ground != 1.0)) {
+        LOGF(MODEL_ERROR, "logStatusError", "ground = %g must be 0 (no ground) or 1 (a ground plane)", d->ground);
+        ok = 0;
+    } else if (d->ground == 1.0 && d->g[0] == 0.0 && d->g[1] == 0.0 && d->g[2] == 0.0) {
+        LOGF(MODEL_ERROR, "logStatusError", "ground = 1 needs a nonzero gravity g (it defines which way is up)");
+        ok = 0;
+    }
+    if (!is_finite(d->ground_height)) {
+        LOGF(MODEL_ERROR, "logStatusError", "ground_height = %g is not finite", d->ground_height);
+        ok = 0;
+    }
+    if (!is_finite(d->drag_linear) || !(d->drag_linear >= 0.0)) {
+        LOGF(MODEL_ERROR, "logStatusError", "drag_linear = %g must be finite and >= 0", d->drag_linear);
+        ok = 0;
+    }
+    if (!is_finite(d->drag_angular) || !(d->drag_angular >= 0.0)) {
+        LOGF(MODEL_ERROR, "logStatusError", "drag_angular = %g must be finite and >= 0", d->drag_angular);
+        ok = 0;
+    }
+    return ok;
+}
+
+/* per body, with J symmetrised: the start is not below the ground, and the drag's time constants are
+ * resolved by the internal step (RK4 is stable on x' = -x/T for h/T < 2.78; DRAG_STEP_MAX keeps a margin) */
+static int validate_body_terms(const ModelData *d, int b, const double Jsym[9], ModelLogger log, void *env)
+{
+    const Body *B = &d->body[b];
+    int ok = 1;
+    if (d->ground == 1.0) {
+        double e[3], hgt;
+        up_vector(d, e);
+        hgt = height_above_ground(d, e, B->par + PAR_P0);
+        if (hgt < -GROUND_TOL * (1.0 + fabs(d->ground_height))) {
+            LOGF(MODEL_ERROR, "logStatusError", "body[%d].p0 is %g m below the ground (ground_height = %g)", b + 1,
+                 -hgt, d->ground_height);
+            ok = 0;
+        }
+    }
+    if (d->drag_linear > 0.0 && d->drag_linear / B->par[PAR_M] * d->h_internal > DRAG_STEP_MAX) {
+        LOGF(MODEL_ERROR, "logStatusError",
+             "drag_linear = %g with body[%d].m = %g gives a time constant %g s, too short for h_internal = %g "
+             "(h_internal / T must be <= %g)", d->drag_linear, b + 1, B->par[PAR_M],
+             B->par[PAR_M] / d->drag_linear, d->h_internal, DRAG_STEP_MAX);
+        ok = 0;
+    }
+    if (d->drag_angular > 0.0) {
+        double ev[3];
+        sym3_eigenvalues(Jsym, ev);
+        if (d->drag_angular / ev[0] * d->h_internal > DRAG_STEP_MAX) {
+            LOGF(MODEL_ERROR, "logStatusError",
+                 "drag_angular = %g with body[%d].J (smallest principal moment %g) gives a time constant %g s, too "
+                 "short for h_internal = %g (h_internal / T must be <= %g)", d->drag_angular, b + 1, ev[0],
+                 ev[0] / d->drag_angular, d->h_internal, DRAG_STEP_MAX);
+            ok = 0;
+        }
+    }
+    return ok;
+}
+
 static void set_initial_state(Body *B, const double q0n[4])
 {
     const double *par = B->par;
@@ -382,10 +489,13 @@ int model_initialize(ModelData *d, ModelLogger log, void *env)
              H_INTERNAL_MIN);
         ok = 0;
     }
+    const int terms_ok = validate_terms(d, log, env) && ok;
+    if (!terms_ok) ok = 0;
     for (int b = 0; b < N_BODIES; b++) {
         double Jsym[9], q0n[4];
         int normalised;
         if (!validate_body(d, b, log, env, Jsym, q0n, &normalised)) ok = 0;
+        else if (terms_ok && !validate_body_terms(d, b, Jsym, log, env)) ok = 0;
     }
     if (!ok) return MODEL_ERROR;
     for (int b = 0; b < N_BODIES; b++) {
@@ -404,6 +514,7 @@ int model_initialize(ModelData *d, ModelLogger log, void *env)
         B->minv = 1.0 / B->par[PAR_M];
         sym3_inverse(Jsym, B->Jinv);
         set_initial_state(B, q0n);
+        B->out[OFF_CONTACT] = starts_in_contact(d, B) ? 1.0 : 0.0;
     }
     d->q_valid = 1;
     return warn ? MODEL_WARNING : MODEL_OK;
@@ -419,6 +530,7 @@ void model_preview(ModelData *d)
         if (nq > 0.0 && is_finite(nq))
             for (int k = 0; k < 4; k++) q0n[k] = q[k] / nq;
         set_initial_state(B, q0n);
+        B->out[OFF_CONTACT] = starts_in_contact(d, B) ? 1.0 : 0.0;
     }
     d->q_valid = 1;
 }
@@ -533,6 +645,68 @@ static void step_pair(Body *a, Body *b, const double *gw, double hs, long long n
 }
 #endif
 
+/* one body at a time with the optional terms (drag in the acceleration; the ground between substeps) */
+typedef struct {
+    double J[9], Jinv[9], minv, u[6], cv, cw;
+} BodyTerms;
+
+#define REAL double
+#define SFX(name) name##_x
+#define BODYT BodyTerms
+#define EXPC exp_coeffs
+#define RKMK4_DRAG 1
+#include "rkmk4.h"
+#undef RKMK4_DRAG
+#undef REAL
+#undef SFX
+#undef BODYT
+#undef EXPC
+
+/*
+ * n substeps of length hs of body B with drag and/or the ground (see README.md, "Ground and drag"):
+ * - resting (contact = 1): the support balances gravity, thrust and torque (sticking contact: no
+ *   sliding, no rotation) while the net force along up, e . R f - m |g|, is <= 0; nothing moves;
+ * - otherwise an RKMK4 substep; if it ends below the plane, the body is put back on the plane
+ *   along e and stopped (perfectly inelastic touchdown, no bounce) and rests from then on.
+ * The check is on every substep's end point and the ground is a half-space, so no step size lets
+ * the body pass through it.
+ */
+static void step_body_terms(const ModelData *d, Body *B, const double *gw, double hs, long long n)
+{
+    BodyTerms T;
+    double *p = B->out + OFF_P, *R = B->out + OFF_R, *xi = B->out + OFF_XI;
+    double e[3] = {0.0, 0.0, 0.0}, mg = 0.0;
+    const int ground = d->ground == 1.0;
+    memcpy(T.J, B->J, sizeof T.J);
+    memcpy(T.Jinv, B->Jinv, sizeof T.Jinv);
+    memcpy(T.u, B->u, sizeof T.u);
+    T.minv = B->minv;
+    T.cv = d->drag_linear;
+    T.cw = d->drag_angular;
+    if (ground) {
+        up_vector(d, e);
+        mg = B->par[PAR_M] * sqrt(d->g[0] * d->g[0] + d->g[1] * d->g[1] + d->g[2] * d->g[2]);
+    }
+    for (long long s = 0; s < n; s++) {
+        if (B->out[OFF_CONTACT] != 0.0) {
+            const double *f = B->u + 3;
+            double fup = 0.0;
+            for (int r = 0; r < 3; r++) fup += e[r] * (R[3 * r] * f[0] + R[3 * r + 1] * f[1] + R[3 * r + 2] * f[2]);
+            if (!(fup > mg)) continue; /* held by the ground */
+            B->out[OFF_CONTACT] = 0.0; /* lift-off */
+        }
+        rkmk4_step_x(&T, p, R, xi, gw, hs);
+        if (ground) {
+            const double hgt = height_above_ground(d, e, p);
+            if (hgt < 0.0) { /* touchdown during this substep */
+                for (int k = 0; k < 3; k++) p[k] -= hgt * e[k];
+                for (int k = 0; k < 6; k++) xi[k] = 0.0;
+                B->out[OFF_CONTACT] = 1.0;
+            }
+        }
+    }
+}
+
 int model_check_step(const ModelData *d, double h, ModelLogger log, void *env)
 {
     const double ratio = h / d->h_internal;
@@ -560,6 +734,10 @@ int model_do_step(ModelData *d, double h, ModelLogger log, void *env)
     n = n_d < 1.0 ? 1 : (long long)n_d;
     hs = h / (double)n;
     int b = 0;
+    if (d->ground != 0.0 || d->drag_linear != 0.0 || d->drag_angular != 0.0) {
+        /* the optional terms: one body at a time through step_body_terms (off, nothing below changes) */
+        for (; b < N_BODIES; b++) step_body_terms(d, &d->body[b], gw, hs, n);
+    }
 #ifdef SE3SYNC_PAIRS
     for (; b + 1 < N_BODIES; b += 2) step_pair(&d->body[b], &d->body[b + 1], gw, hs, n);
 #endif
@@ -608,6 +786,12 @@ int model_validate_state(const ModelData *d, int initialized, int may_be_non_fin
         LOGF(MODEL_ERROR, "logStatusError", "q_valid = %d is not 0 or 1", d->q_valid);
         return MODEL_ERROR;
     }
+    if (!is_finite(d->ground) || !is_finite(d->ground_height) || !is_finite(d->drag_linear)
+        || !is_finite(d->drag_angular)) {
+        LOGF(MODEL_ERROR, "logStatusError", "ground, ground_height, drag_linear or drag_angular is not finite");
+        return MODEL_ERROR;
+    }
+    if (initialized && !validate_terms(d, log, env)) return MODEL_ERROR;
     for (int b = 0; b < N_BODIES; b++) {
         const Body *B = &d->body[b];
         const int i = b + 1;
@@ -621,6 +805,11 @@ int model_validate_state(const ModelData *d, int initialized, int may_be_non_fin
             double Jsym[9], Jinv[9], q0n[4], minv;
             int normalised;
             if (!validate_body(d, b, log, env, Jsym, q0n, &normalised)) return MODEL_ERROR;
+            if (!validate_body_terms(d, b, Jsym, log, env)) return MODEL_ERROR;
+            if (B->out[OFF_CONTACT] != 0.0 && B->out[OFF_CONTACT] != 1.0) {
+                LOGF(MODEL_ERROR, "logStatusError", "body[%d].contact = %g is not 0 or 1", i, B->out[OFF_CONTACT]);
+                return MODEL_ERROR;
+            }
             sym3_inverse(Jsym, Jinv);
             minv = 1.0 / B->par[PAR_M];
             if (memcmp(Jsym, B->J, sizeof Jsym) != 0 || memcmp(Jinv, B->Jinv, sizeof Jinv) != 0

@@ -30,6 +30,12 @@
 /* ---- value reference layout (fixed contract, mirrored by plant_fmu/layout.py) ---- */
 #define VR_GRAVITY      1u   /* g[1..3] at 1..3 */
 #define VR_H_INTERNAL   4u
+/* optional plant terms (all off by default; off, the model runs exactly the code it ran without them) */
+#define VR_GROUND        5u  /* 1: a ground plane (needs g != 0: "up" is -g/|g|), 0: none */
+#define VR_GROUND_HEIGHT 6u  /* the plane's height along up, m */
+#define VR_DRAG_LINEAR   7u  /* linear drag on the body velocity, N s/m */
+#define VR_DRAG_ANGULAR  8u  /* linear drag on the angular rate, N m s/rad */
+#define VR_GLOBAL_LAST   8u
 #define VR_BODY_BASE    1000u
 #define VR_BODY_STRIDE  100u
 
@@ -37,7 +43,8 @@
 #define OFF_R    3   /* R[9] row-major */
 #define OFF_XI   12  /* xi[6] = [w; v] */
 #define OFF_Q    18  /* q[4], w first, w >= 0 */
-#define N_OUT    22
+#define OFF_CONTACT 22 /* 1 while the body rests on the ground, else 0 */
+#define N_OUT    23
 #define OFF_U    30  /* u[6] = [tau; f] */
 #define N_U      6
 #define OFF_PAR  40  /* parameters: m, J[9], p0[3], q0[4], xi0[6] */
@@ -79,6 +86,10 @@ typedef struct {
 typedef struct {
     double g[3];        /* gravity, world frame */
     double h_internal;  /* internal integration step */
+    double ground;      /* 1: ground plane on, 0: off */
+    double ground_height; /* the plane: {p : e_up . p = ground_height}, e_up = -g/|g| */
+    double drag_linear; /* f_drag = -drag_linear v (body frame) */
+    double drag_angular; /* tau_drag = -drag_angular w */
     double time;        /* current time */
     int q_valid;        /* quaternion outputs up to date with R */
     Body body[N_BODIES];

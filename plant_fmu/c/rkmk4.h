@@ -7,6 +7,8 @@
  *
  * Before including: REAL, SFX(name) (the instance's function names), BODYT (a struct with J[9],
  * Jinv[9], minv and u[6] of REAL) and EXPC(th2, &A, &B, &C) (the exp coefficients for REAL).
+ * With RKMK4_DRAG defined, BODYT also has cv and cw (the drag coefficients) and the acceleration
+ * includes -cv v / m and J^-1 (-cw w); the instances without it are the same code as before.
  */
 static ALWAYS_INLINE void SFX(cross)(const REAL a[3], const REAL b[3], REAL c[3])
 {
@@ -40,11 +42,22 @@ static ALWAYS_INLINE void SFX(accel)(const BODYT *B, const REAL xi[6], const REA
     t[0] += B->u[0];
     t[1] += B->u[1];
     t[2] += B->u[2];
+#ifdef RKMK4_DRAG
+    /* the optional drag terms (only in the instance compiled with RKMK4_DRAG): -c_w w, -c_v v */
+    t[0] -= B->cw * w[0];
+    t[1] -= B->cw * w[1];
+    t[2] -= B->cw * w[2];
+#endif
     SFX(mat3_vec)(B->Jinv, t, a);
     SFX(cross)(v, w, vw);
     a[3] = vw[0] + B->u[3] * im;
     a[4] = vw[1] + B->u[4] * im;
     a[5] = vw[2] + B->u[5] * im;
+#ifdef RKMK4_DRAG
+    a[3] -= B->cv * v[0] * im;
+    a[4] -= B->cv * v[1] * im;
+    a[5] -= B->cv * v[2] * im;
+#endif
     if (gb) {
         a[3] += gb[0];
         a[4] += gb[1];
