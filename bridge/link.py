@@ -233,6 +233,11 @@ class Peer:
         self._pending_sig = (stream, ts)
         return True
 
+    def authentic(self, pkt: bytes) -> bool:
+        """Without a key always; with one: signed with it (or an allowed unsigned HEARTBEAT);
+        a refusal is counted (``unsigned``, ``bad_signature``). Touches no replay window."""
+        return self._authentic(pkt, packet_ids(pkt)[3], bool(pkt[2] & IFLAG_SIGNED))
+
     def _authentic(self, pkt: bytes, msgid: int, signed: bool) -> bool:
         """With a key: signed (or an allowed unsigned HEARTBEAT) and the signature right; counted
         otherwise. The signature is verified here, before pymavlink records the stream's
