@@ -382,6 +382,7 @@ class MavlinkPlant:
         """Waits for a HEARTBEAT and a first valid state from every vehicle (lockstep: the state
         at t = 0). Raises ConnectError naming the vehicles that did not connect."""
         t_end = time.monotonic() + self.connect_timeout
+        t_settle = None
         armed_sent = 0.0
         while True:
             now = time.monotonic()
@@ -397,6 +398,13 @@ class MavlinkPlant:
             ready = [v.connected and v.tracker.have and (not self.lockstep or v.tracker.time_usec == 0)
                      for v in self.vehicles]
             if all(ready):
+                # a second source seen: listen a little longer for the evidence (one stray
+                # packet costs half a second, never a refusal)
+                if t_settle is None:
+                    t_settle = now + 0.5
+                if any(v.others for v in self.vehicles) and now < t_settle:
+                    self.poll(0.01)
+                    continue
                 break
             if now >= t_end:
                 missing = [v for v, r in zip(self.vehicles, ready) if not r]
