@@ -196,7 +196,8 @@ class AgentNode:
         except BaseException:
             self.vehicle.close()
             raise
-        self.vehicle.add_reader(self.link.sock.fileno(), self.link.poll)
+        for fd in self.link.fds():
+            self.vehicle.add_reader(fd, self.link.poll)
         self.vehicle.drain_per_step = True
         self.lockstep_timeout = float(cfg.lockstep_timeout)
         design = sc.design if law == "hybrid" else None

@@ -80,7 +80,8 @@ RESTART_S = 10.0                                           # a stamp this far ba
 RESTART_SAMPLES = 3                                        # …if this many such samples in a row say so
 FUTURE_S = 0.02            # how far (s) a sample may be stamped ahead of the receiver's own step
 FUTURE_MIN_STEPS = 2       # …and at least this many steps (lockstep neighbours are ≤ 1 step ahead)
-POLL_BUDGET = 0.25         # a poll reads for at most this fraction of a step (then the rest waits)
+POLL_BUDGET = 0.25         # a poll reads the neighbours' sockets for at most this fraction of a step
+JUNK_BUDGET = 0.1          # …and the catch-all socket (strangers, junk) for at most this fraction
 NAN21 = [math.nan] + [0.0] * 20                            # covariance unknown (first element NaN)
 _TYPES = {ID_ODOMETRY: mavlink2.MAVLink_odometry_message,
           ID_DEBUG_FLOAT_ARRAY: mavlink2.MAVLink_debug_float_array_message}
@@ -229,6 +230,7 @@ class AgentLink:
         self.restart_steps = _steps(RESTART_S, h)
         self.future_steps = max(FUTURE_MIN_STEPS, _steps(FUTURE_S, h))
         self.poll_budget_s = POLL_BUDGET * h
+        self.junk_budget_s = JUNK_BUDGET * h
         self._own_step = 0          # the receiver's own step (`set_step`)
         self._limit = self.future_steps
         self._timeline = None       # (Unix time of step 0, h): real time, the step from the clock
@@ -240,9 +242,25 @@ class AgentLink:
         self.counters = counters if counters is not None else Counters()
         self.peer = Peer(self.id, AGENT_COMPONENT, self.counters, key=key,
                          signing_state=signing_state)
+        ep = f"udpin:{host}:{port}"
         try:
-            self.sock = UdpSocket(f"udpin:{host}:{port}")
+            UdpSocket(ep).close()        # free? (the sockets below share it among themselves)
+            self.sock = UdpSocket(ep, reuse_port=True)
         except OSError as exc:
+            raise Se3SyncError(f"network: agent {self.id}'s endpoint {host}:{port} cannot be "
+                               f"bound: {exc.strerror or exc}") from None
+        # one more socket per neighbour on the same port, connected to its endpoint: the kernel
+        # hands it that neighbour's datagrams and nothing else, so junk from anywhere else
+        # (which lands on self.sock) can fill only its own buffer, never delay or crowd out a
+        # neighbour's samples. Where the kernel does not prefer connected sockets, the
+        # neighbours' datagrams land on self.sock and are taken there as well.
+        self._nsock = {}
+        try:
+            for j, a in self.addr.items():
+                if a[0] != "0.0.0.0":
+                    self._nsock[j] = UdpSocket(ep, reuse_port=True, connect_to=a)
+        except OSError as exc:
+            self.close()
             raise Se3SyncError(f"network: agent {self.id}'s endpoint {host}:{port} cannot be "
                                f"bound: {exc.strerror or exc}") from None
         self._held: dict = {j: None for j in self.neighbours}
@@ -373,14 +391,27 @@ class AgentLink:
     # ------------------------------------------------------------------ in
     def poll(self, limit: int | None = None) -> int:
         """Reads what is pending and takes what is valid: datagrams in batches of ``limit``
-        (default the drain budget) until the socket is empty or ``POLL_BUDGET`` of a step has
-        been spent (the rest waits for the next poll). Never raises on network input. Returns
-        the number of datagrams read."""
+        (default the drain budget), from each neighbour's socket until it is empty or
+        ``POLL_BUDGET`` of a step has been spent, then from the catch-all socket for at most
+        ``JUNK_BUDGET`` of a step (the rest waits for the next poll). Never raises on network
+        input. Returns the number of datagrams read."""
         self._limit = self.current_step() + self.future_steps
-        return receive_datagrams(self.sock, self.counters, self._on_packet,
-                                 self.drain_budget if limit is None else int(limit),
-                                 deadline=time.monotonic() + self.poll_budget_s,
-                                 accept_from=self._accept_from)
+        lim = self.drain_budget if limit is None else int(limit)
+        t = time.monotonic()
+        deadline = t + self.poll_budget_s
+        n = 0
+        for s in self._nsock.values():          # the neighbours first: never behind junk
+            n += receive_datagrams(s, self.counters, self._on_packet, lim, deadline=deadline,
+                                   accept_from=self._accept_from)
+        # the catch-all: what is left of its budget (the rest of a flood waits, then the kernel
+        # drops it and `kernel_drops` says how much)
+        return n + receive_datagrams(self.sock, self.counters, self._on_packet, lim,
+                                     deadline=min(deadline, time.monotonic() + self.junk_budget_s),
+                                     accept_from=self._accept_from)
+
+    def fds(self) -> list:
+        """The sockets to wait on (select) before a `poll`."""
+        return [self.sock.fileno(), *(s.fileno() for s in self._nsock.values())]
 
     receive = poll
 
@@ -611,6 +642,7 @@ class AgentLink:
         emulated losses included), packets and complete samples accepted from it, the newest
         step held and the nearest-rank p50/p99 of the recorded ages (steps)."""
         out = self.counters.as_dict()
+        # dropped by the kernel: on the catch-all socket (junk, strangers), and per neighbour
         out["kernel_drops"] = self.sock.kernel_drops()
         out["future_steps"] = self.future_steps
         out["agent"] = self.id
@@ -625,12 +657,16 @@ class AgentLink:
                              "age_p50_steps": _nearest_rank(self._ages[j], 50),
                              "age_p99_steps": _nearest_rank(self._ages[j], 99),
                              "rejected": int(sum(self._rej[j].values())),
+                             "kernel_drops": self._nsock[j].kernel_drops() if j in self._nsock
+                             else None,
                              "rejected_by_reason": dict(sorted(self._rej[j].items())),
                              **({"emulated_lost": self._emu_lost[j]} if j in self._emu else {})}
         out["links"] = links
         return out
 
     def close(self) -> None:
+        for s in getattr(self, "_nsock", {}).values():
+            s.close()
         self.sock.close()
 
     def __enter__(self):

@@ -434,7 +434,8 @@ class UdpSocket:
     """A non-blocking UDP socket. ``udpin``: bound to HOST:PORT, replies go to whoever talked last
     (or to an address the caller gives); ``udpout``: sends to HOST:PORT from an ephemeral port."""
 
-    def __init__(self, endpoint: str, rcvbuf: int = 1 << 20):
+    def __init__(self, endpoint: str, rcvbuf: int = 1 << 20, reuse_port: bool = False,
+                 connect_to=None):
         self.endpoint = endpoint
         self.mode, addr = parse_endpoint(endpoint)
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -444,7 +445,18 @@ class UdpSocket:
         except OSError:
             pass
         if self.mode == "udpin":
-            s.bind(addr)  # no SO_REUSEADDR: a port already in use is an error, not a silent split
+            # no SO_REUSEADDR: a port already in use is an error, not a silent split; only the
+            # inter-agent link shares its port between its own sockets (SO_REUSEPORT, after
+            # checking that the port is free: `AgentLink`)
+            if reuse_port:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+            try:
+                s.bind(addr)
+                if connect_to is not None:
+                    s.connect(connect_to)
+            except OSError:
+                s.close()
+                raise
             self.remote = None
         else:
             s.bind((addr[0] if addr[0] in ("127.0.0.1", "localhost") else "0.0.0.0", 0))

@@ -368,10 +368,13 @@ class MavlinkPlant:
         """Services the links for at most ``timeout`` seconds (returns after the first batch)."""
         r, _, _ = select.select(self._fds, [], [], max(0.0, timeout))
         now = time.monotonic()
+        called = []
         for fd in r:
             cb = self._readers.get(fd)
             if cb is not None:
-                cb()
+                if cb not in called:     # one reader may own several sockets
+                    called.append(cb)
+                    cb()
             else:
                 self._receive(fd, now)
         if self.signing is not None:

@@ -401,15 +401,39 @@ def test_a_poll_drains_by_time_not_by_count(closing):
     rx = AgentLink.from_scenario(sc, 1, drain_budget=16)
     closing.append(rx)
     for _ in range(40):
-        send_raw(sc, 1, b"\x00" + os.urandom(19))
+        send_raw(sc, 1, b"\x00" + os.urandom(19), frm=None)     # junk from a stranger
     time.sleep(0.05)
     assert rx.poll() == 40 and rx.stats()["drain_capped"] == 0   # batches of 16 until empty
     assert rx.stats()["malformed"] == 40                           # refused on the first byte
     for _ in range(40):
-        send_raw(sc, 1, b"\x00" + os.urandom(19))
+        send_raw(sc, 1, b"\x00" + os.urandom(19), frm=None)
     time.sleep(0.05)
-    rx.poll_budget_s = 0.0                                         # no time left: one batch
+    rx.poll_budget_s = rx.junk_budget_s = 0.0                      # no time left: one batch
     assert rx.poll() == 16 and rx.stats()["drain_capped"] == 1
+
+
+def test_junk_overflowing_its_socket_crowds_out_no_neighbour_sample(closing):
+    """Issue 29, 3: junk from strangers fills only the catch-all socket (the kernel hands each
+    neighbour's datagrams to a socket connected to it), so a flood the agent cannot read in time
+    is dropped by the kernel, counted, and every genuine sample is still there."""
+    sc = scenario()
+    rx = AgentLink.from_scenario(sc, 1)
+    closing.append(rx)
+    rx.set_step(100)
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    junk = b"\xfd" + bytes(200)
+    for _ in range(20_000):                         # far beyond the 1 MiB receive buffer
+        s.sendto(junk, endpoint(sc, 1))
+    s.close()
+    mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
+    for k in range(60, 100):
+        send_raw(sc, 1, sample_datagram(mav, k * H_US, float(k)))
+    rx.junk_budget_s = 0.0                          # the junk gets one batch per poll at most
+    assert poll_until(rx, lambda: rx.neighbour(2) is not None and rx.neighbour(2).step == 99)
+    st = rx.stats()
+    assert st["links"]["2"]["samples"] == 40 and st["links"]["2"]["rejected"] == 0, st
+    assert st["kernel_drops"] > 10_000                # the flood's loss, reported
+    assert st["links"]["2"]["kernel_drops"] == 0
 
 
 def test_freshness_follows_max_age_then_hold_then_failsafe_and_rejoins(closing):
