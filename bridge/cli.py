@@ -155,8 +155,10 @@ def register(sub) -> None:
                     "with the fields of `run`'s (final, samples, jumps, n_jumps, jump_bound, "
                     "design) plus per-link statistics; --log merges their logs into one that "
                     "`se3sync plot` reads. Ctrl-C or SIGTERM stops every child and still writes "
-                    "the merged outputs. Exit codes: 0 ok, 2 bad input, 5 an agent failed (its "
-                    "last error line is shown), 130 Ctrl-C, 143 SIGTERM.")
+                    "the merged outputs; the children die with the launcher. Exit codes: 0 ok, 2 "
+                    "bad input or a port of the swarm taken or already receiving traffic (one "
+                    "line naming it), 5 an agent failed (its last error line is shown), 130 "
+                    "Ctrl-C, 143 SIGTERM.")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--vehicles", choices=("loopback", "external"), default="external",
                    help="loopback: also start `se3sync vehicle` for the scenario; external "

@@ -193,6 +193,8 @@ class MavlinkPlant:
                             signing_state=self.signing)
                 tr = StateTracker(self.counters, cfg.stale_after, check_stale=not self.lockstep,
                                   fallback=not self.lockstep)
+                if self.lockstep:
+                    tr.max_time_usec = 0   # connect: the state at t = 0
                 v = _Vehicle(i, vs.system_id, sock, peer, tr)
                 self.vehicles.append(v)
                 self._route[sock.fileno()][vs.system_id] = v
@@ -508,6 +510,8 @@ class MavlinkPlant:
 
     def _advance_lockstep(self) -> None:
         target = (self.k + 1) * self.h_us
+        for v in self.vehicles:   # a state stamped after the step waited for is refused
+            v.tracker.max_time_usec = target
         t_start = time.monotonic()
         while True:
             waiting = [v for v in self.vehicles if v.tracker.time_usec is None or v.tracker.time_usec < target]

@@ -5,7 +5,13 @@ A message is rejected and counted when it is
 * ``nan``: any field not finite;
 * ``non_unit_quaternion``: | ‖q‖ − 1 | > 1e-3 (MAVLink carries float32, so ~1e-7 is normal);
 * ``out_of_order``: its time_usec is not newer than the last accepted one (an exact repeat is
-  counted as ``duplicate`` instead; a jump back of more than 10 s is a vehicle reboot and accepted);
+  counted as ``duplicate`` instead); a vehicle that rebooted stamps more than 10 s back and keeps
+  going from there: `REBOOT_STATES` such states in a row, each newer than the one before, are its
+  reboot (the last one is accepted, ``reboots``), one packet never is;
+* ``future``: real time, stamped further ahead of the last accepted state than the wall clock
+  has advanced since, by more than half of ``stale_after`` (a vehicle's clock runs with ours;
+  accepted, one forged packet would hold the ordering window, and the stale reference, for as
+  long as it claimed); lockstep, stamped after the step being waited for (``max_time_usec``);
 * ``stale``: it arrived more than ``stale_after`` seconds later than the best-case delay seen on
   this link (the vehicle's clock and ours differ by an unknown offset, estimated as the minimum of
   arrival − time_usec); not checked in lockstep, where time_usec is simulated time;
@@ -28,6 +34,7 @@ FRAME_BODY_FRD = mavlink2.MAV_FRAME_BODY_FRD
 FRAME_BODY_NED = getattr(mavlink2, "MAV_FRAME_BODY_NED", 8)
 QUAT_TOL = 1e-3
 REBOOT_JUMP_US = 10_000_000
+REBOOT_STATES = 3
 
 ID_ODOMETRY = mavlink2.MAVLINK_MSG_ID_ODOMETRY
 ID_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
@@ -61,23 +68,39 @@ class StateTracker:
         self._pos = None              # (time_boot_ms, p(3), v_ned(3))
         self.duplicates = 0
         self.reboots = 0
+        self.max_time_usec = None     # lockstep: the stamp of the step being waited for
+        self._back = None             # (newest far-back stamp, run length): a reboot's evidence
+        self._future_us = 0.5 * self.stale_after * 1e6
 
     def reset_clock(self):
         self.time_usec = None
         self.offset = None
 
     def _time_ok(self, t_us: int, t_wall: float) -> bool:
+        if self.max_time_usec is not None and t_us > self.max_time_usec:
+            self.c.reject("future")
+            return False
         if self.time_usec is not None:
             if t_us == self.time_usec:
                 self.duplicates += 1
                 return False
             if t_us < self.time_usec:
-                if self.time_usec - t_us > REBOOT_JUMP_US:
-                    self.reboots += 1
-                    self.offset = None
-                else:
+                if self.time_usec - t_us <= REBOOT_JUMP_US:
                     self.c.reject("out_of_order")
                     return False
+                back = self._back
+                run = 1 if back is None or t_us <= back[0] else back[1] + 1
+                self._back = (t_us, run)
+                if run < REBOOT_STATES:
+                    self.c.reject("out_of_order")
+                    return False
+                self.reboots += 1
+                self.offset = None
+            elif self.check_stale and self.t_arrival is not None and \
+                    t_us - self.time_usec > (t_wall - self.t_arrival) * 1e6 + self._future_us:
+                self.c.reject("future")
+                return False
+        self._back = None
         if self.check_stale:
             d = t_wall * 1e6 - t_us
             if self.offset is None or d < self.offset:

@@ -66,11 +66,11 @@ def _checksum(b: bytes) -> int:
     return ~s & 0xFFFF
 
 
-def spoofed_sendto(data: bytes, src: tuple, dst: tuple) -> None:
+def spoofed_sendto(data: bytes, src: tuple, dst: tuple, raw: socket.socket | None = None) -> None:
     """Sends ``data`` in a UDP datagram from ``src`` (host, port) to ``dst`` built by hand on a
-    raw socket: what an attacker on the network does to look like a neighbour (needs root or
-    CAP_NET_RAW; PermissionError otherwise)."""
-    s = socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_RAW)
+    raw socket (``raw``, or a new one): what an attacker on the network does to look like a
+    neighbour (needs root or CAP_NET_RAW; PermissionError otherwise)."""
+    s = raw or socket.socket(socket.AF_INET, socket.SOCK_RAW, socket.IPPROTO_RAW)
     try:
         sip, dip = socket.inet_aton(src[0]), socket.inet_aton(dst[0])
         udp_len = 8 + len(data)
@@ -82,7 +82,8 @@ def spoofed_sendto(data: bytes, src: tuple, dst: tuple) -> None:
                          socket.IPPROTO_UDP, 0, sip, dip)
         s.sendto(ip + udp, (dst[0], 0))
     finally:
-        s.close()
+        if raw is None:
+            s.close()
 
 
 def can_spoof() -> bool:
