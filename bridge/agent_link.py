@@ -503,9 +503,12 @@ class AgentLink:
             e = h[s] = [None, {}]
             for old in [x for x in h if x < lo]:
                 del h[old]
+        # the first of a step's pose (θ chunk) is kept: a later copy (a resend, or a forgery
+        # arriving after the genuine message) never replaces what a lockstep step may have used
         if what is None:
-            e[0] = value
-        else:
+            if e[0] is None:
+                e[0] = value
+        elif what not in e[1]:
             e[1][what] = value
 
     def pose_at(self, j: int, n: int):

@@ -289,9 +289,11 @@ class MavlinkPlant:
 
     def _other_source(self, v: _Vehicle, addr) -> None:
         self.counters.reject("other_source")
+        if addr not in v.others and len(v.others) >= 16:
+            addr = ("*", 0)          # many addresses (spoofed at random): counted together
         n = v.others.get(addr, 0) + 1
         v.others[addr] = n
-        if n == 1:
+        if n == 1 and len(v.others) <= 3:   # reported for the first few addresses only
             self._event(f"vehicle {v.i + 1} (system {v.sysid}): packets from {addr[0]}:{addr[1]} "
                         f"too, while {v.src[0]}:{v.src[1]} is its source: a second process on "
                         f"{v.sock.endpoint} (a leftover vehicle?); refused and counted "
