@@ -450,8 +450,12 @@ class AgentLink:
             return None
         s = t_us // self.h_us
         if s > self._limit:
-            self.counters.reject("future")
-            return None
+            # the limit is the poll's; the clock may have moved on since (a process descheduled
+            # in the middle of a poll): look again before refusing
+            self._limit = self.current_step() + self.future_steps
+            if s > self._limit:
+                self.counters.reject("future")
+                return None
         return s
 
     def _assembly(self, j: int, s: int):

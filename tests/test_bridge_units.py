@@ -202,8 +202,16 @@ def test_one_future_stamped_state_holds_no_window():
     assert dict(c.rejected) == {"future": 1} and tr.wire[0] == 0.0
     for k in range(1, 200):                     # the genuine stream, 4 ms apart, never refused
         assert tr.on_odometry(_Odo(t0 + 4000 * k), w0 + 0.004 * k), k
-    # ahead of the wall clock by less than stale_after / 2 (arrival jitter) is fine
-    assert tr.on_odometry(_Odo(t0 + 4000 * 199 + 4000 + 40_000), w0 + 0.004 * 200)
+    # one forged state within the tolerance (0.5 s ahead) is taken (nothing tells it from a
+    # genuine one without a key); the genuine states then look stale, but only until the offset's
+    # window has passed (≤ 2 s), never for good
+    t1, w1 = t0 + 4000 * 199, w0 + 0.004 * 199
+    assert tr.on_odometry(_Odo(t1 + 500_000), w1 + 0.004)
+    c.rejected.clear()
+    ok = [tr.on_odometry(_Odo(t1 + 4000 * k), w1 + 0.004 * k) for k in range(2, 1000)]
+    first = ok.index(True)
+    assert (first + 2) * 0.004 <= 2.0 + 0.008 and all(ok[first:])   # back within 2 s, for good
+    assert set(c.rejected) == {"out_of_order", "stale"}
     lock = StateTracker(Counters(), check_stale=False)
     lock.max_time_usec = 8000
     assert not lock.on_odometry(_Odo(10**12), 0) and lock.on_odometry(_Odo(8000), 0)
