@@ -34,6 +34,8 @@ def once(steps: int, key) -> tuple[float, float]:
             links[2].publish(n, S, th)
             t1 = time.perf_counter()
             for i in (1, 3, 5):
+                if hasattr(links[i], "set_step"):
+                    links[i].set_step(n)      # the receivers' own step (stamps ahead are refused)
                 links[i].poll()
             t_rx += time.perf_counter() - t1
             t_pub += t1 - t0

@@ -196,7 +196,8 @@ class AgentNode:
         except BaseException:
             self.vehicle.close()
             raise
-        self.vehicle.add_reader(self.link.sock.fileno(), self.link.poll)
+        for fd in self.link.fds():
+            self.vehicle.add_reader(fd, self.link.poll)
         self.vehicle.drain_per_step = True
         self.lockstep_timeout = float(cfg.lockstep_timeout)
         design = sc.design if law == "hybrid" else None
@@ -247,6 +248,9 @@ class AgentNode:
             return
         if start is None:
             start = time.time() + 0.5
+        # the receiver's step follows the wall clock from now on: a neighbour's sample stamped
+        # beyond it (+ the link's tolerance) is refused as `future`
+        self.link.set_timeline(start)
         self.first_step = join_step(start, time.time(), self.h, self.sample_every)
         if self.first_step > 0:
             # heard by the neighbours meanwhile (its pose now and its θ(0)), so that agents that
@@ -322,6 +326,7 @@ class AgentNode:
         own = self.vehicle.read()[0]
         S[0] = own
         n = self.n
+        self.link.set_step(n)
         if self.lockstep:
             if (self.n_steps is not None and self.k >= self.n_steps) or signals.requested():
                 # the end (the master's final read, or a stop was asked for): no step n to

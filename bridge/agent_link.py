@@ -25,18 +25,27 @@ System id = agent id; component id = `AGENT_COMPONENT` = 191 (MAV_COMP_ID_ONBOAR
 controller runs as the vehicle's companion computer, which shares the vehicle's system id). No
 HEARTBEAT is sent: a link's liveness is the age of its newest sample (`age_steps`).
 
-Receiving (`poll`) is untrusted input and never raises: a datagram that does not frame or decode
-is counted ``malformed``; a packet whose system id is not a neighbour's (or whose component is
-not `AGENT_COMPONENT`) is counted ``not_neighbour`` before it is decoded; with a key, unsigned,
-wrong-key and replayed packets are counted by `bridge.link.Peer`; a decoded message is counted
-``nan``, ``non_unit_quaternion`` (| ‖q‖ − 1 | > 1e-3), ``bad_frame`` (other frame ids),
-``bad_stamp`` (time_usec not a whole step), ``bad_theta`` (wrong name or array_id),
-``unexpected_message`` (any other message), ``out_of_order`` (older than the held or assembling
-sample) or ``duplicate`` (same stamp as the held sample). Per neighbour only the NEWEST complete
-sample is held (`neighbour`); a newer sample replaces an incomplete one in assembly (counted
-``incomplete``), an older arrival never replaces newer data, except a stamp more than 10 s of
-sample time back, taken as the neighbour restarting (counted ``restarts`` per link, as
-`bridge.state` treats a vehicle reboot; it also undoes a lock-out by one far-future stamp).
+Receiving (`poll`) is untrusted input and never raises. In order, cheapest first: a datagram
+that does not start with MAVLink 2's magic byte is ``malformed``; one whose sender address is not
+a neighbour's endpoint is ``wrong_address`` (every agent sends from the socket bound at its own
+endpoint); both before any parsing, so a flood of junk costs little (`poll` drains by a time
+budget, not a count). Then a packet whose system id is not a neighbour's (or whose component is
+not `AGENT_COMPONENT`), or not the system of the endpoint it came from, is ``not_neighbour``;
+with a key, unsigned, wrong-key and replayed packets are counted by `bridge.link.Peer`; a decoded
+message is counted ``nan``, ``non_unit_quaternion`` (| ‖q‖ − 1 | > 1e-3), ``bad_frame`` (other
+frame ids), ``bad_stamp`` (time_usec not a whole step), ``future`` (stamped more than
+``future_steps`` ahead of the receiver's own step, `set_step`/`set_timeline`: never used, never
+moves the ordering window), ``bad_theta`` (wrong name or array_id), ``unexpected_message`` (any
+other message), ``out_of_order`` (older than the held or assembling sample) or ``duplicate``
+(same stamp as the held sample). Every refusal of a packet that names a neighbour is also
+counted on that neighbour's link (`stats()["links"][j]["rejected_by_reason"]`).
+
+Per neighbour only the NEWEST complete sample is held (`neighbour`); a newer sample replaces an
+incomplete one in assembly (counted ``incomplete``), an older arrival never replaces newer data.
+A neighbour that restarted on another timeline stamps far back (more than 10 s of sample time)
+and keeps stamping forward from there: `RESTART_SAMPLES` consecutive complete samples of that
+kind, each newer than the one before, are taken as its restart (``restarts`` per link); one
+packet never is.
 """
 from __future__ import annotations
 
@@ -67,13 +76,18 @@ THETA_NAME = "theta"
 THETA_PER_MESSAGE = 58                                     # DEBUG_FLOAT_ARRAY.data has 58 floats
 ID_ODOMETRY = mavlink2.MAVLINK_MSG_ID_ODOMETRY
 ID_DEBUG_FLOAT_ARRAY = mavlink2.MAVLINK_MSG_ID_DEBUG_FLOAT_ARRAY
-RESTART_S = 10.0                                           # a stamp this far back: the sender restarted
+RESTART_S = 10.0                                           # a stamp this far back: the sender restarted…
+RESTART_SAMPLES = 3                                        # …if this many such samples in a row say so
+FUTURE_S = 0.02            # how far (s) a sample may be stamped ahead of the receiver's own step
+FUTURE_MIN_STEPS = 2       # …and at least this many steps (lockstep neighbours are ≤ 1 step ahead)
+POLL_BUDGET = 0.25         # a poll reads the neighbours' sockets for at most this fraction of a step
+JUNK_BUDGET = 0.1          # …and the catch-all socket (strangers, junk) for at most this fraction
 NAN21 = [math.nan] + [0.0] * 20                            # covariance unknown (first element NaN)
 _TYPES = {ID_ODOMETRY: mavlink2.MAVLink_odometry_message,
           ID_DEBUG_FLOAT_ARRAY: mavlink2.MAVLink_debug_float_array_message}
 _ODO_FRAME = 56   # ODOMETRY's wire order: time_usec, x y z, q[4], vx vy vz, rates, 2×21 cov, frame ids
-LINK_REASONS = ("not_neighbour", "bad_stamp", "bad_theta", "unexpected_message", "duplicate",
-                "incomplete")
+LINK_REASONS = ("not_neighbour", "wrong_address", "bad_stamp", "future", "bad_theta",
+                "unexpected_message", "duplicate", "incomplete")
 
 
 def theta_name(chunk: int) -> str:
@@ -214,13 +228,39 @@ class AgentLink:
         self.max_age_steps = _steps(network.max_age, h) if math.isfinite(network.max_age) else None
         self.hold_steps = _steps(network.hold, h)
         self.restart_steps = _steps(RESTART_S, h)
+        self.future_steps = max(FUTURE_MIN_STEPS, _steps(FUTURE_S, h))
+        self.poll_budget_s = POLL_BUDGET * h
+        self.junk_budget_s = JUNK_BUDGET * h
+        self._own_step = 0          # the receiver's own step (`set_step`)
+        self._limit = self.future_steps
+        self._timeline = None       # (Unix time of step 0, h): real time, the step from the clock
+        self._wall = time.time
+        # who may send to us: each neighbour's endpoint, and which system it must claim
+        self._from = {a: j for j, a in self.addr.items()}
+        self._from_port = {a[1]: j for j, a in self.addr.items() if a[0] == "0.0.0.0"}
         host, port = network.endpoints[self.id - 1]
         self.counters = counters if counters is not None else Counters()
         self.peer = Peer(self.id, AGENT_COMPONENT, self.counters, key=key,
                          signing_state=signing_state)
+        ep = f"udpin:{host}:{port}"
         try:
-            self.sock = UdpSocket(f"udpin:{host}:{port}")
+            UdpSocket(ep).close()        # free? (the sockets below share it among themselves)
+            self.sock = UdpSocket(ep, reuse_port=True)
         except OSError as exc:
+            raise Se3SyncError(f"network: agent {self.id}'s endpoint {host}:{port} cannot be "
+                               f"bound: {exc.strerror or exc}") from None
+        # one more socket per neighbour on the same port, connected to its endpoint: the kernel
+        # hands it that neighbour's datagrams and nothing else, so junk from anywhere else
+        # (which lands on self.sock) can fill only its own buffer, never delay or crowd out a
+        # neighbour's samples. Where the kernel does not prefer connected sockets, the
+        # neighbours' datagrams land on self.sock and are taken there as well.
+        self._nsock = {}
+        try:
+            for j, a in self.addr.items():
+                if a[0] != "0.0.0.0":
+                    self._nsock[j] = UdpSocket(ep, reuse_port=True, connect_to=a)
+        except OSError as exc:
+            self.close()
             raise Se3SyncError(f"network: agent {self.id}'s endpoint {host}:{port} cannot be "
                                f"bound: {exc.strerror or exc}") from None
         self._held: dict = {j: None for j in self.neighbours}
@@ -230,7 +270,9 @@ class AgentLink:
         self._sent = {j: 0 for j in self.neighbours}         # datagrams sent per neighbour
         self._published = {j: 0 for j in self.neighbours}    # samples (steps) published to it
         self._last_published = -1
-        self._restarts = {j: 0 for j in self.neighbours}     # stamps that jumped back > RESTART_S
+        self._restarts = {j: 0 for j in self.neighbours}     # restarts recognised (RESTART_SAMPLES)
+        self._back = {j: None for j in self.neighbours}      # (newest far-back step, run length)
+        self._rej = {j: Counter() for j in self.neighbours}  # refusals by reason, per neighbour
         self._ages = {j: Counter() for j in self.neighbours}  # ages (steps) of the data used
         self.history = int(history)
         self._hist = {j: {} for j in self.neighbours}          # step -> [S or None, θ chunks]
@@ -322,43 +364,105 @@ class AgentLink:
         return sent
 
     # ------------------------------------------------------------------ in
+    # ------------------------------------------------------------------ the receiver's step
+    def set_step(self, n: int) -> None:
+        """The receiver's own step n (lockstep: the step being exchanged; real time: the step
+        being computed). Samples stamped after n + `future_steps` are refused as ``future``, and
+        the lockstep history keeps steps n − ``history`` … n + `future_steps` only."""
+        self._own_step = int(n)
+
+    def set_timeline(self, start: float, clock=time.time) -> None:
+        """Real time: step n is due at ``start + n·h`` (Unix time); the receiver's step is then
+        at least the wall clock's, so a late process does not refuse its neighbours' newest
+        samples (a genuine sample is never stamped ahead of the sender's clock)."""
+        self._timeline = (float(start), self.h_us * 1e-6)
+        self._wall = clock
+
+    def current_step(self) -> int:
+        """The receiver's step: the larger of `set_step`'s and the wall clock's (`set_timeline`)."""
+        n = self._own_step
+        tl = self._timeline
+        if tl is not None:
+            w = int(math.floor((self._wall() - tl[0]) / tl[1]))
+            if w > n:
+                n = w
+        return n
+
+    # ------------------------------------------------------------------ in
     def poll(self, limit: int | None = None) -> int:
-        """Reads at most ``limit`` (default the drain budget) pending datagrams and takes what is
-        valid. Never raises on network input. Returns the number of datagrams read."""
-        return receive_datagrams(self.sock, self.counters, self._on_packet,
-                                 self.drain_budget if limit is None else int(limit))
+        """Reads what is pending and takes what is valid: datagrams in batches of ``limit``
+        (default the drain budget), from each neighbour's socket until it is empty or
+        ``POLL_BUDGET`` of a step has been spent, then from the catch-all socket for at most
+        ``JUNK_BUDGET`` of a step (the rest waits for the next poll). Never raises on network
+        input. Returns the number of datagrams read."""
+        self._limit = self.current_step() + self.future_steps
+        lim = self.drain_budget if limit is None else int(limit)
+        t = time.monotonic()
+        deadline = t + self.poll_budget_s
+        n = 0
+        for s in self._nsock.values():          # the neighbours first: never behind junk
+            n += receive_datagrams(s, self.counters, self._on_packet, lim, deadline=deadline,
+                                   accept_from=self._accept_from)
+        # the catch-all: what is left of its budget (the rest of a flood waits, then the kernel
+        # drops it and `kernel_drops` says how much)
+        return n + receive_datagrams(self.sock, self.counters, self._on_packet, lim,
+                                     deadline=min(deadline, time.monotonic() + self.junk_budget_s),
+                                     accept_from=self._accept_from)
+
+    def fds(self) -> list:
+        """The sockets to wait on (select) before a `poll`."""
+        return [self.sock.fileno(), *(s.fileno() for s in self._nsock.values())]
 
     receive = poll
+
+    def _accept_from(self, addr) -> bool:
+        return addr in self._from or addr[1] in self._from_port
 
     def _on_packet(self, pkt, addr) -> None:
         c = self.counters
         _, sysid, compid, _, _ = packet_ids(pkt)
-        if sysid not in self._held or compid != AGENT_COMPONENT:
+        j = self._from.get(addr)
+        if j is None:
+            j = self._from_port.get(addr[1])
+        if sysid != j or compid != AGENT_COMPONENT:
             c.reject("not_neighbour")
             return
-        got = self.peer.accept_fields(pkt, _TYPES)
-        if got is None:
-            return
-        mid, f = got
-        if mid == ID_ODOMETRY:
-            ok = self._on_odometry(sysid, f)
-        else:
-            ok = self._on_theta(sysid, f)
-        if ok:
-            self.peer.commit_sequence()
-            self._packets[sysid] += 1
+        c.scope = self._rej[j]
+        try:
+            got = self.peer.accept_fields(pkt, _TYPES)
+            if got is None:
+                return
+            mid, f = got
+            if mid == ID_ODOMETRY:
+                ok = self._on_odometry(j, f)
+            else:
+                ok = self._on_theta(j, f)
+            if ok:
+                self.peer.commit()
+                self._packets[j] += 1
+        finally:
+            c.scope = None
 
     def _step_of(self, t_us) -> int | None:
         t_us = int(t_us)
         if t_us < 0 or t_us % self.h_us:
             self.counters.reject("bad_stamp")
             return None
-        return t_us // self.h_us
+        s = t_us // self.h_us
+        if s > self._limit:
+            # the limit is the poll's; the clock may have moved on since (a process descheduled
+            # in the middle of a poll): look again before refusing
+            self._limit = self.current_step() + self.future_steps
+            if s > self._limit:
+                self.counters.reject("future")
+                return None
+        return s
 
     def _assembly(self, j: int, s: int):
         """The assembly for sample s of j, or None (counted) when s is not newer than what is held
-        or being assembled. A stamp more than `RESTART_S` of sample time older than that is j
-        restarting (as `bridge.state` treats a vehicle reboot): taken, counted in ``restarts``."""
+        or being assembled. Stamps more than `RESTART_S` of sample time older than that, in a run
+        of `RESTART_SAMPLES` distinct increasing steps with nothing newer between them, are j
+        restarting on another timeline: the last one is taken, counted in ``restarts``."""
         c = self.counters
         a = self._asm[j]
         if a is not None and a.step == s:
@@ -370,7 +474,18 @@ class AgentLink:
             if newest - s <= self.restart_steps:
                 c.reject("duplicate" if held is not None and s == held.step else "out_of_order")
                 return None
+            back = self._back[j]
+            if back is None or s < back[0]:
+                run = 1
+            else:   # the same sample's other message keeps the run, a newer one extends it
+                run = back[1] + (s > back[0])
+            self._back[j] = (s, run)
+            if run < RESTART_SAMPLES:
+                c.reject("out_of_order")
+                return None
             self._restarts[j] += 1
+            self._held[j] = None
+        self._back[j] = None
         if a is not None:
             c.reject("incomplete")   # a newer sample starts before the older one was complete
         a = self._asm[j] = _Assembly(s)
@@ -383,14 +498,21 @@ class AgentLink:
         h = self._hist[j]
         e = h.get(s)
         if e is None:
-            if h and s <= max(h) - self.history:
+            # the window is the receiver's own step's (`set_step`), never the newest stamp seen:
+            # _step_of has refused anything after n + future_steps, and older than n − history
+            # is of no use to a lockstep step
+            lo = self._own_step - self.history
+            if s < lo:
                 return
             e = h[s] = [None, {}]
-            for old in [x for x in h if x <= s - self.history]:
+            for old in [x for x in h if x < lo]:
                 del h[old]
+        # the first of a step's pose (θ chunk) is kept: a later copy (a resend, or a forgery
+        # arriving after the genuine message) never replaces what a lockstep step may have used
         if what is None:
-            e[0] = value
-        else:
+            if e[0] is None:
+                e[0] = value
+        elif what not in e[1]:
             e[1][what] = value
 
     def pose_at(self, j: int, n: int):
@@ -512,6 +634,11 @@ class AgentLink:
         (the delay contract of `cosim.network`). Does not record the age."""
         held = self.neighbour(j)
         age = int(n) - (0 if held is None else held.step)
+        if held is not None and age < -self.future_steps \
+                and held.step - self.current_step() > self.future_steps:
+            # from the future even for the wall clock: never data to steer by (the receive path
+            # refuses such stamps; this holds whatever moved the receiver's step back)
+            return "failsafe"
         if self.max_age_steps is None or age <= self.max_age_steps:
             return "fresh"
         return "hold" if age <= self.max_age_steps + self.hold_steps else "failsafe"
@@ -522,6 +649,9 @@ class AgentLink:
         emulated losses included), packets and complete samples accepted from it, the newest
         step held and the nearest-rank p50/p99 of the recorded ages (steps)."""
         out = self.counters.as_dict()
+        # dropped by the kernel: on the catch-all socket (junk, strangers), and per neighbour
+        out["kernel_drops"] = self.sock.kernel_drops()
+        out["future_steps"] = self.future_steps
         out["agent"] = self.id
         out["neighbours"] = list(self.neighbours)
         links = {}
@@ -533,11 +663,17 @@ class AgentLink:
                              "last_step": None if held is None else held.step,
                              "age_p50_steps": _nearest_rank(self._ages[j], 50),
                              "age_p99_steps": _nearest_rank(self._ages[j], 99),
+                             "rejected": int(sum(self._rej[j].values())),
+                             "kernel_drops": self._nsock[j].kernel_drops() if j in self._nsock
+                             else None,
+                             "rejected_by_reason": dict(sorted(self._rej[j].items())),
                              **({"emulated_lost": self._emu_lost[j]} if j in self._emu else {})}
         out["links"] = links
         return out
 
     def close(self) -> None:
+        for s in getattr(self, "_nsock", {}).values():
+            s.close()
         self.sock.close()
 
     def __enter__(self):

@@ -162,8 +162,10 @@ def register(sub) -> None:
                     "with the fields of `run`'s (final, samples, jumps, n_jumps, jump_bound, "
                     "design) plus per-link statistics; --log merges their logs into one that "
                     "`se3sync plot` reads. Ctrl-C or SIGTERM stops every child and still writes "
-                    "the merged outputs. Exit codes: 0 ok, 2 bad input, 5 an agent failed (its "
-                    "last error line is shown), 130 Ctrl-C, 143 SIGTERM.")
+                    "the merged outputs; the children die with the launcher. Exit codes: 0 ok, 2 "
+                    "bad input or a port of the swarm taken or already receiving traffic (one "
+                    "line naming it), 5 an agent failed (its last error line is shown), 130 "
+                    "Ctrl-C, 143 SIGTERM.")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--vehicles", choices=("loopback", "external"), default="external",
                    help="loopback: also start `se3sync vehicle` for the scenario; external "
@@ -229,8 +231,9 @@ def _cmd_agent(args) -> int:
     print(f"agent {args.id}: {summary['steps']} steps from step {summary['first_step']} "
           f"({'lockstep' if args.lockstep else 'real time'}) in {summary['wall_time_s']:.3g} s; "
           f"{summary['n_jumps']} jumps; its edges' max rot_err {f.get('rot_err', float('nan')):.3g}; "
-          f"neighbour link: sent {al.get('sent')}, received {al.get('received')}, rejected "
-          f"{al.get('rejected')}; fail-safe {fs['steps']} steps ({fs['entries']} times)",
+          f"neighbour link: sent {al.get('sent')}, received {al.get('received')}, refused "
+          f"{_refused(al)}; vehicle link: refused {_refused(summary.get('link', {}))}; "
+          f"fail-safe {fs['steps']} steps ({fs['entries']} times)",
           file=sys.stderr)
     if summary.get("interrupted"):
         return 130
@@ -344,12 +347,22 @@ def _cmd_connect(args) -> int:
     print(f"{sc.name}: {summary['steps']} steps over MAVLink ({'lockstep' if plant.lockstep else 'real time'}) "
           f"in {summary['wall_time_s']:.3g} s; {summary['n_jumps']} jumps; final rot_err "
           f"{f.get('rot_err', float('nan')):.3g}, pos_err {f.get('pos_err', float('nan')):.3g}; "
-          f"sent {ln.get('sent')}, received {ln.get('received')}, dropped {ln.get('dropped')}, "
-          f"rejected {ln.get('rejected')}, latency p50/p99 {_ms(ln.get('latency_ms_p50'))}/"
+          f"packets sent {ln.get('sent')}, received {ln.get('received')}, lost on the way "
+          f"{ln.get('dropped')} (gaps in the vehicles' sequence numbers), refused "
+          f"{_refused(ln)}, latency p50/p99 {_ms(ln.get('latency_ms_p50'))}/"
           f"{_ms(ln.get('latency_ms_p99'))} ms, link losses {ln.get('link_losses')}", file=sys.stderr)
     if summary.get("interrupted"):
         return 130
     return 0
+
+
+def _refused(ln: dict) -> str:
+    """'N (reason n, …)': the packets a link refused and why (malformed: did not frame or check)."""
+    by = dict(ln.get("rejected_by_reason") or {})
+    if ln.get("malformed"):
+        by["malformed"] = ln["malformed"]
+    n = sum(by.values())
+    return f"{n} ({', '.join(f'{k} {v}' for k, v in sorted(by.items()))})" if n else "0"
 
 
 def _ms(x):

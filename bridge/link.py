@@ -6,10 +6,14 @@ across datagrams. Instead each link is a plain non-blocking socket, every datagr
 its own (UDP carries whole packets), and each peer gets its own
 ``pymavlink.dialects.v20.common.MAVLink`` object for encoding and decoding. Signing uses
 pymavlink's ``setup_signing`` (called on a tiny holder of the MAVLink object) and pymavlink's own
-signature/timestamp check in ``MAVLink.decode``; in front of it we verify the HMAC ourselves so
-that (a) a bad signature can be told from a replay in the counters and (b) a forged packet never
-reaches pymavlink's ``check_signature``, which records the stream timestamp *before* it compares
-the signature (a forged packet with a huge timestamp would otherwise lock the stream out).
+signing state (its per-stream timestamps and own timestamp, ``mav.signing``), but the checks are
+ours: we verify the HMAC first, so that (a) a bad signature can be told from a replay in the
+counters and (b) a forged packet never touches a replay window (pymavlink's ``check_signature``
+records the stream timestamp *before* it compares the signature: one forged packet with a huge
+timestamp would lock the stream out); and a replay window (the stream's last timestamp) moves
+only when the application has accepted the packet in full (`Peer.commit`): a genuine packet
+replayed where it does not belong (another vehicle, a refused command) changes no window, so it
+cannot make the genuine stream's next packets look like replays.
 
 Network input is untrusted: a datagram that cannot be framed or decoded is counted once as
 ``malformed`` and dropped; nothing here raises on input.
@@ -41,14 +45,20 @@ MSG_HEARTBEAT = 0
 
 REJECT_REASONS = ("unsigned", "bad_signature", "replay", "wrong_system", "not_for_us",
                   "unknown_message", "stale", "out_of_order", "nan", "non_unit_quaternion",
-                  "bad_frame", "bad_command", "not_commander", "future")
+                  "bad_frame", "bad_command", "not_commander", "future", "other_source",
+                  "wrong_address")
+NEW_STREAM_UNITS = 6_000_000   # pymavlink's rule: a new signing stream at most 60 s (10 µs units) behind
 LOOPBACK_HOSTS = ("localhost",)
 
 
 class Counters:
-    """Traffic counters of one side of a set of links (JSON-friendly via `as_dict`)."""
+    """Traffic counters of one side of a set of links (JSON-friendly via `as_dict`).
+
+    ``scope``: while a caller handles a packet it can attribute (the inter-agent link: the claimed
+    neighbour), a dict {reason: count} that every refusal is also counted in."""
 
     def __init__(self):
+        self.scope = None
         self.sent = 0                # packets sent
         self.send_errors = 0         # sendto failed (no route, buffer full)
         self.received = 0            # packets accepted (framed, signed if required, decoded)
@@ -58,9 +68,19 @@ class Counters:
         self.rejected = defaultdict(int)   # packets refused, by reason
         self.drain_max = 0           # most datagrams read in one pass over a socket
         self.drain_capped = 0        # passes that stopped at the per-pass budget (the rest waits)
+        self.n_rejected = 0          # sum of `rejected` (kept, not summed per packet)
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
+        self.n_rejected += 1
+        if self.scope is not None:
+            self.scope[reason] += 1
+
+    def bad_packet(self) -> None:
+        """A framed packet that does not check out (checksum, layout): one more ``malformed``."""
+        self.malformed += 1
+        if self.scope is not None:
+            self.scope["malformed"] += 1
 
     def as_dict(self) -> dict:
         return {"sent": self.sent, "send_errors": self.send_errors, "received": self.received,
@@ -72,7 +92,7 @@ class Counters:
     def refusals(self) -> int:
         """Packets refused so far (rejected or malformed): a handler accepted a packet iff this
         did not change while it ran."""
-        return self.malformed + int(sum(self.rejected.values()))
+        return self.malformed + self.n_rejected
 
 
 class TLog:
@@ -140,6 +160,8 @@ class Peer:
                  signing_state=None):
         self.mav = mavlink2.MAVLink(None, srcSystem=src_system, srcComponent=src_component)
         self.mav.robust_parsing = True
+        self._decoder = mavlink2.MAVLink(None, srcSystem=src_system, srcComponent=src_component)
+        self._decoder.robust_parsing = True
         self.counters = counters
         self.tlog = tlog
         self.key = key
@@ -153,6 +175,7 @@ class Peer:
                 signing_state.attach(self.mav)
         self.rx_errors: dict = defaultdict(int)
         self._pending_seq = None
+        self._pending_sig = None     # (stream, timestamp) of the latest signed packet, until commit
         self.last_signed = False     # the latest accepted packet carried a valid signature
 
     # ------------------------------------------------------------------ out
@@ -174,12 +197,46 @@ class Peer:
                 self.counters.dropped += gap
         self._last_seq[key] = seq
 
-    def commit_sequence(self) -> None:
-        """Without a key: the latest accepted packet was also accepted by the application, so its
-        sequence number is trusted for loss counting."""
+    def commit(self) -> None:
+        """The latest packet this peer passed was accepted in full by the application (target,
+        contents): only now does its signing stream's replay window move to its timestamp (and
+        the own timestamp with it, as pymavlink does), and only now does its sequence number
+        count for losses. A packet refused anywhere leaves both as they were."""
         if self._pending_seq is not None:
             self._count_seq(*self._pending_seq)
             self._pending_seq = None
+        ps = self._pending_sig
+        if ps is not None:
+            self._pending_sig = None
+            sig = self.mav.signing
+            stream, ts = ps
+            if ts > sig.stream_timestamps.get(stream, -1):
+                sig.stream_timestamps[stream] = ts
+            if ts > sig.timestamp:
+                sig.timestamp = ts
+
+    commit_sequence = commit
+
+    def _fresh(self, pkt: bytes, sysid: int, compid: int) -> bool:
+        """The signature's timestamp is newer than its stream's window (pymavlink's rule: a new
+        stream may be at most a minute behind our own timestamp); nothing is recorded here
+        (`commit`). Its stream is (link id, system, component), as in the MAVLink 2 spec."""
+        sig = self.mav.signing
+        stream = (pkt[-13], sysid, compid)
+        ts = int.from_bytes(pkt[-12:-6], "little")
+        last = sig.stream_timestamps.get(stream)
+        if last is not None:
+            if ts <= last:
+                return False
+        elif ts + NEW_STREAM_UNITS < sig.timestamp:
+            return False
+        self._pending_sig = (stream, ts)
+        return True
+
+    def authentic(self, pkt: bytes) -> bool:
+        """Without a key always; with one: signed with it (or an allowed unsigned HEARTBEAT);
+        a refusal is counted (``unsigned``, ``bad_signature``). Touches no replay window."""
+        return self._authentic(pkt, packet_ids(pkt)[3], bool(pkt[2] & IFLAG_SIGNED))
 
     def _authentic(self, pkt: bytes, msgid: int, signed: bool) -> bool:
         """With a key: signed (or an allowed unsigned HEARTBEAT) and the signature right; counted
@@ -202,14 +259,10 @@ class Peer:
 
     def _accepted(self, pkt: bytes, seq: int, sysid: int, compid: int, signed: bool) -> None:
         self.last_signed = signed and self.key is not None
-        # Sequence gaps count as losses only on authenticated packets: with a key, the signed
-        # ones (a spoofed unsigned HEARTBEAT would otherwise interleave a foreign sequence);
-        # without a key, the ones the application accepts (commit_sequence).
-        self._pending_seq = None
-        if self.key is None:
-            self._pending_seq = (sysid, compid, seq)
-        elif signed:
-            self._count_seq(sysid, compid, seq)
+        # Sequence gaps count as losses only on packets the application accepts in full
+        # (`commit`), and with a key only on signed ones (a spoofed unsigned HEARTBEAT or a
+        # packet replayed from another link would otherwise interleave a foreign sequence).
+        self._pending_seq = (sysid, compid, seq) if (self.key is None or signed) else None
         self.counters.received += 1
         if self.tlog is not None:
             self.tlog.write(pkt)
@@ -224,6 +277,7 @@ class Peer:
         (an agent takes a sample of every neighbour at every step)."""
         c = self.counters
         seq, sysid, compid, msgid, signed = packet_ids(pkt)
+        self._pending_seq = self._pending_sig = None
         if not self._authentic(pkt, msgid, signed):
             return None
         cls = types.get(msgid)
@@ -231,11 +285,10 @@ class Peer:
             c.reject("unexpected_message")
             return None
         if crc_ok(pkt) is not True:
-            c.malformed += 1
+            c.bad_packet()
             self.rx_errors["crc"] += 1
             return None
-        if signed and self.key is not None \
-                and not self.mav.check_signature(bytearray(pkt), sysid, compid):
+        if signed and self.key is not None and not self._fresh(pkt, sysid, compid):
             c.reject("replay")
             return None
         plen = pkt[1]
@@ -246,7 +299,7 @@ class Peer:
         try:
             fields = cls.unpacker.unpack(payload[:size])
         except struct.error:
-            c.malformed += 1
+            c.bad_packet()
             return None
         self._accepted(pkt, seq, sysid, compid, signed)
         return msgid, fields
@@ -255,23 +308,25 @@ class Peer:
         """A framed packet -> message, or None (counted: rejected by reason, or malformed)."""
         c = self.counters
         seq, sysid, compid, msgid, signed = packet_ids(pkt)
+        self._pending_seq = self._pending_sig = None
         if not self._authentic(pkt, msgid, signed):
             return None
-        try:
-            m = self.mav.decode(bytearray(pkt))
-        except mavlink2.MAVError as exc:
-            if "signature" in str(exc.message):
-                c.reject("replay")
-            else:
-                c.malformed += 1
-                self.rx_errors["decode"] += 1
+        if signed and self.key is not None and crc_ok(pkt) is True \
+                and not self._fresh(pkt, sysid, compid):
+            c.reject("replay")
             return None
+        try:
+            # decoded without pymavlink's signing check (ours is above), which would record
+            # the stream's timestamp before the application has accepted the packet
+            m = self._decoder.decode(bytearray(pkt))
         except Exception:  # noqa: BLE001 - untrusted input must never crash us
-            c.malformed += 1
+            c.bad_packet()
             self.rx_errors["decode"] += 1
+            self._pending_sig = None
             return None
         if isinstance(m, mavlink2.MAVLink_unknown):
             c.reject("unknown_message")
+            self._pending_sig = None
             return None
         self._accepted(pkt, seq, sysid, compid, signed)
         return m
@@ -317,35 +372,54 @@ def require_key_or_insecure(endpoints, key, insecure: bool,
 DRAIN_BUDGET = 64   # datagrams per socket per pass; the caller's timer runs between passes
 
 
-def receive_datagrams(sock, counters, on_packet, limit: int = DRAIN_BUDGET) -> int:
-    """Read at most ``limit`` pending datagrams on sock (a flood must not starve the caller's
-    timer: the rest waits in the socket buffer for the next pass, and what the kernel drops
-    beyond its buffer is the flood's loss), split each into MAVLink 2 frames and hand each frame
-    to on_packet(pkt, addr). Network input is untrusted: a datagram that does not frame, or
-    whose frames break their handler, is counted once as malformed and dropped, never raised.
-    Returns the number of datagrams read."""
+def receive_datagrams(sock, counters, on_packet, limit: int = DRAIN_BUDGET,
+                      deadline: float | None = None, accept_from=None) -> int:
+    """Read pending datagrams on sock, split each into MAVLink 2 frames and hand each frame to
+    on_packet(pkt, addr). Network input is untrusted: a datagram that does not frame, or whose
+    frames break their handler, is counted once as malformed and dropped, never raised.
+
+    How much is read: at most ``limit`` datagrams; with a ``deadline`` (time.monotonic()),
+    batches of ``limit`` until the socket is empty or the deadline has passed (a drain by time,
+    not by count: a flood then costs the caller a bounded time per pass, not its genuine data,
+    which a count would leave behind the junk in the socket buffer). What the kernel drops
+    beyond its buffer is the flood's loss (`UdpSocket.kernel_drops`).
+
+    Cheap refusals before any parsing: a first byte that is not MAVLink 2's magic (``malformed``)
+    and, with ``accept_from`` (a predicate of the sender's address), a sender it refuses
+    (counted ``wrong_address``). Returns the number of datagrams read."""
     c = counters
-    batch = sock.recv_all(limit)
-    nb = len(batch)
-    if nb > c.drain_max:
-        c.drain_max = nb
-    if nb >= limit:
-        c.drain_capped += 1
-    for data, addr in batch:
-        c.datagrams += 1
-        try:
-            pkts, err = split_datagram(data)
-            if err is not None:
+    total = 0
+    while True:
+        batch = sock.recv_all(limit)
+        nb = len(batch)
+        total += nb
+        if nb > c.drain_max:
+            c.drain_max = nb
+        for data, addr in batch:
+            c.datagrams += 1
+            if not data or data[0] != MAGIC_V2:
                 c.malformed += 1
                 continue
-            m0 = c.malformed
-            for pkt in pkts:
-                on_packet(pkt, addr)
-            if c.malformed > m0 + 1:
-                c.malformed = m0 + 1  # one bad datagram counts once
-        except Exception:  # noqa: BLE001 - untrusted input never crashes us
-            c.malformed += 1
-    return nb
+            if accept_from is not None and not accept_from(addr):
+                c.reject("wrong_address")
+                continue
+            try:
+                pkts, err = split_datagram(data)
+                if err is not None:
+                    c.malformed += 1
+                    continue
+                m0 = c.malformed
+                for pkt in pkts:
+                    on_packet(pkt, addr)
+                if c.malformed > m0 + 1:
+                    c.malformed = m0 + 1  # one bad datagram counts once
+            except Exception:  # noqa: BLE001 - untrusted input never crashes us
+                c.malformed += 1
+        if nb < limit:
+            return total
+        if deadline is None or time.monotonic() >= deadline:
+            c.drain_capped += 1
+            return total
 
 
 def parse_endpoint(ep: str):
@@ -360,7 +434,8 @@ class UdpSocket:
     """A non-blocking UDP socket. ``udpin``: bound to HOST:PORT, replies go to whoever talked last
     (or to an address the caller gives); ``udpout``: sends to HOST:PORT from an ephemeral port."""
 
-    def __init__(self, endpoint: str, rcvbuf: int = 1 << 20):
+    def __init__(self, endpoint: str, rcvbuf: int = 1 << 20, reuse_port: bool = False,
+                 connect_to=None):
         self.endpoint = endpoint
         self.mode, addr = parse_endpoint(endpoint)
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -370,7 +445,18 @@ class UdpSocket:
         except OSError:
             pass
         if self.mode == "udpin":
-            s.bind(addr)  # no SO_REUSEADDR: a port already in use is an error, not a silent split
+            # no SO_REUSEADDR: a port already in use is an error, not a silent split; only the
+            # inter-agent link shares its port between its own sockets (SO_REUSEPORT, after
+            # checking that the port is free: `AgentLink`)
+            if reuse_port:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+            try:
+                s.bind(addr)
+                if connect_to is not None:
+                    s.connect(connect_to)
+            except OSError:
+                s.close()
+                raise
             self.remote = None
         else:
             s.bind((addr[0] if addr[0] in ("127.0.0.1", "localhost") else "0.0.0.0", 0))
@@ -406,6 +492,21 @@ class UdpSocket:
                     continue
                 break
         return out
+
+    def kernel_drops(self) -> int | None:
+        """Datagrams the kernel dropped for this socket (its receive buffer was full: a flood,
+        or a reader that fell behind), from /proc/net/udp; None where that is not available."""
+        try:
+            ino = os.fstat(self.sock.fileno()).st_ino
+            with open("/proc/net/udp", encoding="ascii") as f:
+                next(f)
+                for line in f:
+                    p = line.split()
+                    if len(p) >= 13 and p[9] == str(ino):
+                        return int(p[12])
+        except (OSError, ValueError, StopIteration):
+            return None
+        return None
 
     def close(self) -> None:
         try:

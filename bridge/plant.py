@@ -89,10 +89,14 @@ class LinkError(Se3SyncError):
     """Lockstep: a vehicle stopped answering."""
 
 
+OTHER_SOURCE_PACKETS = 3   # packets from a second source that make connect() refuse
+STATUS_QUIET_S = 5.0       # a vehicle's repeated fail-safe reports: one line per this long
+
+
 class _Vehicle:
     __slots__ = ("i", "sysid", "sock", "peer", "tracker", "addr", "hb", "connected", "lost",
                  "t_cmd", "last_buf", "t_sent", "acks", "statustexts", "losses", "recoveries",
-                 "failsafe_reports")
+                 "failsafe_reports", "src", "src_t", "others", "status_t", "status_quiet")
 
     def __init__(self, i, sysid, sock, peer, tracker):
         self.i, self.sysid, self.sock, self.peer, self.tracker = i, sysid, sock, peer, tracker
@@ -108,6 +112,11 @@ class _Vehicle:
         self.losses = 0
         self.recoveries = 0
         self.failsafe_reports = 0
+        self.src = None         # the address the vehicle's accepted packets come from
+        self.src_t = None       # …and when the latest came
+        self.others = {}        # another source claiming this vehicle -> packets refused
+        self.status_t = None    # when a fail-safe report was last printed
+        self.status_quiet = 0   # reports not printed since
 
 
 class MavlinkPlant:
@@ -173,11 +182,19 @@ class MavlinkPlant:
                     self.socks.append(sock)
                     self._sock_by_fd[sock.fileno()] = sock
                     self._route[sock.fileno()] = {}
+                # each commander-vehicle link signs on its own stream (link id, system,
+                # component): link id = the vehicle's system id, so that one agent's commands,
+                # replayed into another vehicle, are on a stream that vehicle never accepts
+                # from its own commander (every agent of a swarm has the same system and
+                # component id, 255:191)
                 peer = Peer(cfg.source_system, cfg.source_component, self.counters, key=self.key,
-                            allow_unsigned_heartbeat=cfg.allow_unsigned_heartbeat, link_id=i & 0xFF,
-                            tlog=self.tlog, signing_state=self.signing)
+                            allow_unsigned_heartbeat=cfg.allow_unsigned_heartbeat,
+                            link_id=vs.system_id & 0xFF, tlog=self.tlog,
+                            signing_state=self.signing)
                 tr = StateTracker(self.counters, cfg.stale_after, check_stale=not self.lockstep,
                                   fallback=not self.lockstep)
+                if self.lockstep:
+                    tr.max_time_usec = 0   # connect: the state at t = 0
                 v = _Vehicle(i, vs.system_id, sock, peer, tr)
                 self.vehicles.append(v)
                 self._route[sock.fileno()][vs.system_id] = v
@@ -192,6 +209,8 @@ class MavlinkPlant:
         # real time: read the sockets once per step at the deadline (an agent process) instead
         # of whenever a datagram arrives (latency measured on arrival, as `connect` reports it)
         self.drain_per_step = False
+        self.read_budget_s = 0.25 * self.h   # a pass over a flooded socket reads this long at most
+        self._commanded = False      # the first command has gone out (vehicle reports printed)
         self._paced_from = None      # real time: step 0's wall-clock deadline, if fixed
         self._next_hb = 0.0
         self.profiles = _output_profiles(cfg, scenario, self.lockstep)
@@ -231,6 +250,7 @@ class MavlinkPlant:
         sock = self._sock_by_fd[fd]
         route = self._route[fd]
         c = self.counters
+        alive = self.cfg.link_timeout
 
         def on_packet(pkt, addr):
             v = route.get(pkt[5])
@@ -240,26 +260,49 @@ class MavlinkPlant:
                 else:
                     c.reject("wrong_system")
                 return
+            if v.src is not None and addr != v.src and now - v.src_t <= alive:
+                # a second process claims this vehicle while the first is alive (a leftover
+                # vehicle on the same ports, a spoofer): never used, counted, reported once
+                if v.peer.authentic(pkt):
+                    self._other_source(v, addr)
+                return
+            n0 = c.refusals()
             if pkt[7] | (pkt[8] << 8) | (pkt[9] << 16) == ID_ODOMETRY:
                 # the state stream, every step: its fields without building pymavlink's object
                 got = v.peer.accept_fields(pkt, _ODOMETRY)
-                if got is not None and self._dispatch(v, _Odometry(got[1]), now):
-                    self._accepted(v, addr)
-                return
-            m = v.peer.accept(pkt)
-            if m is None:
-                return
-            if self._dispatch(v, m, now):
+                used = got is not None and self._dispatch(v, _Odometry(got[1]), now)
+            else:
+                m = v.peer.accept(pkt)
+                used = m is not None and self._dispatch(v, m, now)
+            if c.refusals() == n0:
+                # authentic and refused by nothing (a fallback message ignored while ODOMETRY
+                # comes is not refused): its sequence number counts, its signature's window moves
+                v.peer.commit()
+                if v.src is None or addr == v.src:
+                    v.src, v.src_t = addr, now
+                elif used:   # the first source was silent for a link timeout: a restart
+                    v.src, v.src_t = addr, now
+            if used:
                 self._accepted(v, addr)
 
-        receive_datagrams(sock, c, on_packet)
+        receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + self.read_budget_s)
+
+    def _other_source(self, v: _Vehicle, addr) -> None:
+        self.counters.reject("other_source")
+        if addr not in v.others and len(v.others) >= 16:
+            addr = ("*", 0)          # many addresses (spoofed at random): counted together
+        n = v.others.get(addr, 0) + 1
+        v.others[addr] = n
+        if n == 1 and len(v.others) <= 3:   # reported for the first few addresses only
+            self._event(f"vehicle {v.i + 1} (system {v.sysid}): packets from {addr[0]}:{addr[1]} "
+                        f"too, while {v.src[0]}:{v.src[1]} is its source: a second process on "
+                        f"{v.sock.endpoint} (a leftover vehicle?); refused and counted "
+                        "(other_source)")
 
     def _accepted(self, v: _Vehicle, addr) -> None:
-        """A packet passed the link and was used: only now may it count for loss
-        statistics and (udpin) tell where the vehicle is. With a key only a signed packet moves
-        the address (an unsigned HEARTBEAT let in by allow_unsigned_heartbeat does not); udpout
-        endpoints never move."""
-        v.peer.commit_sequence()
+        """A packet passed the link and was used: only now may it (udpin) tell where the
+        vehicle is. With a key only a signed packet moves the address (an unsigned HEARTBEAT
+        let in by allow_unsigned_heartbeat does not); udpout endpoints never move."""
         if v.sock.mode == "udpin" and addr != v.addr and (self.key is None or v.peer.last_signed):
             v.addr = addr
 
@@ -286,9 +329,21 @@ class MavlinkPlant:
             v.statustexts.append(txt)
             if len(v.statustexts) > 50:
                 del v.statustexts[:25]
-            if "failsafe" in txt:
+            failsafe = "failsafe" in txt
+            if failsafe:
                 v.failsafe_reports += 1
-            if self.t0 is not None:
+            if self.t0 is not None and self._commanded:
+                # the vehicle's fail-safe and resume reports, printed from the first command
+                # on (before it, a vehicle without commands is in fail-safe by design), and
+                # then at most one line per STATUS_QUIET_S while they repeat
+                if failsafe or "resumed" in txt:
+                    if v.status_t is not None and now - v.status_t < STATUS_QUIET_S:
+                        v.status_quiet += 1
+                        return True
+                    if v.status_quiet:
+                        txt += f" ({v.status_quiet} more fail-safe/resume reports in the last " \
+                               f"{now - v.status_t:.3g} s; all in the summary's vehicle_failsafes)"
+                    v.status_t, v.status_quiet = now, 0
                 self._event(f"vehicle {v.i + 1} (system {v.sysid}): {txt}")
         if ok:
             self.wire[v.i] = tr.wire
@@ -317,10 +372,13 @@ class MavlinkPlant:
         """Services the links for at most ``timeout`` seconds (returns after the first batch)."""
         r, _, _ = select.select(self._fds, [], [], max(0.0, timeout))
         now = time.monotonic()
+        called = []
         for fd in r:
             cb = self._readers.get(fd)
             if cb is not None:
-                cb()
+                if cb not in called:     # one reader may own several sockets
+                    called.append(cb)
+                    cb()
             else:
                 self._receive(fd, now)
         if self.signing is not None:
@@ -331,13 +389,29 @@ class MavlinkPlant:
         """Waits for a HEARTBEAT and a first valid state from every vehicle (lockstep: the state
         at t = 0). Raises ConnectError naming the vehicles that did not connect."""
         t_end = time.monotonic() + self.connect_timeout
+        t_settle = None
         armed_sent = 0.0
         while True:
             now = time.monotonic()
             self._heartbeats(now)
+            for v in self.vehicles:
+                other = next((a for a, k in v.others.items() if k >= OTHER_SOURCE_PACKETS), None)
+                if other is not None:
+                    raise Se3SyncError(
+                        f"bridge: {v.sock.endpoint}: vehicle {v.i + 1} (system {v.sysid}) is "
+                        f"claimed by two processes, {v.src[0]}:{v.src[1]} and {other[0]}:{other[1]}"
+                        " (a leftover vehicle or bridge on these ports?); stop the other one or "
+                        "use other ports")
             ready = [v.connected and v.tracker.have and (not self.lockstep or v.tracker.time_usec == 0)
                      for v in self.vehicles]
             if all(ready):
+                # a second source seen: listen a little longer for the evidence (one stray
+                # packet costs half a second, never a refusal)
+                if t_settle is None:
+                    t_settle = now + 0.5
+                if any(v.others for v in self.vehicles) and now < t_settle:
+                    self.poll(0.01)
+                    continue
                 break
             if now >= t_end:
                 missing = [v for v, r in zip(self.vehicles, ready) if not r]
@@ -382,6 +456,7 @@ class MavlinkPlant:
             self.t0 = now  # pacing starts with the first command (not at connect)
         oldest = min((v.tracker.t_arrival or now) for v in self.vehicles)
         _hist_add(self.age_hist, now - oldest)
+        self._commanded = True
         for v in self.vehicles:
             if v.addr is None:
                 continue
@@ -437,6 +512,8 @@ class MavlinkPlant:
 
     def _advance_lockstep(self) -> None:
         target = (self.k + 1) * self.h_us
+        for v in self.vehicles:   # a state stamped after the step waited for is refused
+            v.tracker.max_time_usec = target
         t_start = time.monotonic()
         while True:
             waiting = [v for v in self.vehicles if v.tracker.time_usec is None or v.tracker.time_usec < target]
@@ -476,6 +553,9 @@ class MavlinkPlant:
         d["links_down"] = [v.i + 1 for v in self.vehicles if v.lost]
         d["duplicates"] = int(sum(v.tracker.duplicates for v in self.vehicles))
         d["vehicle_failsafes"] = int(sum(v.failsafe_reports for v in self.vehicles))
+        d["other_sources"] = {f"{v.i + 1}": {f"{a[0]}:{a[1]}": k for a, k in v.others.items()}
+                              for v in self.vehicles if v.others}
+        d["kernel_drops"] = sum(x or 0 for x in (s.kernel_drops() for s in self.socks))
         return d
 
     def close(self) -> None:

@@ -5,10 +5,18 @@ A message is rejected and counted when it is
 * ``nan``: any field not finite;
 * ``non_unit_quaternion``: | ‖q‖ − 1 | > 1e-3 (MAVLink carries float32, so ~1e-7 is normal);
 * ``out_of_order``: its time_usec is not newer than the last accepted one (an exact repeat is
-  counted as ``duplicate`` instead; a jump back of more than 10 s is a vehicle reboot and accepted);
+  counted as ``duplicate`` instead); a vehicle that rebooted stamps more than 10 s back and keeps
+  going from there: `REBOOT_STATES` such states in a row, each newer than the one before, are its
+  reboot (the last one is accepted, ``reboots``), one packet never is;
+* ``future``: real time, stamped more than `FUTURE_US` (1 s, as the vehicle's own bound on
+  commands) ahead of the vehicle's clock as estimated from the offset (accepted, one forged
+  packet would hold the ordering window, and the stale reference, for as long as it claimed);
+  lockstep, stamped after the step being waited for (``max_time_usec``);
 * ``stale``: it arrived more than ``stale_after`` seconds later than the best-case delay seen on
-  this link (the vehicle's clock and ours differ by an unknown offset, estimated as the minimum of
-  arrival − time_usec); not checked in lockstep, where time_usec is simulated time;
+  this link in the last 1–2 s (the vehicle's clock and ours differ by an unknown offset,
+  estimated as the minimum of arrival − time_usec over a window of `OFFSET_WINDOW_S` to 2×, so
+  that clock drift and one bad estimate expire); not checked in lockstep, where time_usec is
+  simulated time;
 * ``bad_frame``: an ODOMETRY frame_id/child_frame_id we do not handle.
 """
 from __future__ import annotations
@@ -28,6 +36,9 @@ FRAME_BODY_FRD = mavlink2.MAV_FRAME_BODY_FRD
 FRAME_BODY_NED = getattr(mavlink2, "MAV_FRAME_BODY_NED", 8)
 QUAT_TOL = 1e-3
 REBOOT_JUMP_US = 10_000_000
+REBOOT_STATES = 3
+FUTURE_US = 1_000_000
+OFFSET_WINDOW_S = 1.0
 
 ID_ODOMETRY = mavlink2.MAVLINK_MSG_ID_ODOMETRY
 ID_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
@@ -61,30 +72,60 @@ class StateTracker:
         self._pos = None              # (time_boot_ms, p(3), v_ned(3))
         self.duplicates = 0
         self.reboots = 0
+        self.max_time_usec = None     # lockstep: the stamp of the step being waited for
+        self._back = None             # (newest far-back stamp, run length): a reboot's evidence
+        self._win = [None, None, None]   # min(arrival − vehicle time) this window, the last one, start
 
     def reset_clock(self):
         self.time_usec = None
         self.offset = None
+        self._win = [None, None, None]
+
+    def _roll(self, t_wall: float) -> None:
+        w = self._win
+        if w[2] is None or t_wall - w[2] >= OFFSET_WINDOW_S:
+            w[0], w[1], w[2] = None, (w[0] if w[2] is not None and t_wall - w[2] < 2 * OFFSET_WINDOW_S
+                                      else None), t_wall
+            self.offset = w[1]
 
     def _time_ok(self, t_us: int, t_wall: float) -> bool:
+        if self.max_time_usec is not None and t_us > self.max_time_usec:
+            self.c.reject("future")
+            return False
+        if self.check_stale:
+            self._roll(t_wall)
+            d = t_wall * 1e6 - t_us
+            if self.offset is not None and d < self.offset - FUTURE_US:
+                self.c.reject("future")
+                return False
         if self.time_usec is not None:
             if t_us == self.time_usec:
                 self.duplicates += 1
                 return False
             if t_us < self.time_usec:
-                if self.time_usec - t_us > REBOOT_JUMP_US:
-                    self.reboots += 1
-                    self.offset = None
-                else:
+                if self.time_usec - t_us <= REBOOT_JUMP_US:
                     self.c.reject("out_of_order")
                     return False
+                back = self._back
+                run = 1 if back is None or t_us <= back[0] else back[1] + 1
+                self._back = (t_us, run)
+                if run < REBOOT_STATES:
+                    self.c.reject("out_of_order")
+                    return False
+                self.reboots += 1
+                self.reset_clock()
+                if self.check_stale:
+                    self._roll(t_wall)
+        self._back = None
         if self.check_stale:
-            d = t_wall * 1e6 - t_us
+            w = self._win
             if self.offset is None or d < self.offset:
                 self.offset = d
             elif d - self.offset > self.stale_after * 1e6:
                 self.c.reject("stale")
                 return False
+            if w[0] is None or d < w[0]:
+                w[0] = d
         return True
 
     def _accept(self, vals, t_us, t_wall, source) -> bool:

@@ -16,11 +16,14 @@ one's log, summary and stderr into a work directory, waits, and merges:
 """
 from __future__ import annotations
 
+import ctypes
 import json
 import math
 import os
+import select
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -43,7 +46,7 @@ from cosim.scenario import ScenarioError, load_scenario
 
 from . import frames
 from .config import default_config, read_key_file
-from .link import require_key_or_insecure
+from .link import parse_endpoint, require_key_or_insecure
 
 __all__ = ["merge_summaries", "merge_logs", "run_swarm", "run_swarm_cli", "EXIT_AGENT_FAILED"]
 
@@ -117,6 +120,10 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
             lost = None if sent is None else max(0, sent - ln["samples"])
             entry = {"from": j, "to": i, "sent": sent, "received": ln["samples"], "lost": lost,
                      "loss": (lost / sent) if sent else None,
+                     # what i refused of the packets that named j, and why (forged ones
+                     # included: without a key anyone can name j)
+                     "rejected": ln.get("rejected", 0),
+                     "rejected_by_reason": ln.get("rejected_by_reason", {}),
                      "age_p50_steps": ln["age_p50_steps"], "age_p99_steps": ln["age_p99_steps"],
                      "age_p50_s": None if ln["age_p50_steps"] is None else ln["age_p50_steps"] * h,
                      "age_p99_s": None if ln["age_p99_steps"] is None else ln["age_p99_steps"] * h}
@@ -133,12 +140,24 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
             agents.append({"agent": i, "summary": None})
             continue
         ln = s.get("link", {})
+        al = ln.get("agent_link", {})
         agents.append({"agent": i, "steps": s["steps"], "first_step": s.get("first_step", 0),
                        "interrupted": s["interrupted"], "wall_time_s": s["wall_time_s"],
                        "cpu_fraction": s.get("cpu_fraction"), "failsafe": s["failsafe"],
                        "late_steps": ln.get("late_steps"),
                        "vehicle_latency_ms_p99": ln.get("latency_ms_p99"),
-                       "vehicle_failsafes": ln.get("vehicle_failsafes")})
+                       "vehicle_failsafes": ln.get("vehicle_failsafes"),
+                       # everything this agent refused: on its neighbour link (all of it, also
+                       # what named no neighbour: junk, strangers) and on its vehicle link
+                       "rejected": {
+                           "neighbour_link": {"rejected_by_reason": al.get("rejected_by_reason", {}),
+                                              "malformed": al.get("malformed", 0),
+                                              "kernel_drops": al.get("kernel_drops")},
+                           "vehicle_link": {"rejected_by_reason": ln.get("rejected_by_reason", {}),
+                                            "malformed": ln.get("malformed", 0),
+                                            "dropped": ln.get("dropped", 0),
+                                            "other_sources": ln.get("other_sources", {}),
+                                            "kernel_drops": ln.get("kernel_drops")}}})
     steps = max((s["first_step"] + s["steps"] for s in summaries.values()), default=0)
     return {
         "scenario": sc.name, "scenario_path": str(sc.path), "controller": law,
@@ -152,7 +171,21 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
         "links": links,
         "link_total": _link_total(links),
         "agents": agents,
+        "rejected_total": _rejected_total(agents),
     }
+
+
+def _rejected_total(agents) -> dict:
+    """Every refusal of every agent, by link kind and reason."""
+    out = {"neighbour_link": {}, "vehicle_link": {}}
+    for a in agents:
+        for kind, d in (a.get("rejected") or {}).items():
+            tot = out[kind]
+            for k, v in d["rejected_by_reason"].items():
+                tot[k] = tot.get(k, 0) + v
+            if d.get("malformed"):
+                tot["malformed"] = tot.get("malformed", 0) + d["malformed"]
+    return out
 
 
 def _link_total(links) -> dict:
@@ -198,11 +231,15 @@ def merge_logs(scenario, logs: dict, out_path, *, law: str = "hybrid",
     sc = scenario
     N, M = sc.graph.n, sc.graph.M
     owned = {i: set(sc.graph.M_plus(i)) for i in range(1, N + 1)}
-    recs, jumps = {}, []
+    recs, jumps, unreadable = {}, [], []
     for i in range(1, N + 1):
         recs[i] = {}
         for p in logs.get(i, []):
-            r, js = _own_records(p, i, owned[i])
+            try:
+                r, js = _own_records(p, i, owned[i])
+            except Exception:  # noqa: BLE001 - an agent killed mid-write leaves a torn log
+                unreadable.append(str(p))
+                continue
             recs[i].update(r)
             jumps += js
     common = sorted(set.intersection(*(set(r) for r in recs.values()))) if recs else []
@@ -243,7 +280,8 @@ def merge_logs(scenario, logs: dict, out_path, *, law: str = "hybrid",
         failed = False
     finally:
         logger.close(discard=failed)
-    return {"records": len(common), "jumps": len(jumps)}
+    return {"records": len(common), "jumps": len(jumps), "unreadable": unreadable,
+            "agents_without_log": [i for i in range(1, N + 1) if not logs.get(i)]}
 
 
 # ------------------------------------------------------------------------------ launching
@@ -251,16 +289,39 @@ READY_TIMEOUT_S = 120.0   # every agent imports, loads its kernels and connects 
 START_LEAD_S = 1.0        # from "all ready" to step 0: the start file reaches every agent
 
 
+PR_SET_PDEATHSIG = 1      # linux/prctl.h
+PORT_LISTEN_S = 0.5       # start-up: how long the swarm's ports must be silent (lockstep
+#                           vehicles repeat their state every 0.2 s, real-time ones stream)
+
+
+def _die_with(parent: int):
+    """The child's set-up before exec (Linux): the kernel kills it (SIGKILL) when the launcher
+    dies, however it dies (SIGKILL, OOM, a crash): a launcher that cannot stop its children
+    cannot merge their outputs either, and a vehicle or agent left running would corrupt the
+    next run on the same ports. prctl survives exec; the launcher dying between fork and prctl
+    is caught by the parent id check. The agents start no processes of their own."""
+    libc = ctypes.CDLL(None, use_errno=True)
+
+    def setup():
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        if os.getppid() != parent:
+            os._exit(1)
+    return setup
+
+
 class _Children:
-    """The child processes, stopped together (SIGTERM, then SIGKILL after a grace period)."""
+    """The child processes, stopped together (SIGTERM, then SIGKILL after a grace period), and
+    killed by the kernel if the launcher dies first (Linux: `_die_with`)."""
 
     def __init__(self):
         self.procs: dict = {}   # name -> (Popen, stderr path)
+        self._setup = _die_with(os.getpid()) if sys.platform.startswith("linux") else None
 
     def start(self, name: str, argv: list, err_path: Path) -> subprocess.Popen:
         f = open(err_path, "wb")
         try:
-            p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
+            p = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                 preexec_fn=self._setup)
         finally:
             f.close()
         self.procs[name] = (p, err_path)
@@ -291,15 +352,70 @@ class _Children:
         return lines[-1] if lines else ""
 
 
+def check_ports(sc, vehicles: str, listen: float = PORT_LISTEN_S) -> None:
+    """Start-up: every endpoint the swarm will bind must be free, and none may already receive
+    traffic (something that is not part of this swarm, e.g. a vehicle or agent left over from an
+    earlier run, would otherwise feed it foreign packets: a stale vehicle on the same ports
+    turned a run's final rot_err from 0.036 into 2.0, silently). Listened to for ``listen``
+    seconds: the agents' endpoints, and the vehicles' bridge-side ``udpin`` endpoints when the
+    swarm starts the (loopback) vehicles itself. Raises Se3SyncError naming the port."""
+    net = sc.tables.get("network") or parse_network({}, sc.n_agents)
+    cfg = sc.bridge or default_config(sc.n_agents)
+    eps = [(f"udpin:{h}:{p}", "network.base_port / [[network.agent]]", True) for h, p in net.endpoints]
+    for v in cfg.vehicles:
+        mode, _ = parse_endpoint(v.endpoint)
+        if mode == "udpin":
+            eps.append((v.endpoint, "bridge.base_port / [[bridge.vehicle]] endpoint",
+                        vehicles == "loopback"))
+    socks = []
+    try:
+        for ep, key, _ in eps:
+            _, (host, port) = parse_endpoint(ep)
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            socks.append(s)
+            try:
+                s.bind((host, port))
+            except OSError as exc:
+                raise Se3SyncError(f"{host}:{port} ({ep}) cannot be bound: "
+                                   f"{exc.strerror or exc}; another process (an agent or vehicle "
+                                   f"left over from an earlier run?) has it: stop it or choose "
+                                   f"other ports ({key})") from None
+            s.setblocking(False)
+        quiet = [(s, ep, key) for s, (ep, key, q) in zip(socks, eps) if q]
+        t_end = time.monotonic() + listen
+        while quiet and time.monotonic() < t_end:
+            r, _, _ = select.select([q[0] for q in quiet], [], [], max(0.0, t_end - time.monotonic()))
+            for s, ep, key in quiet:
+                if s in r:
+                    try:
+                        _, addr = s.recvfrom(65535)
+                    except OSError:
+                        continue
+                    raise Se3SyncError(f"{ep}: traffic from {addr[0]}:{addr[1]} before the swarm "
+                                       "has started anything: a process that is not part of this "
+                                       "swarm (a vehicle or agent left over from an earlier run?) "
+                                       f"sends to this port; stop it or choose other ports ({key})")
+    finally:
+        for s in socks:
+            s.close()
+
+
 def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockstep: bool = False,
               log_path=None, summary_path=None, workdir=None, duration=None, law: str = "hybrid",
               key_file=None, start_delay=None, insecure: bool = False, progress: bool = False,
-              python=None, on_event=None, log_encoding: str = "json") -> tuple:
+              python=None, on_event=None, log_encoding: str = "json",
+              stop_requested: list | None = None) -> tuple:
     """Launches the swarm and merges its outputs; returns (merged summary, exit status): 0 all
     agents finished, EXIT_AGENT_FAILED an agent failed (the others are stopped), 130/143 a
-    signal stopped everything. The merged outputs are written in every case."""
+    signal stopped everything (also one noted in ``stop_requested`` before the call: then no
+    process is started). The merged outputs are written in every case. Raises Se3SyncError
+    before starting anything when a port of the swarm is taken or already receives traffic
+    (`check_ports`)."""
     say = on_event or (lambda s: print(f"se3sync swarm: {s}", file=sys.stderr, flush=True))
     sc = load_scenario(scenario_path, overrides, duration=duration)
+    stop_requested = [] if stop_requested is None else stop_requested
+    if not stop_requested:
+        check_ports(sc, vehicles)
     N = sc.graph.n
     py = python or sys.executable
     own_dir = workdir is None
@@ -318,12 +434,14 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
     kids = _Children()
     rc = 0
     interrupted = False
-    stop_requested = []
     t0 = time.monotonic()
     bar = None
     try:
         with signals.catching(lambda: stop_requested.append(True)):
-            if vehicles == "loopback":
+            if stop_requested:
+                interrupted = True
+                say("stopped (signal) before any process started")
+            elif vehicles == "loopback":
                 kids.start("vehicle", [py, "-m", "cosim.cli", "vehicle", "--scenario",
                                        str(Path(scenario_path)), *sets,
                                        "--aux-rate", "0", "--stats", str(wd / "vehicle.json"),
@@ -332,6 +450,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
             start = None
             start_file = wd / "start"
             for i in range(1, N + 1):
+                if stop_requested:
+                    break
                 kids.start(f"agent {i}", [
                     py, "-m", "cosim.cli", "agent", *common, "--id", str(i),
                     "--controller", law, "--summary", str(wd / f"agent_{i}.json"),
@@ -339,10 +459,12 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                       if log_path is not None else []),
                     *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec],
                     wd / f"agent_{i}.err")
-            say(f"{N} agent processes{' and the loopback vehicles' if vehicles == 'loopback' else ''}"
-                f" started ({'lockstep' if lockstep else 'real time'}); outputs in {wd}")
-            agents = [f"agent {i}" for i in range(1, N + 1)]
-            if not lockstep:
+            agents = [a for a in (f"agent {i}" for i in range(1, N + 1)) if a in kids.procs]
+            if agents:
+                say(f"{len(agents)} agent processes"
+                    f"{' and the loopback vehicles' if vehicles == 'loopback' else ''}"
+                    f" started ({'lockstep' if lockstep else 'real time'}); outputs in {wd}")
+            if not lockstep and not stop_requested:
                 # the clock starts when every agent is connected and waiting (ready files)
                 t_ready = time.monotonic() + READY_TIMEOUT_S
                 while not stop_requested:
@@ -359,7 +481,7 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
             if progress:
                 bar = tqdm(total=sc.n_steps() * sc.step, unit="s", desc=f"{sc.name} (swarm)",
                            bar_format="{l_bar}{bar}| {n:.1f}/{total:.1f} s")
-            while True:
+            while agents or stop_requested:
                 codes = {a: kids.procs[a][0].poll() for a in agents}
                 if stop_requested:
                     interrupted = True
@@ -402,17 +524,25 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                              lockstep=lockstep)
     merged["exit_status"] = {name: p.returncode for name, (p, _) in kids.procs.items()}
     merged["workdir"] = None if own_dir else str(wd)
+    try:
+        vst = json.loads((wd / "vehicle.json").read_text(encoding="utf-8"))
+        merged["vehicles"] = {k: vst.get(k) for k in (
+            "received", "datagrams", "malformed", "rejected", "rejected_by_reason", "failsafe",
+            "commands", "dropped", "commander")}
+    except (OSError, ValueError):
+        pass
     if log_path is not None:
+        # written at every stop, also one before any agent wrote a log (then without records)
         logs = {i: [wd / f"agent_{i}.mcap"] for i in range(1, N + 1)
                 if (wd / f"agent_{i}.mcap").exists()}
-        if len(logs) == N:
-            merged["log"] = str(log_path)
-            merged["log_merge"] = merge_logs(sc, logs, log_path, law=law, extra_metadata={
-                "time_base": "simulated (lockstep)" if lockstep else
-                             "wall (paced: t = n·h from the swarm's start)"},
-                encoding=log_encoding)
-        else:
-            say(f"no merged log: agent log(s) missing for {[i for i in range(1, N + 1) if i not in logs]}")
+        merged["log"] = str(log_path)
+        merged["log_merge"] = merge_logs(sc, logs, log_path, law=law, extra_metadata={
+            "time_base": "simulated (lockstep)" if lockstep else
+                         "wall (paced: t = n·h from the swarm's start)",
+            "interrupted": str(bool(interrupted)).lower()}, encoding=log_encoding)
+        missing = merged["log_merge"]["agents_without_log"] + merged["log_merge"]["unreadable"]
+        if missing:
+            say(f"merged log {log_path} has no records from agent log(s) {missing} (missing or torn)")
     if summary_path is not None:
         write_json_atomic(summary_path, merged)
     if own_dir:
@@ -422,8 +552,24 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
     return merged, rc
 
 
+def _refused_line(merged) -> str:
+    parts = []
+    for kind, name in (("neighbour_link", "neighbour links"), ("vehicle_link", "vehicle links")):
+        d = merged["rejected_total"][kind]
+        parts.append(f"{name} {sum(d.values())}" + (
+            f" ({', '.join(f'{k} {v}' for k, v in sorted(d.items()))})" if d else ""))
+    return "; ".join(parts)
+
+
 def run_swarm_cli(args) -> int:
     """Handler of ``se3sync swarm``."""
+    early = []
+    with signals.catching(lambda: early.append(True)):
+        # a signal from here on still writes both outputs (run_swarm starts nothing then)
+        return _swarm_cli(args, early)
+
+
+def _swarm_cli(args, early: list) -> int:
     # everything an agent would refuse is refused here, once, before a process starts
     if args.dir is not None:
         check_output_dir("--dir", args.dir)
@@ -452,7 +598,8 @@ def run_swarm_cli(args) -> int:
                            log_path=args.log, summary_path=args.summary, workdir=args.dir,
                            duration=args.duration, law=args.controller, key_file=args.key,
                            start_delay=args.start_delay, insecure=args.insecure,
-                           progress=sys.stderr.isatty(), log_encoding=args.log_encoding)
+                           progress=sys.stderr.isatty(), log_encoding=args.log_encoding,
+                           stop_requested=early)
     f = merged.get("final") or {}
     tot = merged["link_total"]
     print(f"{sc.name}: {len(merged['agents']) - len(merged['agents_missing'])} agents, "
@@ -460,5 +607,5 @@ def run_swarm_cli(args) -> int:
           f"{merged['wall_time_s']:.3g} s; {merged['n_jumps']} jumps; final rot_err "
           f"{f.get('rot_err', float('nan')):.3g}, pos_err {f.get('pos_err', float('nan')):.3g}; "
           f"inter-agent messages {tot['sent']}, lost {tot['lost']}, age p99 "
-          f"{tot['age_p99_steps_max']} steps", file=sys.stderr)
+          f"{tot['age_p99_steps_max']} steps; refused: {_refused_line(merged)}", file=sys.stderr)
     return rc

@@ -6,6 +6,14 @@ and LOCAL_POSITION_NED, answers SET_MESSAGE_INTERVAL, REQUEST_MESSAGE and
 COMPONENT_ARM_DISARM with COMMAND_ACK, and fails safe (zero wrench; under gravity the hover
 wrench −m Rᵀ g) when commands time out, saying so in a STATUSTEXT and a counter.
 
+Who may do what (as autopilots do): any ground station may configure telemetry (HEARTBEAT,
+SET_MESSAGE_INTERVAL, GET_MESSAGE_INTERVAL, REQUEST_MESSAGE, REQUEST_AUTOPILOT_CAPABILITIES →
+AUTOPILOT_VERSION, PARAM_REQUEST_LIST / PARAM_REQUEST_READ → PARAM_VALUE), whatever its system
+id; actuation (SET_ACTUATOR_CONTROL_TARGET, MANUAL_CONTROL, SET_ATTITUDE_TARGET, DO_SET_ACTUATOR,
+arming, mode changes, parameter writes) only from the commander, or signed with the key when
+there is one; anything else of it is refused as ``not_commander`` (a COMMAND_LONG with a DENIED
+COMMAND_ACK). Replies go to the sender; the streams keep going where the commander is.
+
 Real time: the wall clock advances the physics in ticks of 1/rate. ``lockstep``: a vehicle
 advances exactly one control period per command whose time stamp (time_usec of
 SET_ACTUATOR_CONTROL_TARGET; ``confirmation`` mod 256 for COMMAND_LONG) is its current step, and
@@ -31,7 +39,7 @@ from cosim.scenario import load_scenario
 from plant_fmu.fast import FleetFMU
 
 from .link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
-                   receive_datagrams, require_key_or_insecure)
+                   parse_endpoint, receive_datagrams, require_key_or_insecure)
 from .signing_state import open_signing_state
 from .mapping import FleetMapping, MappingSpec
 from .config import default_config, read_key_file
@@ -48,6 +56,19 @@ WRENCH_MSGS = (M.MAVLINK_MSG_ID_MANUAL_CONTROL, M.MAVLINK_MSG_ID_SET_ATTITUDE_TA
 NAN21 = [float("nan")] + [0.0] * 20
 MAX_AHEAD_US = 1_000_000        # a command may be stamped at most 1 s ahead of the vehicle's clock
 DEFAULT_COMMANDER = (255, 191)  # the bridge's default source_system, source_component
+ID_AUTOPILOT_VERSION = M.MAVLINK_MSG_ID_AUTOPILOT_VERSION
+# what only the commander (or a signed sender) may send: the messages that move the vehicle or
+# change its configuration, and the commands among those we implement that do
+ACTUATION_MSGS = frozenset((M.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET, *WRENCH_MSGS,
+                            M.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED,
+                            M.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT,
+                            M.MAVLINK_MSG_ID_SET_MODE, M.MAVLINK_MSG_ID_PARAM_SET,
+                            M.MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE))
+ACTUATION_COMMANDS = frozenset((M.MAV_CMD_DO_SET_ACTUATOR, M.MAV_CMD_COMPONENT_ARM_DISARM,
+                                M.MAV_CMD_DO_SET_MODE, M.MAV_CMD_DO_SET_SERVO,
+                                M.MAV_CMD_DO_MOTOR_TEST, M.MAV_CMD_DO_FLIGHTTERMINATION))
+CAPABILITIES = (M.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+                | M.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET)
 
 
 class SimVehicle:
@@ -89,6 +110,7 @@ class SimVehicle:
         self.wire = np.zeros(13)
         self.S = np.zeros(layout.S_WIDTH)
         self.profile = None             # OutputProfile for MANUAL_CONTROL / SET_ATTITUDE_TARGET (scenario)
+        self._reply = None              # the sender of the packet being handled (its replies)
         self._refresh()
 
     # ------------------------------------------------------------------ state
@@ -114,15 +136,17 @@ class SimVehicle:
         self._refresh()
 
     # ------------------------------------------------------------------ out
-    def send(self, msg) -> None:
-        if self.gcs_addr is None and self.sock.remote is None:
+    def send(self, msg, addr=None) -> None:
+        """To ``addr`` (a reply), else where the commander is (udpin) or the udpout target."""
+        addr = addr or self.gcs_addr
+        if addr is None and self.sock.remote is None:
             return  # udpin and nobody has talked to us yet
         try:
             buf = self.peer.pack(msg)
         except Exception:  # noqa: BLE001 (e.g. a diverged state does not fit a float32)
             self.server.encode_errors += 1
             return
-        if self.sock.send(buf, self.gcs_addr):
+        if self.sock.send(buf, addr):
             self.server.counters.sent += 1
         else:
             self.server.counters.send_errors += 1
@@ -140,11 +164,13 @@ class SimVehicle:
                                 x[7], x[8], x[9], NAN21, NAN21, 0, M.MAV_ESTIMATOR_TYPE_NAIVE, 100)
         self.send(m)
 
-    def send_message(self, msgid: int) -> bool:
+    def send_message(self, msgid: int, addr=None) -> bool:
         mav = self.peer.mav
         x = self.wire
         tb = int((time.monotonic() - self.server.t_boot) * 1000) & 0xFFFFFFFF
-        if msgid == ID_ODOMETRY:
+        if msgid == ID_AUTOPILOT_VERSION:
+            self.send(self.autopilot_version(), addr)
+        elif msgid == ID_ODOMETRY and addr is None:
             self.send_odometry()
         elif msgid == ID_HEARTBEAT:
             mode = M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (M.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
@@ -158,16 +184,61 @@ class SimVehicle:
             v = x[10:13]
             vn = [R[3 * i] * v[0] + R[3 * i + 1] * v[1] + R[3 * i + 2] * v[2] for i in range(3)]
             self.send(mav.local_position_ned_encode(tb, x[0], x[1], x[2], vn[0], vn[1], vn[2]))
+        elif msgid == ID_ODOMETRY:
+            m = mav.odometry_encode(self.time_usec(), M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_BODY_FRD,
+                                    x[0], x[1], x[2], [x[3], x[4], x[5], x[6]], x[10], x[11], x[12],
+                                    x[7], x[8], x[9], NAN21, NAN21, 0, M.MAV_ESTIMATOR_TYPE_NAIVE, 100)
+            self.send(m, addr)
         else:
             return False
         return True
+
+    def autopilot_version(self):
+        """AUTOPILOT_VERSION: what we are (MAVLink 2, float parameters, SET_ATTITUDE_TARGET);
+        flight_sw_version 0.1.0 in PX4's layout (major << 24 | minor << 16 | patch << 8 | type,
+        255 = release), uid = the system id."""
+        return self.peer.mav.autopilot_version_encode(
+            CAPABILITIES, (0 << 24) | (1 << 16) | (0 << 8) | 255, 0, 0, 0, [0] * 8, [0] * 8,
+            [0] * 8, 0, 0, self.sysid)
+
+    # ------------------------------------------------------------------ parameters (read-only)
+    def params(self) -> list:
+        """[(name, value)]: read-only REAL32 parameters, what a ground station may read."""
+        srv = self.server
+        odom = self.interval.get(ID_ODOMETRY)
+        return [("SE3_SYSID", float(self.sysid)), ("SE3_MASS", self.mass),
+                ("SE3_CTRL_STEP", srv.h), ("SE3_CMD_TMO", srv.command_timeout),
+                ("SE3_ODOM_HZ", 1.0 / odom if odom else 0.0),
+                ("SE3_LOCKSTEP", float(srv.lockstep))]
+
+    def send_param(self, index: int, addr) -> bool:
+        ps = self.params()
+        if not 0 <= index < len(ps):
+            return False
+        name, value = ps[index]
+        self.send(self.peer.mav.param_value_encode(name.encode(), float(value),
+                                                   M.MAV_PARAM_TYPE_REAL32, len(ps), index), addr)
+        return True
+
+    def param_request(self, m, addr) -> None:
+        if m.get_msgId() == M.MAVLINK_MSG_ID_PARAM_REQUEST_LIST:
+            for i in range(len(self.params())):
+                self.send_param(i, addr)
+            return
+        name = m.param_id if isinstance(m.param_id, str) else bytes(m.param_id).decode("ascii", "replace")
+        name = name.split("\0", 1)[0]
+        names = [n for n, _ in self.params()]
+        index = m.param_index if m.param_index >= 0 else (names.index(name) if name in names else -1)
+        if not self.send_param(index, addr):
+            self.server.counters.reject("bad_command")   # no such parameter
 
     def statustext(self, severity: int, text: str) -> None:
         self.send(self.peer.mav.statustext_encode(severity, text.encode()[:50]))
 
     def ack(self, command: int, result: int, m) -> None:
+        """COMMAND_ACK to the sender of m (its address: `handle` notes it)."""
         self.send(self.peer.mav.command_ack_encode(command, result, 0, 0, m.get_srcSystem(),
-                                                   m.get_srcComponent()))
+                                                   m.get_srcComponent()), self._reply)
 
     def emit_due(self, now: float) -> None:
         for msgid, period in self.interval.items():
@@ -206,11 +277,34 @@ class SimVehicle:
         else:
             self.server.counters.reject("bad_command")
 
-    def handle(self, m, addr, now: float) -> None:
+    def handle(self, m, addr, now: float, trusted: bool = True) -> None:
+        """A packet that passed the link. ``trusted``: from the commander, or signed with the
+        key; otherwise only telemetry configuration is obeyed (see the module docstring)."""
         srv = self.server
         mid = m.get_msgId()
+        self._reply = addr
         if mid == ID_HEARTBEAT:
-            self.gcs_seen = now
+            if trusted:
+                self.gcs_seen = now
+            return
+        if not trusted and mid in ACTUATION_MSGS:
+            srv.counters.reject("not_commander")
+            return
+        if mid in (M.MAVLINK_MSG_ID_PARAM_REQUEST_LIST, M.MAVLINK_MSG_ID_PARAM_REQUEST_READ):
+            if m.target_system not in (0, self.sysid):
+                srv.counters.reject("not_for_us")
+                return
+            self.param_request(m, addr)
+            return
+        if mid == M.MAVLINK_MSG_ID_PARAM_SET:
+            if m.target_system not in (0, self.sysid):
+                srv.counters.reject("not_for_us")
+                return
+            srv.counters.reject("bad_command")             # the parameters are read-only
+            names = [n for n, _ in self.params()]
+            name = m.param_id if isinstance(m.param_id, str) else bytes(m.param_id).decode("ascii", "replace")
+            if name.split("\0", 1)[0] in names:            # the value stays: say so
+                self.send_param(names.index(name.split("\0", 1)[0]), addr)
             return
         if mid in WRENCH_MSGS:
             self.wrench_command(m, now)
@@ -238,6 +332,10 @@ class SimVehicle:
         if mid == M.MAVLINK_MSG_ID_COMMAND_LONG:
             if m.target_system not in (0, self.sysid):
                 srv.counters.reject("not_for_us")
+                return
+            if not trusted and m.command in ACTUATION_COMMANDS:
+                srv.counters.reject("not_commander")
+                self.ack(m.command, M.MAV_RESULT_DENIED, m)
                 return
             self.command_long(m, now)
             return
@@ -312,10 +410,24 @@ class SimVehicle:
             return
         if cmd == M.MAV_CMD_REQUEST_MESSAGE:
             mid = int(m.param1) if math.isfinite(m.param1) else -1
-            ok = mid in STREAMABLE
+            ok = mid in STREAMABLE or mid == ID_AUTOPILOT_VERSION
             self.ack(cmd, M.MAV_RESULT_ACCEPTED if ok else M.MAV_RESULT_UNSUPPORTED, m)
             if ok:
-                self.send_message(mid)
+                self.send_message(mid, self._reply)
+            return
+        if cmd == M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            self.ack(cmd, M.MAV_RESULT_ACCEPTED, m)
+            self.send(self.autopilot_version(), self._reply)
+            return
+        if cmd == M.MAV_CMD_GET_MESSAGE_INTERVAL:
+            mid = int(m.param1) if math.isfinite(m.param1) else -1
+            if mid not in STREAMABLE:
+                self.ack(cmd, M.MAV_RESULT_UNSUPPORTED, m)
+                return
+            self.ack(cmd, M.MAV_RESULT_ACCEPTED, m)
+            p = self.interval[mid]
+            self.send(self.peer.mav.message_interval_encode(mid, -1 if not p else int(round(p * 1e6))),
+                      self._reply)
             return
         self.ack(cmd, M.MAV_RESULT_UNSUPPORTED, m)
 
@@ -349,6 +461,7 @@ class VehicleServer:
                  gravity_ned=(0.0, 0.0, 0.0), quiet: bool = True, commander=None,
                  insecure: bool = False, signing_state=None, key_file=None):
         cfg = None
+        base_port_arg, host_arg = base_port, host
         if scenario is not None:
             cfg = scenario.bridge or default_config(scenario.n_agents)
             count = scenario.n_agents
@@ -403,9 +516,17 @@ class VehicleServer:
             h_int = min(self.h, 1e-3)
             terms = {}
         eps = []
+        # with a scenario and no address given here, each vehicle is the other end of its
+        # [bridge] endpoint (udpin:H:P there -> udpout:H:P here, and the reverse), so that
+        # explicit per-vehicle endpoints ([[bridge.vehicle]], bridge.endpoints) are honoured
+        mirror = cfg is not None and not endpoints and not shared_port and \
+            base_port_arg is None and host_arg is None
         for i in range(self.count):
             if endpoints:
                 eps.append(endpoints[i])
+            elif mirror:
+                mode, (h_, p_) = parse_endpoint(cfg.vehicles[i].endpoint)
+                eps.append(f"{'udpout' if mode == 'udpin' else 'udpin'}:{h_}:{p_}")
             elif shared_port or (cfg is not None and cfg.routing == "shared"):
                 eps.append(f"udpout:{host}:{base_port}")
             else:
@@ -450,9 +571,13 @@ class VehicleServer:
     def _receive(self, v: SimVehicle, now: float) -> None:
         c = self.counters
         csys, ccomp = self.commander
+        keyed = self.key is not None
 
         def on_packet(pkt, addr):
-            if pkt[5] != csys or (ccomp and pkt[6] != ccomp):
+            commander = pkt[5] == csys and (not ccomp or pkt[6] == ccomp)
+            if not commander and not keyed and \
+                    (pkt[7] | (pkt[8] << 8) | (pkt[9] << 16)) in ACTUATION_MSGS:
+                # refused before decoding (cheap): actuation from anyone but the commander
                 if crc_ok(pkt) is False:
                     c.malformed += 1
                 else:
@@ -463,20 +588,24 @@ class VehicleServer:
                 return
             n0 = c.refusals()
             try:
-                v.handle(m, addr, now)
+                # with a key, every packet that got here is signed with it (or an unsigned
+                # HEARTBEAT that allow_unsigned_heartbeat lets in, which commands nothing)
+                v.handle(m, addr, now, commander or keyed)
             except (ValueError, TypeError, OverflowError):  # e.g. int(nan) of a parameter
                 c.reject("bad_command")
                 return
             if c.refusals() == n0:
-                self._accepted(v, addr)
+                v.peer.commit()
+                if commander:
+                    self._accepted(v, addr)
 
         return receive_datagrams(v.sock, c, on_packet)
 
     def _accepted(self, v: SimVehicle, addr) -> None:
-        """A packet from the commander passed the link and its handler: only now may it count
-        for loss statistics and (udpin) tell where to answer. With a key only a signed packet
-        moves the address; udpout endpoints never move."""
-        v.peer.commit_sequence()
+        """A packet from the commander passed the link and its handler: only now may it
+        (udpin) tell where to send the streams. With a key only a signed packet moves the
+        address; udpout endpoints never move. (Its signature's replay window and sequence
+        number were committed by the caller: `Peer.commit`.)"""
         if v.sock.mode == "udpin" and (self.key is None or v.peer.last_signed):
             v.gcs_addr = addr
 

@@ -90,9 +90,13 @@ def poll_until(link, pred, timeout=3.0):
         time.sleep(0.001)
 
 
-def send_raw(sc, to, data: bytes):
+def send_raw(sc, to, data: bytes, frm=2):
+    """A datagram to agent ``to`` from agent ``frm``'s endpoint (where a neighbour sends from;
+    ``frm=None``: from an ephemeral port, as a stranger would)."""
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
+        if frm is not None:
+            s.bind(endpoint(sc, frm))
         s.sendto(data, endpoint(sc, to))
     finally:
         s.close()
@@ -141,6 +145,7 @@ def test_round_trip_reaches_exactly_the_neighbours(world, closing):
     want = expected_row(S, world)
     assert np.max(np.abs(want - S)) < 1e-5          # float32 rounding only
     for i in (1, 3, 5):
+        links[i].set_step(11)
         assert poll_until(links[i], lambda i=i: links[i].neighbour(2) is not None)
         got = links[i].neighbour(2)
         assert got.step == 11
@@ -217,6 +222,7 @@ def test_newest_sample_never_goes_backwards(closing):
     sc = scenario()
     rx = AgentLink.from_scenario(sc, 1)
     closing.append(rx)
+    rx.set_step(20)
     mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
     stamps = [5, 3, 8, 8, 6, 12, 2, 13, 13, 9]
     held = []
@@ -253,6 +259,7 @@ def test_age_percentiles_are_nearest_rank_of_the_recorded_ages(closing):
     closing.append(rx)
     mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
     assert rx.age_steps(2, 0) is None and rx.neighbour(2) is None
+    rx.set_step(10)
     send_raw(sc, 1, sample_datagram(mav, 10 * H_US, 1.0))
     assert poll_until(rx, lambda: rx.neighbour(2) is not None)
     ns = [10, 11, 11, 12, 15, 30, 10, 13, 14, 200]
@@ -278,9 +285,10 @@ def test_signed_link_rejects_forged_and_unsigned(closing):
     before = rx.neighbour(2)
     forger = Peer(2, AGENT_COMPONENT, Counters(), key=bytes(32 - i for i in range(32)))
     plain = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
-    send_raw(sc, 1, bytes(forger.pack(odometry(forger.mav, 50 * H_US, 9.0)))
-             + bytes(forger.pack(theta_msg(forger.mav, 50 * H_US, (9.0, 9.0)))))
-    send_raw(sc, 1, sample_datagram(plain, 60 * H_US, 9.0))
+    # from agent 2's own endpoint (a spoofed source address), so that only the signature tells
+    tx.sock.send(bytes(forger.pack(odometry(forger.mav, 3 * H_US, 9.0)))
+                 + bytes(forger.pack(theta_msg(forger.mav, 3 * H_US, (9.0, 9.0)))), endpoint(sc, 1))
+    tx.sock.send(sample_datagram(plain, 4 * H_US, 9.0), endpoint(sc, 1))
     poll_until(rx, lambda: rx.stats()["datagrams"] == 3)
     by = rx.stats()["rejected_by_reason"]
     assert by.get("bad_signature") == 2 and by.get("unsigned") == 2
@@ -297,11 +305,16 @@ def test_non_neighbour_system_is_refused(closing):
     sc = scenario()
     rx = AgentLink.from_scenario(sc, 1)
     closing.append(rx)
-    for sys_id, comp in ((4, AGENT_COMPONENT), (2, 1)):
+    # agent 4 from its own endpoint (not a neighbour's: refused before parsing), agent 2's
+    # endpoint claiming agent 3, and agent 2's endpoint with another component
+    for frm, sys_id, comp in ((4, 4, AGENT_COMPONENT), (2, 3, AGENT_COMPONENT), (2, 2, 1)):
         mav = mavlink2.MAVLink(None, srcSystem=sys_id, srcComponent=comp)
-        send_raw(sc, 1, sample_datagram(mav, 5 * H_US, 1.0))
-    poll_until(rx, lambda: rx.stats()["datagrams"] == 2)
-    assert rx.stats()["rejected_by_reason"] == {"not_neighbour": 4}
+        send_raw(sc, 1, sample_datagram(mav, 5 * H_US, 1.0), frm=frm)
+    send_raw(sc, 1, sample_datagram(mavlink2.MAVLink(None, srcSystem=2, srcComponent=191),
+                                    5 * H_US, 1.0), frm=None)      # from a stranger's port
+    poll_until(rx, lambda: rx.stats()["datagrams"] == 4)
+    assert rx.stats()["rejected_by_reason"] == {"not_neighbour": 4, "wrong_address": 2}
+    assert rx.stats()["links"]["2"]["rejected"] == 0   # refused before anything names agent 2
     assert rx.neighbour(2) is None
 
 
@@ -311,6 +324,7 @@ def test_random_and_broken_datagrams_are_counted_and_dropped(closing):
     sc = scenario()
     rx = AgentLink.from_scenario(sc, 1)
     closing.append(rx)
+    rx.set_step(9)
     mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
     send_raw(sc, 1, sample_datagram(mav, 4 * H_US, 3.0))
     assert poll_until(rx, lambda: rx.neighbour(2) is not None)
@@ -359,6 +373,7 @@ def test_bad_values_from_a_neighbour_are_rejected_with_the_reason(case, reason, 
     sc = scenario()
     rx = AgentLink.from_scenario(sc, 1)
     closing.append(rx)
+    rx.set_step(8)
     mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
     send_raw(sc, 1, sample_datagram(mav, 4 * H_US, 3.0))
     assert poll_until(rx, lambda: rx.neighbour(2) is not None)
@@ -377,17 +392,48 @@ def test_bad_values_from_a_neighbour_are_rejected_with_the_reason(case, reason, 
     send_raw(sc, 1, bytes(msg.pack(mav)))
     poll_until(rx, lambda: rx.stats()["datagrams"] == 2)
     assert rx.stats()["rejected_by_reason"] == {reason: 1}
+    assert rx.stats()["links"]["2"]["rejected_by_reason"] == {reason: 1}   # on agent 2's link
     assert rx.neighbour(2) is held
 
 
-def test_flood_is_read_within_the_budget(closing):
+def test_a_poll_drains_by_time_not_by_count(closing):
     sc = scenario()
     rx = AgentLink.from_scenario(sc, 1, drain_budget=16)
     closing.append(rx)
     for _ in range(40):
-        send_raw(sc, 1, os.urandom(20))
+        send_raw(sc, 1, b"\x00" + os.urandom(19), frm=None)     # junk from a stranger
     time.sleep(0.05)
+    assert rx.poll() == 40 and rx.stats()["drain_capped"] == 0   # batches of 16 until empty
+    assert rx.stats()["malformed"] == 40                           # refused on the first byte
+    for _ in range(40):
+        send_raw(sc, 1, b"\x00" + os.urandom(19), frm=None)
+    time.sleep(0.05)
+    rx.poll_budget_s = rx.junk_budget_s = 0.0                      # no time left: one batch
     assert rx.poll() == 16 and rx.stats()["drain_capped"] == 1
+
+
+def test_junk_overflowing_its_socket_crowds_out_no_neighbour_sample(closing):
+    """Issue 29, 3: junk from strangers fills only the catch-all socket (the kernel hands each
+    neighbour's datagrams to a socket connected to it), so a flood the agent cannot read in time
+    is dropped by the kernel, counted, and every genuine sample is still there."""
+    sc = scenario()
+    rx = AgentLink.from_scenario(sc, 1)
+    closing.append(rx)
+    rx.set_step(100)
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    junk = b"\xfd" + bytes(200)
+    for _ in range(20_000):                         # far beyond the 1 MiB receive buffer
+        s.sendto(junk, endpoint(sc, 1))
+    s.close()
+    mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
+    for k in range(60, 100):
+        send_raw(sc, 1, sample_datagram(mav, k * H_US, float(k)))
+    rx.junk_budget_s = 0.0                          # the junk gets one batch per poll at most
+    assert poll_until(rx, lambda: rx.neighbour(2) is not None and rx.neighbour(2).step == 99)
+    st = rx.stats()
+    assert st["links"]["2"]["samples"] == 40 and st["links"]["2"]["rejected"] == 0, st
+    assert st["kernel_drops"] > 10_000                # the flood's loss, reported
+    assert st["links"]["2"]["kernel_drops"] == 0
 
 
 def test_freshness_follows_max_age_then_hold_then_failsafe_and_rejoins(closing):
@@ -396,6 +442,7 @@ def test_freshness_follows_max_age_then_hold_then_failsafe_and_rejoins(closing):
                         name="al", path="al.toml")
     rx = AgentLink.from_scenario(sc, 1)
     closing.append(rx)
+    rx.set_step(100)
     assert (rx.max_age_steps, rx.hold_steps) == (5, 3)    # 20 ms and 10 ms at h = 4 ms
     # before any sample: counted from S0 at step 0
     assert [rx.freshness(2, n) for n in (5, 6, 8, 9)] == ["fresh", "hold", "hold", "failsafe"]
@@ -404,6 +451,7 @@ def test_freshness_follows_max_age_then_hold_then_failsafe_and_rejoins(closing):
     assert poll_until(rx, lambda: rx.neighbour(2) is not None)
     assert [rx.freshness(2, n) for n in (100, 105, 106, 108, 109)] == \
         ["fresh", "fresh", "hold", "hold", "failsafe"]
+    rx.set_step(109)
     send_raw(sc, 1, sample_datagram(mav, 107 * H_US, 1.0))   # fresh data again: rejoin
     assert poll_until(rx, lambda: rx.neighbour(2).step == 107)
     assert rx.freshness(2, 109) == "fresh"
@@ -446,15 +494,110 @@ def test_more_than_58_owned_edges_travel_in_chunks(closing):
     assert rx.stats()["received"] == 3                  # ODOMETRY + "theta" + "theta1"
 
 
-def test_a_stamp_far_back_is_a_restart_a_near_one_is_late(closing):
+def test_a_restart_is_a_run_of_samples_far_back_never_one_packet(closing):
     sc = scenario()
     rx = AgentLink.from_scenario(sc, 1)
     closing.append(rx)
+    rx.set_step(5000)
     assert rx.restart_steps == 2500                      # 10 s at h = 4 ms
     mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
-    for k, (s, held) in enumerate([(5000, 5000), (2500, 5000), (2499, 2499), (2600, 2600)]):
+    n = 0
+
+    def send(s):
+        nonlocal n
         send_raw(sc, 1, sample_datagram(mav, s * H_US, float(s)))
-        poll_until(rx, lambda k=k: rx.stats()["datagrams"] == k + 1)
-        assert rx.neighbour(2).step == held and rx.neighbour(2).S[0] == float(held)
+        n += 1
+        poll_until(rx, lambda: rx.stats()["datagrams"] == n)
+        return rx.neighbour(2).step
+
+    # one far-back sample (or two in a row) is not a restart; a newer genuine sample ends the run
+    assert [send(s) for s in (5000, 2500, 2499, 1000, 1001, 5001, 1002, 1003)] == \
+        [5000] * 5 + [5001] * 3
     st = rx.stats()
-    assert st["links"]["2"]["restarts"] == 1 and st["rejected_by_reason"] == {"out_of_order": 2}
+    assert rx.neighbour(2).step == 5001 and st["links"]["2"]["restarts"] == 0
+    # a sender restarted on another timeline: its samples keep coming from far back, each newer
+    # than the last; the third in a row is taken (and what it carries)
+    assert [send(s) for s in (1000, 1001, 1002, 1003)] == [5001, 5001, 1002, 1003]
+    assert rx.neighbour(2).S[0] == 1003.0
+    st = rx.stats()
+    assert st["links"]["2"]["restarts"] == 1
+    # every refused message was counted: 2500 (near: late), 2499, 1000, 1001, 1002, 1003 (far,
+    # runs broken by 5001 or too short), 1000, 1001: two messages each
+    assert st["rejected_by_reason"] == {"out_of_order": 2 * 8}, st["rejected_by_reason"]
+
+
+def test_a_future_stamp_is_refused_never_used_and_never_moves_the_window(closing):
+    """Issue 29, 1: one unsigned sample of agent 2 stamped 10 s ahead took over agent 1's view
+    of agent 2 (899 of 1,200 genuine samples then refused as out_of_order)."""
+    sc = scenario()
+    rx = AgentLink.from_scenario(sc, 1)
+    closing.append(rx)
+    fs = rx.future_steps
+    assert fs == 5                                        # 20 ms at h = 4 ms
+    mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
+    n = 0
+
+    def send(s, x=None):
+        nonlocal n
+        send_raw(sc, 1, sample_datagram(mav, s * H_US, float(s) if x is None else x))
+        n += 1
+        poll_until(rx, lambda: rx.stats()["datagrams"] == n)
+
+    rx.set_step(100)
+    send(100)
+    for forged in (100 + 2500, 100 + 10**9, 100 + fs + 1):
+        send(forged, x=5.0)
+        got = rx.neighbour(2)
+        assert got.step == 100 and got.S[0] == 100.0     # never used
+    assert rx.stats()["links"]["2"]["rejected_by_reason"] == {"future": 3 * 2}
+    for k in range(101, 131):                            # the genuine stream goes on untouched
+        rx.set_step(k)
+        send(k)
+        assert rx.neighbour(2).step == k and rx.freshness(2, k) == "fresh"
+    assert rx.stats()["rejected_by_reason"] == {"future": 6}
+    send(130 + fs)                                       # the tolerance itself is accepted
+    assert rx.neighbour(2).step == 130 + fs
+    assert rx.freshness(2, 130) == "fresh"               # −fs steps: a clock that is a bit ahead
+
+
+def test_real_time_receiver_step_follows_the_wall_clock(closing):
+    sc = scenario()
+    rx = AgentLink.from_scenario(sc, 1)
+    closing.append(rx)
+    now = [1000.0]
+    rx.set_timeline(1000.0 - 50 * 0.004 - 1e-9, clock=lambda: now[0])
+    assert rx.current_step() == 50
+    rx.set_step(40)                       # a late process: the clock's step still counts
+    assert rx.current_step() == 50
+    mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
+    send_raw(sc, 1, sample_datagram(mav, 55 * H_US, 1.0))
+    send_raw(sc, 1, sample_datagram(mav, 56 * H_US, 1.0))
+    poll_until(rx, lambda: rx.stats()["datagrams"] == 2)
+    assert rx.neighbour(2).step == 55 and rx.stats()["rejected_by_reason"] == {"future": 2}
+    # the data are newer than the late step 40 (age −15) but not than the clock's: fresh
+    assert rx.freshness(2, 40) == "fresh"
+    now[0] -= 1.0                         # the clock stepped back 1 s: a sample 250 steps ahead
+    rx.set_step(-200)
+    assert rx.freshness(2, -200) == "failsafe"
+
+
+def test_lockstep_history_is_kept_around_the_own_step_not_the_newest_stamp(closing):
+    """Issue 29, 2: one sample stamped 10⁹ steps ahead emptied a lockstep agent's history, so it
+    waited for data it had already received and the swarm exited."""
+    sc = scenario()
+    rx = AgentLink.from_scenario(sc, 1, history=4)
+    closing.append(rx)
+    mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
+    rx.set_step(10)
+    sent = 0
+    for s in (8, 9, 10, 11, 10 + 10**9, 10 + rx.future_steps + 1):
+        send_raw(sc, 1, sample_datagram(mav, s * H_US, float(s)))
+        sent += 1
+    poll_until(rx, lambda: rx.stats()["datagrams"] == sent)
+    assert rx.stats()["rejected_by_reason"] == {"future": 4}
+    for s in (8, 9, 10, 11):
+        assert rx.pose_at(2, s)[0] == float(s) and rx.theta_at(2, s) == {2: 0.5, 4: -0.5}
+    rx.set_step(14)                       # steps before 14 − 4 are let go
+    send_raw(sc, 1, sample_datagram(mav, 14 * H_US, 14.0))
+    poll_until(rx, lambda: rx.stats()["datagrams"] == sent + 1)
+    assert rx.pose_at(2, 9) is None and rx.pose_at(2, 10)[0] == 10.0 and rx.pose_at(2, 14)[0] == 14.0

@@ -202,7 +202,10 @@ def test_spoofed_unsigned_heartbeats_divert_no_signed_command(tmp_path):
     assert steps == [200] * 6                     # every vehicle got every command
     # 3,000 foreign sequence numbers would make ~190,000 phantom "drops"; loopback loses ~nothing
     assert st["dropped"] < 50, st
-    assert st["rejected"] == 0 and vst["rejected"] == 0
+    # they come from another address than the vehicle's while the vehicle is alive: a second
+    # source claiming it, refused before use (issue 29)
+    assert set(st["rejected_by_reason"]) == {"other_source"} and vst["rejected"] == 0, st
+    assert 0 < st["rejected"] <= 3000
 
 
 def test_spoofed_nan_odometry_diverts_no_command(tmp_path):
@@ -217,8 +220,9 @@ def test_spoofed_nan_odometry_diverts_no_command(tmp_path):
     st, vst, steps, got = _hil_with_spoofer(tmp_path, [], None, spoof)
     assert got == 0
     assert steps == [200] * 6
-    assert st["rejected_by_reason"].get("nan", 0) > 0
-    assert set(st["rejected_by_reason"]) == {"nan"}
+    # from another address than the vehicle's: refused as a second source before decoding
+    assert st["rejected_by_reason"].get("other_source", 0) > 0
+    assert set(st["rejected_by_reason"]) == {"other_source"}
     assert st["dropped"] < 50, st
 
 
@@ -288,7 +292,7 @@ def test_flood_keeps_failsafe_deadline(tmp_path):
     h = 0.004
     rng = random.Random(3)
     stranger = Peer(77, 1, Counters())
-    hb = stranger.pack(stranger.mav.heartbeat_encode(0, 0, 0, 0, 4))       # well formed: not_commander
+    hb = _command(stranger, 1)                  # well formed, actuation from a stranger: not_commander
     junk = [bytes([0xFD]) + rng.randbytes(rng.randrange(1, 40)) for _ in range(64)]  # truncated frames
     flood = [hb if i % 2 else junk[i // 2 % 64] for i in range(128)]
     sent = 0

@@ -182,9 +182,40 @@ def test_state_tracker_rejections():
     assert not tr.on_odometry(_Odo(1_300_000, frame=99), 10.3)
     assert dict(c.rejected) == {"out_of_order": 1, "nan": 1, "non_unit_quaternion": 1, "stale": 1,
                                 "bad_frame": 1}
-    # a vehicle reboot (time jumps back by more than 10 s) is accepted
-    tr2 = StateTracker(Counters(), check_stale=False)
-    assert tr2.on_odometry(_Odo(50_000_000), 0) and tr2.on_odometry(_Odo(1000), 0) and tr2.reboots == 1
+    # a vehicle reboot: time jumps back by more than 10 s and goes on from there; the third such
+    # state in a row is taken, one or two never are
+    c2 = Counters()
+    tr2 = StateTracker(c2, check_stale=False)
+    assert tr2.on_odometry(_Odo(50_000_000), 0)
+    assert [tr2.on_odometry(_Odo(t), 0) for t in (1000, 2000, 50_000_001, 3000, 4000, 5000)] == \
+        [False, False, True, False, False, True]
+    assert tr2.reboots == 1 and tr2.time_usec == 5000 and dict(c2.rejected) == {"out_of_order": 4}
+
+
+def test_one_future_stamped_state_holds_no_window():
+    """Issue 29 (the same fault as the agents' link, at the bridge): one ODOMETRY stamped 5 s
+    ahead made every genuine state out of order (and, through the stale reference, stale)."""
+    c = Counters()
+    tr = StateTracker(c, stale_after=0.1)
+    t0, w0 = 1_000_000, 100.0
+    assert tr.on_odometry(_Odo(t0), w0)
+    assert not tr.on_odometry(_Odo(t0 + 5_000_000, x=9.0), w0 + 0.004)       # forged: refused
+    assert dict(c.rejected) == {"future": 1} and tr.wire[0] == 0.0
+    for k in range(1, 200):                     # the genuine stream, 4 ms apart, never refused
+        assert tr.on_odometry(_Odo(t0 + 4000 * k), w0 + 0.004 * k), k
+    # one forged state within the tolerance (0.5 s ahead) is taken (nothing tells it from a
+    # genuine one without a key); the genuine states then look stale, but only until the offset's
+    # window has passed (≤ 2 s), never for good
+    t1, w1 = t0 + 4000 * 199, w0 + 0.004 * 199
+    assert tr.on_odometry(_Odo(t1 + 500_000), w1 + 0.004)
+    c.rejected.clear()
+    ok = [tr.on_odometry(_Odo(t1 + 4000 * k), w1 + 0.004 * k) for k in range(2, 1000)]
+    first = ok.index(True)
+    assert (first + 2) * 0.004 <= 2.0 + 0.008 and all(ok[first:])   # back within 2 s, for good
+    assert set(c.rejected) == {"out_of_order", "stale"}
+    lock = StateTracker(Counters(), check_stale=False)
+    lock.max_time_usec = 8000
+    assert not lock.on_odometry(_Odo(10**12), 0) and lock.on_odometry(_Odo(8000), 0)
 
 
 def test_framing_and_untrusted_bytes():
