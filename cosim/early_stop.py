@@ -14,14 +14,15 @@ from .files import write_json_atomic
 __all__ = ["stopped_before_start", "write_bare_log"]
 
 
-def write_bare_log(path, scenario_path, stage: str) -> None:
-    """A finished MCAP that holds only the se3sync metadata record (no scenario was read yet),
-    written whole or not at all."""
+def write_bare_log(path, scenario_path, stage: str, summary: dict) -> None:
+    """A finished MCAP that holds only the se3sync metadata record (no scenario was read yet)
+    and the outcome record of ``summary``, written whole or not at all."""
     from mcap.writer import Writer
 
     from controller import __version__
 
     from .files import atomic_path
+    from .guards import outcome_metadata
 
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
@@ -31,6 +32,7 @@ def write_bare_log(path, scenario_path, stage: str) -> None:
                 "scenario_path": str(scenario_path or ""), "se3sync_version": __version__,
                 "time_base": "simulated", "time_unit": "ns", "interrupted": "true",
                 "stopped_during": stage})
+            w.add_metadata("se3sync.outcome", outcome_metadata(summary))
             w.finish()
 
 
@@ -71,7 +73,7 @@ def stopped_before_start(scenario=None, *, stage: str, scenario_path=None, contr
                 logger.close()
                 counts = dict(logger.counts)
             else:
-                write_bare_log(log_path, scenario_path, stage)
+                write_bare_log(log_path, scenario_path, stage, out)
             out["log"] = str(log_path)
             out["log_messages"] = counts
         if summary_path is not None:

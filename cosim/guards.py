@@ -19,7 +19,7 @@ import math
 
 from controller.errors import ConfigError
 
-__all__ = ["EXIT_DIVERGED", "DIVERGE_FACTOR", "XI_LIMIT", "MAX_SAMPLES", "MAX_JUMPS",
+__all__ = ["outcome_metadata", "EXIT_DIVERGED", "DIVERGE_FACTOR", "XI_LIMIT", "MAX_SAMPLES", "MAX_JUMPS",
            "RUN_DELAY_MAX_AGENTS", "V_limit", "sample_divergence", "delay_guard"]
 
 EXIT_DIVERGED = 6          # `se3sync run`: stopped because the run diverged
@@ -33,6 +33,17 @@ MAX_JUMPS = 10_000         # jumps listed in the summary (all are counted, and l
 # `run` computes the delay margin before a run with a delay up to this many agents unless
 # --delay-agents says otherwise (tree of 1000 agents: 6-10 s on 2 cores; see `check`)
 RUN_DELAY_MAX_AGENTS = 1000
+
+
+OUTCOME_KEYS = ("steps", "sim_time_s", "interrupted", "stopped_during", "diverged", "n_jumps",
+                "jump_bound", "jump_bound_exceeded", "timed_out")
+
+
+def outcome_metadata(summary: dict) -> dict:
+    """How a run ended, as the ``se3sync.outcome`` metadata record of its log (JSON values)."""
+    import json
+
+    return {k: json.dumps(summary[k], default=float) for k in OUTCOME_KEYS if k in summary}
 
 
 def V_limit(V0: float, gravity) -> float:

@@ -98,7 +98,7 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                 master = Master(scenario, p, ctrl, logger)
             if requested:
                 master.request_stop()
-            at("running")
+            at("starting the run")
             summary = master.run(scenario.n_steps(), progress=progress)
         except KeyboardInterrupt:
             # before the loop (which handles its own signals): nothing was stepped

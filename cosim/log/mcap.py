@@ -1032,10 +1032,9 @@ class McapLogger:
     def outcome(self, summary: dict) -> None:
         """A metadata record ``se3sync.outcome`` with how the run ended (steps, interrupted,
         stopped_during, diverged, n_jumps, jump_bound_exceeded), written before `close`."""
-        keys = ("steps", "sim_time_s", "interrupted", "stopped_during", "diverged", "n_jumps",
-                "jump_bound", "jump_bound_exceeded", "timed_out")
-        self._w.add_metadata("se3sync.outcome", {
-            k: json.dumps(summary[k], default=float) for k in keys if k in summary})
+        from ..guards import outcome_metadata
+
+        self._w.add_metadata("se3sync.outcome", outcome_metadata(summary))
 
     def close(self, discard: bool = False):
         """Finishes the file (and writes the layout beside it); ``discard=True`` removes the
