@@ -33,6 +33,11 @@ MAX_JUMPS = 10_000         # jumps listed in the summary (all are counted, and l
 # `run` computes the delay margin before a run with a delay up to this many agents unless
 # --delay-agents says otherwise (tree of 1000 agents: 6-10 s on 2 cores; see `check`)
 RUN_DELAY_MAX_AGENTS = 1000
+# Loops of at most this many states get the margin's dense eigenproblems on one BLAS thread:
+# OpenBLAS's threads on such small matrices cost more than they give, and with the cores busy
+# they spin (hil_6uav, 77 states, both cores loaded: 20 s of CPU and 71 s wall on the default
+# threads, 1.7 s and 6.8 s on one)
+ONE_BLAS_THREAD_STATES = 600
 
 
 OUTCOME_KEYS = ("steps", "sim_time_s", "interrupted", "stopped_during", "diverged", "n_jumps",
@@ -90,7 +95,7 @@ def delay_guard(scenario, hybrid: bool, max_agents: int = RUN_DELAY_MAX_AGENTS, 
         return None
     h = float(scenario.step)
     d, key, spec = net.worst_delay(scenario.graph, h)
-    out = {"worst_delay_steps": d, "worst_delay_s": d * h, "key": key,
+    out = {"worst_delay_steps": d, "worst_delay_s": round(d * h, 12), "key": key,
            "delay_margin_steps": None, "delay_margin_s": None, "checked": False, "why": ""}
     if d == 0:
         out.update(checked=True, why="no delay")
@@ -101,7 +106,13 @@ def delay_guard(scenario, hybrid: bool, max_agents: int = RUN_DELAY_MAX_AGENTS, 
         return out
     from .analysis.delay_margin import delay_margin     # scipy: only a run with a delay
 
-    dm = delay_margin(scenario, hybrid=hybrid, progress=progress, sweep=sweep)
+    if 12 * scenario.graph.n + scenario.graph.M <= ONE_BLAS_THREAD_STATES:
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(limits=1, user_api="blas"):
+            dm = delay_margin(scenario, hybrid=hybrid, progress=progress, sweep=sweep)
+    else:
+        dm = delay_margin(scenario, hybrid=hybrid, progress=progress, sweep=sweep)
     m = dm["delay_margin_steps"]
     out.update(delay_margin_steps=m, delay_margin_s=dm["delay_margin_s"])
     if m is None:

@@ -246,7 +246,7 @@ def test_no_growth_limit_with_gravity():
 
 # ----------------------------------------------------------------------------- 4. huge delays
 @pytest.mark.parametrize("key", ["delay", "jitter"])
-def test_a_delay_of_1e6_s_is_one_line_or_a_bounded_run(key, tmp_path, capsys):
+def test_a_delay_of_1e6_s_is_one_line_or_a_bounded_run(key, cached_margin, tmp_path, capsys):
     """Reported: a traceback allocating 40.2 GiB. Now refused by the margin (one line, exit 2);
     with --force the run goes on with a delay line as long as the run (a message arriving after
     its end never matters), and a run too long for even that is one line naming the key."""

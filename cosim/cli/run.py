@@ -230,7 +230,7 @@ def _guards(args, sc, at) -> dict:
         if net is None:
             return {}
         d, key, _ = net.worst_delay(sc.graph, sc.step)
-        return {"delay_check": {"worst_delay_steps": d, "worst_delay_s": d * sc.step,
+        return {"delay_check": {"worst_delay_steps": d, "worst_delay_s": round(d * sc.step, 12),
                                 "key": key, "delay_margin_steps": None, "delay_margin_s": None,
                                 "checked": d == 0, "why": "no delay" if d == 0 else "--force"}}
     at("checking the step's stability")
