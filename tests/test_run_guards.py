@@ -52,9 +52,12 @@ def _files(d: Path):
 def margin():
     """hil_6uav's delay margin as `check` computes it (24 steps = 0.096 s, `test_stability_delay`
     holds it to the spectral radii), computed once for the module."""
+    from threadpoolctl import threadpool_limits
+
     from cosim.analysis.delay_margin import delay_margin
 
-    return delay_margin(load_scenario(HIL))
+    with threadpool_limits(limits=1, user_api="blas"):   # as `run` computes it (cosim.guards)
+        return delay_margin(load_scenario(HIL))
 
 
 @pytest.fixture
