@@ -3,13 +3,22 @@ loads, while the scenario is read, during the stability and delay analysis, whil
 is built or loaded. A batch system then still finds a summary that says so (``"interrupted":
 true``, ``"steps": 0``, ``"stopped_during"``) and, when a log was asked for, a finished MCAP.
 
-Imports only what writing them needs (the MCAP logger when a scenario was loaded), so that the
-handler of a signal that lands while the command line starts does not load numba.
+The command line imports this module in its handler of such a signal (loading it costs what
+loading the scenario does, about 1.5 s, once).
 """
 from __future__ import annotations
 
+from pathlib import Path
+
+from mcap.writer import Writer
+
+from controller import __version__
+
 from . import signals
-from .files import write_json_atomic
+from .files import atomic_path, write_json_atomic
+from .guards import outcome_metadata
+from .log.mcap import McapLogger
+from .scenario import design_summary
 
 __all__ = ["stopped_before_start", "write_bare_log"]
 
@@ -17,13 +26,6 @@ __all__ = ["stopped_before_start", "write_bare_log"]
 def write_bare_log(path, scenario_path, stage: str, summary: dict) -> None:
     """A finished MCAP that holds only the se3sync metadata record (no scenario was read yet)
     and the outcome record of ``summary``, written whole or not at all."""
-    from mcap.writer import Writer
-
-    from controller import __version__
-
-    from .files import atomic_path
-    from .guards import outcome_metadata
-
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             w = Writer(f)
@@ -57,15 +59,11 @@ def stopped_before_start(scenario=None, *, stage: str, scenario_path=None, contr
             "final": None, "samples": [], "plant": plant,
         }
         if sc is not None:
-            from .scenario import design_summary
-
             out["design"] = design_summary(sc)
         out.update(summary_extra or {})
         if log_path is not None:
             counts = {}
             if logger is None and sc is not None:
-                from .log.mcap import McapLogger
-
                 logger = McapLogger(log_path, sc, controller=controller, encoding=log_encoding,
                                     extra_metadata={"plant": plant, **(log_metadata or {})})
             if logger is not None:
@@ -82,6 +80,4 @@ def stopped_before_start(scenario=None, *, stage: str, scenario_path=None, contr
 
 
 def _stem(path) -> str:
-    from pathlib import Path
-
     return Path(str(path)).stem if path else ""

@@ -1,7 +1,7 @@
 """What keeps a run inside the region the analysis covers, or says that it left it
 (docs/run-guards.md lists every guard, its limit, its message and its exit status).
 
-* Before a run (`delay_guard`): a worst-case inter-agent delay (delay + jitter, the longest
+* Before a run (`cosim.analysis.delay_guard`): a worst-case inter-agent delay (delay + jitter, the longest
   directed link) beyond the delay margin of `se3sync check` is refused, as an unstable step is.
 * During a run (`cosim.master.Master`, both loops): a summary sample whose V̄ or errors are not
   finite, whose V̄ exceeds `DIVERGE_FACTOR` × V̄(0) (gravity-free scenarios) or whose largest
@@ -15,12 +15,11 @@
 """
 from __future__ import annotations
 
+import json
 import math
 
-from controller.errors import ConfigError
-
 __all__ = ["outcome_metadata", "EXIT_DIVERGED", "DIVERGE_FACTOR", "XI_LIMIT", "MAX_SAMPLES", "MAX_JUMPS",
-           "RUN_DELAY_MAX_AGENTS", "V_limit", "sample_divergence", "delay_guard"]
+           "RUN_DELAY_MAX_AGENTS", "ONE_BLAS_THREAD_STATES", "V_limit", "sample_divergence"]
 
 EXIT_DIVERGED = 6          # `se3sync run`: stopped because the run diverged
 # V̄ is non-increasing along the paper's closed loop (gravity-free), so V̄(t) ≤ V̄(0); the sampled
@@ -46,8 +45,6 @@ OUTCOME_KEYS = ("steps", "sim_time_s", "interrupted", "stopped_during", "diverge
 
 def outcome_metadata(summary: dict) -> dict:
     """How a run ended, as the ``se3sync.outcome`` metadata record of its log (JSON values)."""
-    import json
-
     return {k: json.dumps(summary[k], default=float) for k in OUTCOME_KEYS if k in summary}
 
 
@@ -74,62 +71,3 @@ def sample_divergence(rec: dict, v_limit: float) -> str | None:
     if rec["xi_max"] > XI_LIMIT:
         return f"max|ξ| = {rec['xi_max']:.4g} exceeds {XI_LIMIT:g}"
     return None
-
-
-def delay_guard(scenario, hybrid: bool, max_agents: int = RUN_DELAY_MAX_AGENTS, progress=None,
-                sweep=None) -> dict | None:
-    """The worst-case inter-agent delay of the scenario's ``[network]`` table against the delay
-    margin of its loop linearised at consensus (`cosim.analysis.delay_margin`, what `check`
-    prints), or None without the table. Raises ConfigError (one line naming the key that sets
-    the longest transit and the margin) when the delay is beyond the margin.
-
-    The worst case is the longest transit any message can take, d + J_max steps (the delay and
-    the largest jitter, rounded up to steps as the links do) over every directed link; the
-    margin is that of one constant delay on every link, so per-link delays are judged by their
-    longest. Losses are not a delay (a lost message leaves older data in use: ``max_age``
-    bounds that). The margin costs a few seconds at 1000 agents (`check`'s figures), so it is
-    computed only when there is a delay and the graph has at most ``max_agents`` agents;
-    otherwise the returned dict says why it was not checked."""
-    net = scenario.tables.get("network")
-    if net is None:
-        return None
-    h = float(scenario.step)
-    d, key, spec = net.worst_delay(scenario.graph, h)
-    out = {"worst_delay_steps": d, "worst_delay_s": round(d * h, 12), "key": key,
-           "delay_margin_steps": None, "delay_margin_s": None, "checked": False, "why": ""}
-    if d == 0:
-        out.update(checked=True, why="no delay")
-        return out
-    if scenario.graph.n > max_agents:
-        out["why"] = (f"not computed: {scenario.graph.n} agents > {max_agents} "
-                      "(--delay-agents)")
-        return out
-    from .analysis.delay_margin import delay_margin     # scipy: only a run with a delay
-
-    if 12 * scenario.graph.n + scenario.graph.M <= ONE_BLAS_THREAD_STATES:
-        from threadpoolctl import threadpool_limits
-
-        with threadpool_limits(limits=1, user_api="blas"):
-            dm = delay_margin(scenario, hybrid=hybrid, progress=progress, sweep=sweep)
-    else:
-        dm = delay_margin(scenario, hybrid=hybrid, progress=progress, sweep=sweep)
-    m = dm["delay_margin_steps"]
-    out.update(delay_margin_steps=m, delay_margin_s=dm["delay_margin_s"])
-    if m is None:
-        upto = dm.get("stable_up_to_steps")
-        if upto is not None and upto >= d:
-            out.update(checked=True, why=f"stable for every delay up to {upto} steps tried")
-        else:
-            out["why"] = f"not computed: {dm['delay_method']}"
-        return out
-    out["checked"] = True
-    if d <= m:
-        out["why"] = "within the delay margin"
-        return out
-    what = (f"delay {spec.delay:g} s + jitter {spec.jitter:g} s" if spec.jitter > 0
-            else f"delay {spec.delay:g} s")
-    margin = ("the loop is unstable even without delay" if m < 0 else
-              f"beyond the delay margin of {m * h:.4g} s ({m} steps; see se3sync check)")
-    raise ConfigError(key, f"a worst-case delay of {d * h:.4g} s ({what}, {d} steps of h = "
-                           f"{h:g} s) is {margin}: the linearised loop is unstable there; use a "
-                           "smaller delay or --force", scenario.path)

@@ -56,7 +56,7 @@ def margin():
 
     from cosim.analysis.delay_margin import delay_margin
 
-    with threadpool_limits(limits=1, user_api="blas"):   # as `run` computes it (cosim.guards)
+    with threadpool_limits(limits=1, user_api="blas"):   # as `run` computes it (delay_guard)
         return delay_margin(load_scenario(HIL))
 
 
@@ -64,9 +64,9 @@ def margin():
 def cached_margin(margin, monkeypatch):
     """The guard's margin from the module's one computation (the guard's own arithmetic is what
     these tests check; the margin's is `check`'s)."""
-    import cosim.analysis.delay_margin as dm
+    import cosim.analysis.delay_guard as dg
 
-    monkeypatch.setattr(dm, "delay_margin", lambda sc, **kw: dict(margin))
+    monkeypatch.setattr(dg, "delay_margin", lambda sc, **kw: dict(margin))
     return margin["delay_margin_steps"]
 
 
@@ -116,12 +116,12 @@ def test_worst_case_delay_against_the_margin(sets, worst, key, cached_margin, tm
 
 
 def test_force_and_delay_agents_skip_the_margin_and_say_so(tmp_path, capsys, monkeypatch):
-    import cosim.analysis.delay_margin as dm
+    import cosim.analysis.delay_guard as dg
 
     def never(*a, **k):
         raise AssertionError("the margin must not be computed")
 
-    monkeypatch.setattr(dm, "delay_margin", never)
+    monkeypatch.setattr(dg, "delay_margin", never)
     rc, err = _call(["run", HIL, "--duration", "0.02", "--set", "network.delay=0.2",
                      "--delay-agents", "5", "--summary", tmp_path / "s.json"], capsys)
     assert rc == 0

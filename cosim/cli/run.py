@@ -222,7 +222,6 @@ def _guards(args, sc, at) -> dict:
     summary."""
     from ..analysis.stability import analyse
     from ..controllers import make_controller
-    from ..guards import delay_guard
     from ..scenario import ScenarioError
 
     net = sc.tables.get("network")
@@ -245,6 +244,7 @@ def _guards(args, sc, at) -> dict:
     if net is None:
         return {}
     at("computing the delay margin")
+    from ..analysis.delay_guard import delay_guard     # scipy: only with a [network] table
     progress = None
     if sys.stderr.isatty():
         def progress(d, rho, seconds, outside=None):

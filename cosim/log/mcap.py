@@ -43,6 +43,7 @@ from controller import layout
 from controller.errors import Se3SyncError
 
 from ..files import atomic_path
+from ..guards import outcome_metadata
 from . import cdr
 from . import foxglove as fg
 
@@ -1032,8 +1033,6 @@ class McapLogger:
     def outcome(self, summary: dict) -> None:
         """A metadata record ``se3sync.outcome`` with how the run ended (steps, interrupted,
         stopped_during, diverged, n_jumps, jump_bound_exceeded), written before `close`."""
-        from ..guards import outcome_metadata
-
         self._w.add_metadata("se3sync.outcome", outcome_metadata(summary))
 
     def close(self, discard: bool = False):
