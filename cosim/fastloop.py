@@ -28,6 +28,7 @@ from numba.extending import intrinsic
 
 from controller import HybridController
 from controller import layout
+from controller.errors import Se3SyncError
 from controller.kernels import metrics, network_step, network_U
 from plant_fmu.fast import FleetFMU
 
@@ -338,6 +339,8 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
             if out[O_STATUS]:
                 pending = (CALL_NAMES[int(out[O_CALL])], int(out[O_STATUS]))
                 break
+            if master.diverged is not None:   # a sample of this block showed it (guards)
+                break
             if bar is not None:
                 bar.update(n - bar.n)
             if master._stop:
@@ -357,7 +360,11 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
         if writer is not None:
             writer.close()
     if pending is not None:
-        fmu._fail(*pending)
+        try:
+            fmu._fail(*pending)
+        except Se3SyncError as exc:
+            if not master.plant_failed(n, u, exc):   # a non-finite state or wrench: diverged
+                raise
     return n, interrupted, timed_out
 
 
@@ -392,7 +399,8 @@ class _RecordBuffers:
 def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, smp_theta,
                smp_u, free=None):
     """The block's events, in step order: the summary samples (main thread, they fill
-    master.samples), jumps (master.jumps now, the log on the writer) and log records."""
+    master.add_sample, which checks them for divergence), jumps (master.add_jump now, the log on
+    the writer) and log records."""
     if nsmp:
         m = master.metrics
         out = np.empty((nsmp, 4))
@@ -402,11 +410,10 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, sm
         if steps[0] == 0:
             master.u0 = smp_u.copy()
         for q, (V, ximax, r, p) in enumerate(out.tolist()):
-            master.samples.append(m.record(steps[q] * h, r, p, ximax, smp_theta[q], V))
+            master.add_sample(m.record(steps[q] * h, r, p, ximax, smp_theta[q], V))
     jstep, jedge, jbefore, jafter, jmu = (a[:njmp].tolist() for a in jb)
     for s, e, b, a, m in zip(jstep, jedge, jbefore, jafter, jmu):
-        master.jumps.append({"t": s * h, "edge": e, "theta_before": b, "theta_after": a,
-                             "mu": m})
+        master.add_jump({"t": s * h, "edge": e, "theta_before": b, "theta_after": a, "mu": m})
     if writer is None or (njmp == 0 and nrec == 0):
         if free is not None and writer is not None:
             free.append(rec)

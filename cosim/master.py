@@ -16,9 +16,10 @@ import time
 import numpy as np
 
 from controller import LawParameters, V_bar, jump_bound
+from controller.errors import Se3SyncError
 from controller.kernels import metrics, network_U
 
-from . import signals
+from . import guards, signals
 from .controllers import law_name, make_controller
 from .fastloop import MAX_BLOCK, compiled_fleet, run_compiled
 from .scenario import design_summary
@@ -74,6 +75,13 @@ class Master:
     with ``"timed_out": true``. ``restart(S0)`` starts again from another initial state with a
     plant that can ``reset`` (sweeps reuse one plant and master for many samples).
 
+    Guards (`cosim.guards`, docs/run-guards.md): a summary sample that shows the run diverged
+    (non-finite, V̄ past `guards.DIVERGE_FACTOR` × V̄(0), |ξ| past `guards.XI_LIMIT`), or a plant
+    that fails with a non-finite state or wrench, ends the run early with ``"diverged"`` (t,
+    step, reason) in the summary instead of an error; the summary keeps at most
+    `guards.MAX_SAMPLES` samples (thinned evenly) and lists the first `guards.MAX_JUMPS` jumps
+    (``n_jumps`` counts them all; ``jump_bound_exceeded`` compares it with the bound).
+
     ``first_step`` places step 0 of this run at step n₀ of a longer timeline (an agent process
     that joins a running swarm): times in the log, the jumps and the summary are (n₀ + n)·h. The
     log and sample ticks stay at multiples of their periods from step 0 of this run, so n₀
@@ -109,14 +117,21 @@ class Master:
 
     def _start(self, S0) -> None:
         sc = self.scenario
-        self.jumps = []
-        self.samples = []
+        self.jumps = []          # the first guards.MAX_JUMPS jumps (add_jump)
+        self.n_jumps = 0
+        self.last_jump = None
+        self.samples = []        # every `_smp_stride`-th sample, at most guards.MAX_SAMPLES
+        self._smp_seen = 0
+        self._smp_stride = 1
+        self.diverged = None     # {"t", "step", "reason"} once the run has diverged
+        self._plant_broken = False
         self.link_samples = 0
         self.u0 = None
         self.n_done = 0
         self.V0 = V_bar(sc.graph, sc.weighting, sc.design, sc.gains, S0, self.controller.theta,
                         sc.inertia6)
         self.jump_bound = jump_bound(self.V0, sc.gains.k_X, sc.design.delta)
+        self.V_limit = guards.V_limit(self.V0, sc.gravity)
 
     def restart(self, S0, theta0=None) -> None:
         """Start again at t = 0 from S0 (and θ(0) = theta0, zeros if None); the plant must
@@ -130,17 +145,61 @@ class Master:
     def _metrics(self, S, theta):
         return self.metrics.compute(S, theta)
 
+    def add_jump(self, rec: dict) -> None:
+        """One jump {t, edge, theta_before, theta_after, mu}, in time order (both loops)."""
+        self.n_jumps += 1
+        self.last_jump = rec
+        if len(self.jumps) < guards.MAX_JUMPS:
+            self.jumps.append(rec)
+
+    def add_sample(self, rec: dict) -> None:
+        """One summary sample, in time order (both loops): kept if it falls on the current
+        stride (halved evenly past guards.MAX_SAMPLES), and checked for divergence."""
+        k = self._smp_seen
+        self._smp_seen = k + 1
+        if k % self._smp_stride == 0:
+            self.samples.append(rec)
+            if len(self.samples) > guards.MAX_SAMPLES:
+                del self.samples[1::2]
+                self._smp_stride *= 2
+        if self.diverged is None:
+            why = guards.sample_divergence(rec, self.V_limit)
+            if why is not None:
+                self.diverged = {"t": rec["t"], "step": round(rec["t"] / self.h), "reason": why}
+
+    def plant_failed(self, n: int, u, exc: Exception) -> bool:
+        """A plant error at step n (of this run) is the run's divergence when the wrench it was
+        given or its state is no longer finite: recorded (True) rather than raised."""
+        bad_u = u is not None and not np.isfinite(u).all()
+        try:
+            bad_S = not np.isfinite(self.plant.read()).all()
+        except Exception:  # noqa: BLE001 - a plant that cannot even be read: a plain error
+            bad_S = False
+        if not (bad_u or bad_S):
+            return False
+        what = "the wrench" if bad_u else "the plant's state"
+        msgs = getattr(exc, "messages", None)
+        detail = (f"{exc.function}: {msgs[0]}" + (f" (+{len(msgs) - 1} more)" if len(msgs) > 1
+                                                 else "")
+                  if msgs and getattr(exc, "function", None) else str(exc))
+        step = self.first_step + n
+        self.diverged = {"t": step * self.h, "step": step,
+                         "reason": f"{what} is no longer finite "
+                                   f"({' '.join(detail.split())[:200]})"}
+        self._plant_broken = True
+        return True
+
     def _on_jumps(self, n, events):
         t = (self.first_step + n) * self.h
         t_ns = round(t * 1e9)
         for e in events:
-            self.jumps.append({"t": t, "edge": e.edge, "theta_before": e.theta_before,
-                               "theta_after": e.theta_after, "mu": e.mu})
+            self.add_jump({"t": t, "edge": e.edge, "theta_before": e.theta_before,
+                           "theta_after": e.theta_after, "mu": e.mu})
             if self.logger is not None:
                 self.logger.jump(t_ns, t, e.edge, e.theta_before, e.theta_after, e.mu)
 
     def _sample(self, t, S, theta):
-        self.samples.append(self.metrics.sample(t, S, theta))
+        self.add_sample(self.metrics.sample(t, S, theta))
 
     def _tick(self, n, S, u, do_log, do_sample):
         ctrl = self.controller
@@ -194,7 +253,8 @@ class Master:
         broken = False
         timed_out = False
         deadline = None
-        n = 0
+        n = k = 0
+        u = None
         t0 = time.perf_counter()
         fleet = None
         if self.use_compiled and self.first_step == 0:
@@ -208,6 +268,7 @@ class Master:
             # else: the reference loop in Python
             while fleet is None and n < n_steps and not self._stop:
                 # tick step: a full step with the slow-path work
+                k = n
                 S = read()
                 u, ev = step(S, h)
                 if ev:
@@ -216,6 +277,8 @@ class Master:
                 do_sample = n % spl == 0
                 if do_log or do_sample:
                     self._tick(n, S, u, do_log, do_sample)
+                    if self.diverged is not None:
+                        break
                 apply(u)
                 advance(h)
                 n += 1
@@ -247,12 +310,17 @@ class Master:
         except KeyboardInterrupt:
             interrupted = True
             broken = True  # the plant may be mid-step: do not read it again
+        except Se3SyncError as exc:   # the Python loop's plant (or controller) failed at step k
+            if fleet is not None or not self.plant_failed(k, u, exc):
+                raise
+            n = k
         finally:
             catcher.__exit__()
             if bar is not None:
                 bar.update(n - bar.n)
                 bar.close()
         wall = time.perf_counter() - t0
+        broken = broken or self._plant_broken
         interrupted = interrupted or (self._stop and n < n_steps)
         self.n_done = n
         return self._summary(n, wall, interrupted, broken, timed_out)
@@ -269,8 +337,8 @@ class Master:
         final = None
         if S is not None:
             final = self.metrics.sample(t_end, S, theta_end)
-            if n > 0 and n % self._sample_every() == 0:
-                self.samples.append(dict(final))
+            if n > 0 and n % self._sample_every() == 0 and self.diverged is None:
+                self.add_sample(dict(final))
         elif self.samples:
             final = dict(self.samples[-1])
         design = design_summary(sc)
@@ -290,10 +358,15 @@ class Master:
             "design": design,
             "V0": self.V0,
             "jump_bound": self.jump_bound,
-            "n_jumps": len(self.jumps),
+            "n_jumps": self.n_jumps,
+            "jump_bound_exceeded": self.n_jumps > self.jump_bound,
+            "diverged": self.diverged,
             "jumps": self.jumps,
+            **({"jumps_listed": len(self.jumps)} if len(self.jumps) < self.n_jumps else {}),
             "final": final,
             "samples": self.samples,
+            **({"sample_every_s": self._sample_every() * self._smp_stride * h}
+               if self._smp_stride > 1 else {}),
         }
         stats = getattr(self.plant, "stats", None)
         if stats is not None:

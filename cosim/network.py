@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from controller import JumpEvent
+from controller import JumpEvent, layout
 from controller.errors import ConfigError, Se3SyncError
 from controller.kernels import delayed_network_step
 
@@ -35,7 +35,9 @@ DEFAULT_HOLD = 0.5
 KEYS = {"host", "base_port", "agent", "delay", "jitter", "loss", "seed", "link", "max_age", "hold"}
 AGENT_KEYS = {"id", "address", "port"}
 LINK_KEYS = {"from", "to", "delay", "jitter", "loss"}
-AGE_BINS = 1 << 16  # used-data ages ≥ this many steps share the last histogram bin
+AGE_BINS = 1 << 16  # used-data ages ≥ this many steps share the last histogram bin ...
+AGE_MIN_BINS = 256  # ... or ≥ the longest transit + 1 if that is fewer, but at least this many
+BUFFER_MAX_BYTES = 1 << 30  # delay line and age histograms: 8 × (L (18N + 3M) + 2M H) bytes
 CHUNK = 4096        # steps of link schedule drawn at a time
 
 
@@ -62,6 +64,39 @@ class NetworkConfig:
 
     def link(self, frm: int, to: int) -> LinkSpec:
         return self.links.get((frm, to), self.default)
+
+    def check_graph(self, graph) -> None:
+        """Refuses a ``[[network.link]]`` between agents that are not graph neighbours (key
+        paths relative to the table). The scenario loader calls it once the graph is known, so
+        that every command (`check`, `run`, `agent`, `swarm`, ...) refuses the same tables."""
+        nbrs = {frozenset(map(int, e)) for e in np.asarray(graph.edges) + 1}
+        for idx, (frm, to) in enumerate(self.links):
+            if frozenset((frm, to)) not in nbrs:
+                raise ConfigError(f"link[{idx}]",
+                                  f"agents {frm} and {to} are not neighbours in the graph")
+
+    def worst_delay(self, graph, h: float) -> tuple:
+        """(steps, key, spec): the longest transit d + J_max (d = ⌈delay/h − 1e-9⌉, J_max =
+        ⌈jitter/h − 1e-9⌉) a message can take over any directed link of the graph's edges, the
+        scenario key that sets it (``network.delay``, ``network.jitter`` or
+        ``network.link[i]``) and that link's LinkSpec. (0, "network.delay", default) without
+        edges or delays."""
+        best = (0, "network.delay", self.default)
+        for a, b in graph.edge_list:
+            for ends in ((int(a), int(b)), (int(b), int(a))):
+                spec = self.link(*ends)
+                d = _steps(spec.delay, h) + _steps(spec.jitter, h)
+                if d > best[0]:
+                    best = (d, self.key_of(ends), spec)
+        return best
+
+    def key_of(self, ends) -> str:
+        """The scenario key that sets the delay of directed link ``ends`` = (from, to)."""
+        for i, e in enumerate(self.links):
+            if e == tuple(ends):
+                return f"network.link[{i}]"
+        return "network.delay" if self.default.delay > 0 or not self.default.jitter else \
+            "network.jitter"
 
 
 def _is_num(v) -> bool:
@@ -170,12 +205,12 @@ def parse_network(table: dict, n_agents: int) -> NetworkConfig:
 
 
 def check_links(net: NetworkConfig, graph) -> None:
-    """Refuses a ``[[network.link]]`` between agents that are not graph neighbours."""
-    nbrs = {frozenset(map(int, e)) for e in np.asarray(graph.edges) + 1}
-    for idx, (frm, to) in enumerate(net.links):
-        if frozenset((frm, to)) not in nbrs:
-            raise ConfigError(f"network.link[{idx}]",
-                              f"agents {frm} and {to} are not neighbours in the graph")
+    """Refuses a ``[[network.link]]`` between agents that are not graph neighbours (key paths
+    ``network.link[i]``): `NetworkConfig.check_graph`, which the scenario loader runs."""
+    try:
+        net.check_graph(graph)
+    except ConfigError as exc:
+        raise exc.under("network") from None
 
 
 def _steps(seconds: float, h: float) -> int:
@@ -192,7 +227,7 @@ class NetworkController:
     CHUNK steps at a time: the same seed gives the same run, whatever else changes.
     """
 
-    def __init__(self, scenario, inner, net: NetworkConfig):
+    def __init__(self, scenario, inner, net: NetworkConfig, horizon: int | None = None):
         if not hasattr(inner, "edges") or not hasattr(inner, "P"):
             raise Se3SyncError(f"the [network] table needs a law with the network view "
                                f"(hybrid or gradient), got {type(inner).__name__}")
@@ -215,9 +250,38 @@ class NetworkController:
         M2 = 2 * self.M
         self.specs = [net.link(*self._ends(l)) for l in range(M2)]
         self.h = None
+        # steps this controller will be stepped: a message arriving later never matters, so
+        # the delay line holds at most this many samples (`_start`)
+        self.horizon = max(1, int(scenario.n_steps() if horizon is None else horizon))
+        self._buffers(float(scenario.step), scenario.path)
         self.counts = np.zeros((M2, 2), dtype=np.int64)
-        self.age_hist = np.zeros((M2, AGE_BINS), dtype=np.int64)
+        self.age_hist = np.zeros((M2, 1), dtype=np.int64)
         self.failsafe = np.zeros((self.N, 4), dtype=np.int64)
+
+    def _buffers(self, h: float, path=None) -> None:
+        """The delay line's length L (samples kept) and the age histograms' bins H at step h.
+
+        L = min(d + J_max, horizon) + 1: a message whose transit reaches past the run's last
+        step is never used, so its transit is cut to the horizon (`_draw`). H = L + 1 (every
+        transit's age), at least `AGE_MIN_BINS` and at most the horizon + 1 and `AGE_BINS`
+        (older ages, which only losses make, share the last bin). Both grow with min(delay,
+        run): more than `BUFFER_MAX_BYTES` together is refused (ConfigError naming the key that
+        sets the longest transit, one line)."""
+        d = [_steps(s.delay, h) + _steps(s.jitter, h) for s in self.specs]
+        dmax = max(d, default=0)
+        self.L = min(dmax, self.horizon) + 1
+        self.H = int(min(AGE_BINS, self.horizon + 1, max(self.L + 1, AGE_MIN_BINS)))
+        M2 = 2 * self.M
+        need = 8 * (self.L * (self.N * layout.S_WIDTH + self.M + M2) + M2 * self.H)
+        if need > BUFFER_MAX_BYTES:
+            l = int(np.argmax(d))
+            spec = self.specs[l]
+            raise ConfigError(
+                self.net.key_of(self._ends(l)),
+                f"a delay of {spec.delay:g} s + jitter {spec.jitter:g} s ({dmax} steps of "
+                f"h = {h:g} s) needs a delay line of {self.L} samples of {self.N} agents and "
+                f"{M2} links, {need / 2 ** 30:.3g} GiB (at most {BUFFER_MAX_BYTES / 2 ** 30:g} "
+                "GiB): use a shorter delay or a shorter run", path)
 
     def _ends(self, l: int) -> tuple:
         """(from, to), 1-based, of link l."""
@@ -238,7 +302,11 @@ class NetworkController:
         self.h = h
         self.d = np.array([_steps(s.delay, h) for s in self.specs], dtype=np.int64)
         self.jmax = np.array([_steps(s.jitter, h) for s in self.specs], dtype=np.int64)
-        L = int((self.d + self.jmax).max(initial=0)) + 1
+        self._buffers(h)
+        L = self.L
+        # transits cut to L − 1 = the horizon: stepping past it would use them
+        self.cut = int((self.d + self.jmax).max(initial=0)) > L - 1
+        self._last = self.horizon if self.cut else 2 ** 62
         self.max_age = _steps(self.net.max_age, h) if math.isfinite(self.net.max_age) else 2 ** 62
         self.hold = _steps(self.net.hold, h)
         self.ring_S = np.zeros((L, self.N, S.shape[1]))
@@ -250,6 +318,8 @@ class NetworkController:
         self.recv_theta = self.theta0.repeat(2).copy()
         self.term = np.zeros((M2, 6))
         self.counts[:] = 0
+        if self.age_hist.shape[1] != self.H:
+            self.age_hist = np.zeros((M2, self.H), dtype=np.int64)
         self.age_hist[:] = 0
         self.failsafe[:] = 0
         seq = np.random.SeedSequence(self.net.seed)
@@ -270,6 +340,8 @@ class NetworkController:
                     col += np.clip(j, 0, self.jmax[l])
                 if spec.loss > 0:
                     col[x[:, 0] < spec.loss] = -1
+            if self.cut:   # arrives at or after the horizon, never within the run
+                np.minimum(col, self.L - 1, out=col)
             self.sched[:, l] = col
         self.r = 0
 
@@ -278,6 +350,9 @@ class NetworkController:
             self._start(S, float(h))
         elif h != self.h:
             raise Se3SyncError(f"network: the communication step changed from {self.h} to {h}")
+        if self.n >= self._last:
+            raise Se3SyncError(f"network: stepped past the {self.horizon} steps its delay line "
+                               "was cut to (NetworkController(horizon=...))")
         if self.r == CHUNK:
             self._draw()
         nj = delayed_network_step(S, self.n, self.sched, self.r, self.ring_S, self.ring_theta,

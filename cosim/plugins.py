@@ -4,7 +4,9 @@ names none of the packages that extend it.
 * ``se3sync.commands``: modules with ``register(subparsers)`` that add sub-commands to `se3sync`;
 * ``se3sync.tables``: scenario tables owned by another package, ``NAME = "module:parse"`` with
   ``parse(table: dict, n_agents: int) -> object`` raising `controller.errors.ConfigError` with key
-  paths inside the table; the parsed object is ``Scenario.tables[NAME]``.
+  paths inside the table; the parsed object is ``Scenario.tables[NAME]``. When that object has
+  ``check_graph(graph)``, the loader calls it once the graph is parsed (the same ConfigError), so
+  a table that refers to agents and edges is checked against them by every command.
 
 Both lists are declared in pyproject.toml. The modules are imported only when used.
 """

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import time
 
 from . import signals
 from .controllers import law_name, make_controller
+from .early_stop import stopped_before_start
 from .files import write_json_atomic
 from .log.mcap import McapLogger
 from .master import Master
@@ -41,61 +43,94 @@ def with_timing(scenario, duration=None, step=None):
 def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                  summary_path=None, duration=None, step=None, progress=False,
                  fmu_path=None, log_metadata=None, summary_extra=None,
-                 log_encoding="json") -> dict:
+                 log_encoding="json", stage=None) -> dict:
     """Runs a scenario (a Scenario or a path to a TOML file) and returns the summary dict.
 
     plant: "fleet" | "per-body" | a Plant instance (closed by the caller);
     controller: "hybrid" | "gradient" | a controller instance. log_path: MCAP written
     (streamed) there, its per-record channels in log_encoding ("json" or "cdr"); summary_path: summary JSON written atomically. log_metadata adds to (or
     overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C or SIGTERM the
-    run stops cleanly, the log is finished and the summary has "interrupted": true. A run that
-    fails (an exception) removes its log: no output is better than one that looks whole.
+    run stops cleanly, the log is finished and the summary has "interrupted": true, also
+    before the first step (building the controller, the plant FMU, the log: `"steps": 0` and
+    `"stopped_during"`, `cosim.early_stop`). A run that diverges stops early with
+    ``"diverged"`` in the summary (`cosim.guards`); its log is finished too. A run that fails
+    (an exception) removes its log: no output is better than one that looks whole.
+    ``stage(name)``, if given, is called as each part of the set-up starts.
     """
-    if not isinstance(scenario, Scenario):
-        scenario = load_scenario(scenario)
-    scenario = with_timing(scenario, duration, step)
+    t_start = time.perf_counter()
+    where = ["loading the scenario"]   # what the set-up is doing, for a stop before step 0
+
+    def at(name):
+        where[0] = name
+        if stage is not None:
+            stage(name)
+
     own_plant = isinstance(plant, str)
     plant_kind = plant if own_plant else type(plant).__name__
-    ctrl = make_controller(controller, scenario) if isinstance(controller, str) else controller
-    ctrl = networked(scenario, ctrl)  # the law per agent over the [network] links, if any
-    ctrl_kind = law_name(ctrl)
-    p = make_plant(plant, scenario, fmu_path) if own_plant else plant
+    ctrl_kind = controller if isinstance(controller, str) else law_name(controller)
+    p = None if own_plant else plant
     logger = None
-    failed = False
     try:
-        # A signal while the log and the master are set up stops the run at its first step
-        # (with a finished log and a summary), rather than somewhere inside the set-up.
-        requested = []
-        with signals.catching(lambda: requested.append(True)):
-            if log_path is not None:
-                md = getattr(p, "model_description", None)
-                logger = McapLogger(log_path, scenario, controller=ctrl_kind,
-                                    model_description=md() if md is not None else None,
-                                    encoding=log_encoding,
-                                    extra_metadata={"plant": plant_kind, **(log_metadata or {})})
-            master = Master(scenario, p, ctrl, logger)
-        if requested:
-            master.request_stop()
-        summary = master.run(scenario.n_steps(), progress=progress)
-    except Exception:
-        failed = True
-        raise
-    finally:
         try:
-            if logger is not None:
-                logger.close(discard=failed)
-        except OSError:
-            if not failed:
-                raise
-        finally:
+            if not isinstance(scenario, Scenario):
+                scenario = load_scenario(scenario)
+            scenario = with_timing(scenario, duration, step)
+            at("building the controller")
+            ctrl = (make_controller(controller, scenario) if isinstance(controller, str)
+                    else controller)
+            ctrl = networked(scenario, ctrl)  # the law per agent over the [network] links
+            ctrl_kind = law_name(ctrl)
             if own_plant:
-                p.close()
-    summary["plant"] = plant_kind
-    net_stats = getattr(ctrl, "network_stats", None)
-    if net_stats is not None:
-        summary["network"] = net_stats()
-    summary.update(summary_extra or {})
-    return finish_summary(summary, logger, log_path, summary_path)
+                at("loading the plant FMU")
+                p = make_plant(plant, scenario, fmu_path)
+            at("opening the log" if log_path is not None else "setting up the master")
+            # A signal while the log and the master are set up stops the run at its first
+            # step (with a finished log and a summary), rather than somewhere inside the set-up.
+            requested = []
+            with signals.catching(lambda: requested.append(True)):
+                if log_path is not None:
+                    md = getattr(p, "model_description", None)
+                    logger = McapLogger(log_path, scenario, controller=ctrl_kind,
+                                        model_description=md() if md is not None else None,
+                                        encoding=log_encoding,
+                                        extra_metadata={"plant": plant_kind,
+                                                        **(log_metadata or {})})
+                master = Master(scenario, p, ctrl, logger)
+            if requested:
+                master.request_stop()
+            at("starting the run")
+            summary = master.run(scenario.n_steps(), progress=progress)
+        except KeyboardInterrupt:
+            # before the loop (which handles its own signals): nothing was stepped
+            lg, logger = logger, None
+            return stopped_before_start(
+                scenario if isinstance(scenario, Scenario) else None, stage=where[0],
+                scenario_path=getattr(scenario, "path", scenario), controller=ctrl_kind,
+                plant=plant_kind, log_path=log_path, summary_path=summary_path,
+                log_encoding=log_encoding, logger=lg, log_metadata=log_metadata,
+                summary_extra=summary_extra, wall=time.perf_counter() - t_start)
+        except BaseException:
+            if logger is not None:
+                logger.close(discard=True)
+            raise
+        # the run is over: a signal now is held until the outputs are written
+        with signals.catching(lambda: None):
+            summary["plant"] = plant_kind
+            net_stats = getattr(ctrl, "network_stats", None)
+            if net_stats is not None:
+                summary["network"] = net_stats()
+            summary.update(summary_extra or {})
+            if logger is not None:
+                try:
+                    logger.outcome(summary)
+                except BaseException:
+                    logger.close(discard=True)
+                    raise
+                logger.close()   # a log that cannot be finished is removed, the error raised
+            return finish_summary(summary, logger, log_path, summary_path)
+    finally:
+        if own_plant and p is not None:
+            p.close()
 
 
 def finish_summary(summary: dict, logger, log_path, summary_path) -> dict:

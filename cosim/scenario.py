@@ -501,6 +501,9 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
     for sec in sorted(plugin_tables & set(data)):
         try:
             tables[sec] = plugins.table_parser(sec)(_table(sec, data[sec]), N)
+            check_graph = getattr(tables[sec], "check_graph", None)
+            if check_graph is not None:   # e.g. [[network.link]] only between neighbours
+                check_graph(graph)
         except ConfigError as exc:
             raise exc.under(sec) from None
 

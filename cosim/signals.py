@@ -16,7 +16,7 @@ import sys
 import threading
 
 __all__ = ["install", "uninstall", "note", "requested", "pending", "received", "exit_status", "reset",
-           "catching", "interruptible"]
+           "catching", "deferred", "interruptible"]
 
 _received: list = []
 _installed: list = []
@@ -115,6 +115,20 @@ class catching:
         for s, h in self.old.items():
             signal.signal(s, h)
         return False
+
+
+class deferred(catching):
+    """``with deferred():`` a SIGINT or SIGTERM is only noted (`requested` then says so, and
+    the work after the block decides how to stop); a second one raises KeyboardInterrupt at
+    once. For short stretches that must not be cut, such as the command line's parsing."""
+
+    def __init__(self):
+        super().__init__(self._again)
+
+    @staticmethod
+    def _again():
+        if len(_received) > 1:
+            raise KeyboardInterrupt
 
 
 def interruptible(fn, *args):

@@ -197,8 +197,9 @@ def test_without_logger(tmp_path):
     assert_same(ref, fast)
 
 
-def test_fmu_failure_raises_the_same_error(tmp_path):
-    # h = 10 ms makes the paper loop diverge: the plant refuses a non-finite state
+def test_fmu_failure_is_the_same_divergence(tmp_path):
+    # h = 10 ms makes the paper loop diverge: the plant refuses a non-finite state, which both
+    # loops report as the run's divergence at the same step (cosim.guards), with the same log
     sc = load_scenario(PAPER, ["simulation.duration=20", "simulation.step=0.01",
                                "simulation.log_rate=200"])
     res = []
@@ -208,13 +209,29 @@ def test_fmu_failure_raises_the_same_error(tmp_path):
         logger = McapLogger(path, sc)
         m = Master(sc, plant, "hybrid", logger)
         m.use_compiled = compiled
-        with pytest.raises(FMUError) as ei:
-            m.run(sc.n_steps())
+        s = m.run(sc.n_steps())
         logger.close()
-        res.append((str(ei.value), ei.value.function, plant._k, m.jumps, messages(path)))
+        res.append((s["diverged"], s["steps"], plant._k, m.jumps, messages(path)))
         plant.close()
     assert res[0] == res[1]
-    assert "fmi2DoStep" in res[0][0]
+    assert "fmi2DoStep" in res[0][0]["reason"] and res[0][1] == res[0][0]["step"] == res[0][2]
+
+
+def test_a_failure_that_is_not_a_divergence_raises_in_both_loops(tmp_path):
+    """A plant error while the state is finite stays an error (FMUError), the same in both."""
+    sc = load_scenario(PAPER, ["simulation.duration=0.05", "simulation.step=0.01"])
+    res = []
+    for compiled in (False, True):
+        # an internal step so short that one communication step needs more body-substeps than
+        # the FMU allows per doStep: refused at the first step, the state still finite
+        plant = FmuPlant(sc.masses, sc.inertias, sc.S0, sc.gravity, 1e-9)
+        m = Master(sc, plant, "hybrid")
+        m.use_compiled = compiled
+        with pytest.raises(FMUError) as ei:
+            m.run(sc.n_steps())
+        res.append((ei.value.function, m.diverged))
+        plant.close()
+    assert res[0] == res[1] and res[0][1] is None
 
 
 def test_only_fleet_fmu_with_network_controller_is_compiled():

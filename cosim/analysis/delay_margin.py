@@ -469,8 +469,8 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
 
     Returns {"delay_margin_steps", "delay_margin_s", "rho_at_margin", "rho_beyond",
     "delay_method"}; steps = −1 when the loop is unstable even without delay, and None when
-    every d ≤ d_cap is stable, or (with ``guess``) when the loop has more than `CROSSING_MAX`
-    delayed inputs."""
+    every d ≤ d_cap is stable (then ``"stable_up_to_steps"`` is the largest d tried), or (with
+    ``guess``) when the loop has more than `CROSSING_MAX` delayed inputs."""
     h = float(scenario.step if h is None else h)
     if scenario.graph.M == 0:
         return {"delay_margin_steps": None, "delay_margin_s": None, "rho_at_margin": None,
@@ -517,7 +517,7 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
         step *= 2
         if hi > d_cap:
             return {"delay_margin_steps": None, "delay_margin_s": None, "rho_at_margin": r(lo),
-                    "rho_beyond": None,
+                    "rho_beyond": None, "stable_up_to_steps": lo,
                     "delay_method": f"stable for every delay up to {lo} steps ({lo * h:g} s) "
                                     f"tried; " + _method(n, lo, lo, near)}
     while hi - lo > 1:
@@ -573,7 +573,8 @@ def _margin_by_count(lin, loop, h, d_cap, progress):
     if k(lo) == 0:
         while k(hi) == 0:
             if hi >= d_cap:
-                return report(delay_method=f"stable for every delay up to {hi} steps "
+                return report(stable_up_to_steps=hi,
+                              delay_method=f"stable for every delay up to {hi} steps "
                                            f"({hi * h:g} s) tried; ")
             lo, hi = hi, min(d_cap, hi + max(1, hi // COUNT_GROWTH))
     else:

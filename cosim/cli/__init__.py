@@ -13,14 +13,22 @@ from __future__ import annotations
 import signal as _signal
 
 
+_loading: list = []   # signals received while the command line loaded (`main` notes them)
+
+
 def _interrupted_while_loading(signum, frame):
-    # Ctrl-C while the command line itself loads: nothing has been written yet, so leave as a
-    # Ctrl-C does (status 130), without the traceback of an interrupted import
-    raise SystemExit(130)
+    # Ctrl-C or SIGTERM while the command line itself loads: noted, and `main` stops the command
+    # as soon as its arguments are read (`run` still writes the summary and log asked for); a
+    # second one leaves at once with the signal's status, without the traceback of an
+    # interrupted import
+    if _loading:
+        raise SystemExit(130 if _loading[0] == _signal.SIGINT else 143)
+    _loading.append(signum)
 
 
 try:   # only while this module's imports load (restored after them); `main` installs the real ones
-    _before = _signal.signal(_signal.SIGINT, _interrupted_while_loading)
+    _before = {s: _signal.signal(s, _interrupted_while_loading)
+               for s in (_signal.SIGINT, _signal.SIGTERM)}
 except ValueError:   # not the main thread: leave signals alone
     _before = None
 
@@ -35,7 +43,8 @@ from controller.errors import Se3SyncError  # noqa: E402
 from .. import plugins, signals  # noqa: E402
 
 if _before is not None:
-    _signal.signal(_signal.SIGINT, _before)
+    for _s, _h in _before.items():
+        _signal.signal(_s, _h)
 
 __all__ = ["main", "entry", "build_parser", "require", "install_hint"]
 
@@ -103,13 +112,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Exit status: 0 ok, 2 bad input (one line on stderr), 130 SIGINT, 143 SIGTERM (outputs
-    finished, summaries with "interrupted": true); some commands add their own (see --help)."""
+    finished, summaries with "interrupted": true); some commands add their own (see --help).
+
+    A signal while the command line loads or reads its arguments is held until they are read;
+    then a command that declares ``stops_cleanly`` (`run`: it writes the outputs asked for)
+    starts and stops at once, any other is interrupted before it starts."""
     old = signals.install()
+    for s in _loading:
+        signals.note(s)
+    _loading.clear()
     command = "se3sync"
     try:
-        parser = build_parser()
-        args = parser.parse_args(argv)
+        with signals.deferred():
+            parser = build_parser()
+            args = parser.parse_args(argv)
         command = f"se3sync {args.command}"
+        if signals.requested() and not getattr(args, "stops_cleanly", False):
+            raise KeyboardInterrupt
         rc = _dispatch(args)
     except KeyboardInterrupt:
         print(f"{command}: interrupted ({signals.received() or 'SIGINT'})", file=sys.stderr)

@@ -7,11 +7,13 @@ import time
 
 from controller.errors import Se3SyncError
 
+from .. import signals
 from ..files import check_output
 from ..analysis import DELAY_MAX_AGENTS
+from ..guards import EXIT_DIVERGED, RUN_DELAY_MAX_AGENTS
 from ..registry import LAWS, PLANTS
 
-__all__ = ["register", "add_log_encoding", "EXIT_UNSTABLE"]
+__all__ = ["register", "add_log_encoding", "EXIT_UNSTABLE", "EXIT_DIVERGED"]
 
 EXIT_UNSTABLE = 3   # `check`: the sampled loop is unstable at the step checked
 SWEEP_EVERY = 2.0   # `check` on a terminal: seconds between lines of the delay margin's sweep
@@ -39,10 +41,15 @@ def register(sub) -> None:
         description="Co-simulate a scenario: the plant FMU advanced with a fixed communication "
                     "step h under zero-order hold, the controller's network view evaluated at "
                     "every step. Refuses a step h for which the linearised sampled loop is "
-                    "unstable (see `se3sync check`) unless --force. Exit codes: 0 ok, 2 bad "
-                    "input, 130 interrupted by Ctrl-C, 143 by SIGTERM (either way the log is "
-                    "finished and the summary has \"interrupted\": true). A run that fails "
-                    "leaves no log.")
+                    "unstable, and a [network] delay (delay + jitter, the longest link) beyond "
+                    "its delay margin (see `se3sync check`), unless --force. A run whose jumps "
+                    "exceed the bound ⌈V̄(0)/(k_X δ)⌉ says so (stderr, \"jump_bound_exceeded\"). "
+                    "A run that diverges (a non-finite state, V̄ above 100 V̄(0), |ξ| above 1e6) "
+                    f"stops there, its log and summary complete (\"diverged\"). Exit codes: 0 ok, "
+                    f"2 bad input or refused, {EXIT_DIVERGED} diverged, 130 interrupted by "
+                    "Ctrl-C, 143 by SIGTERM, at any moment (the log, if asked for, is finished "
+                    "and the summary has \"interrupted\": true and the steps done, 0 before the "
+                    "first). A run that fails leaves no log. See docs/run-guards.md.")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--log", metavar="OUT.mcap",
                    help="write an MCAP log (streamed; simulated-time stamps) to this path")
@@ -60,8 +67,15 @@ def register(sub) -> None:
     p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
                    help="; ".join(f"{k}: {v[1]}" for k, v in LAWS.items()) + " (default hybrid)")
     p.add_argument("--force", action="store_true",
-                   help="run even if the sampled loop is unstable at this step")
-    p.set_defaults(func=_cmd_run)
+                   help="run even if the sampled loop is unstable at this step or the "
+                        "[network] delay is beyond the delay margin (neither is computed)")
+    p.add_argument("--delay-agents", type=int, metavar="N", dest="delay_agents",
+                   default=RUN_DELAY_MAX_AGENTS,
+                   help="with a [network] delay or jitter, compute the delay margin before the "
+                        f"run only for graphs of at most N agents (default {RUN_DELAY_MAX_AGENTS}"
+                        ": 6-10 s on 2 cores at 1000 agents, about 1.6 s at 6; 0 never); "
+                        "above, the delay is not checked and a warning says so")
+    p.set_defaults(func=_cmd_run, stops_cleanly=True)
 
     p = sub.add_parser(
         "check", help="validate a scenario, print its synergy design and sampled-data stability",
@@ -127,42 +141,119 @@ def register(sub) -> None:
 
 
 def _cmd_run(args) -> int:
-    from ..analysis.stability import analyse
-    from ..run import run_scenario
-    from ..scenario import ScenarioError, load_scenario
-
+    """`run`; a signal at any moment, also before the first step, leaves the outputs asked for
+    (`cosim.early_stop`) and exits 130/143."""
+    stage = ["loading the command line"]
+    sc = None
     for opt, path, sfx in (("--log", args.log, (".mcap",)), ("--summary", args.summary, None)):
         if path is not None:
             check_output(opt, path, sfx)
-    sc = load_scenario(args.scenario, args.overrides, duration=args.duration, step=args.step)
-    if not args.force:
-        st = analyse(sc, law=args.controller, bisect=False)
-        if not st["stable"]:
-            st = analyse(sc, law=args.controller, bisect=True)
-            raise ScenarioError(
-                "simulation.step",
-                f"h = {sc.step:g} s makes the sampled loop unstable (spectral radius "
-                f"{st['spectral_radius']:.6f} >= 1; max_stable_step = {st['max_stable_step']:.3g} s); "
-                "use a smaller step or --force", sc.path)
-    progress = sys.stderr.isatty()
+    if isinstance(args.delay_agents, bool) or args.delay_agents < 0:
+        raise Se3SyncError(f"--delay-agents: must be an integer >= 0, got {args.delay_agents!r}")
+
+    def at(name):
+        # a signal noted where Python could not raise (inside a callback from C, as numba
+        # loading its cache runs) or while the command line loaded stops the run here
+        if signals.requested():
+            raise KeyboardInterrupt
+        stage[0] = name
+
     try:
-        summary = run_scenario(sc, plant=args.plant or sc.plant_mode, controller=args.controller,
-                               log_path=args.log, summary_path=args.summary, progress=progress,
-                               log_encoding=args.log_encoding)
-    except OSError as exc:  # the streamed log is the file being written when the disk fills up
-        raise Se3SyncError(f"{exc.filename or args.log or args.summary}: "
-                           f"{exc.strerror or exc}") from None
+        at("loading the scenario")
+        from ..scenario import load_scenario
+
+        sc = load_scenario(args.scenario, args.overrides, duration=args.duration, step=args.step)
+        extra = _guards(args, sc, at)
+        at("loading the simulation")
+        from ..run import run_scenario
+
+        progress = sys.stderr.isatty()
+        try:
+            summary = run_scenario(sc, plant=args.plant or sc.plant_mode,
+                                   controller=args.controller, log_path=args.log,
+                                   summary_path=args.summary, progress=progress,
+                                   log_encoding=args.log_encoding, summary_extra=extra, stage=at)
+        except OSError as exc:  # the streamed log is the file being written when the disk fills up
+            raise Se3SyncError(f"{exc.filename or args.log or args.summary}: "
+                               f"{exc.strerror or exc}") from None
+    except KeyboardInterrupt:
+        from ..early_stop import stopped_before_start
+
+        summary = stopped_before_start(
+            sc, stage=stage[0], scenario_path=args.scenario, controller=args.controller,
+            plant=args.plant or (sc.plant_mode if sc is not None else "fleet"),
+            log_path=args.log, summary_path=args.summary, log_encoding=args.log_encoding)
+    if summary.get("stopped_during"):
+        print(f"se3sync run: interrupted while {summary['stopped_during']}, before the first "
+              "step" + (" (summary and log written)" if args.summary or args.log else ""),
+              file=sys.stderr)
+        return 130
     f = summary.get("final") or {}
     msg = (f"{sc.name}: {summary['steps']} steps, {summary['sim_time_s']:.4g} s simulated in "
            f"{summary['wall_time_s']:.3g} s ({summary['realtime_factor'] or 0:.3g}× real time); "
            f"{summary['n_jumps']} jumps (bound {summary['jump_bound']}); final rot_err "
            f"{f.get('rot_err', float('nan')):.3g}, pos_err {f.get('pos_err', float('nan')):.3g}")
     print(msg, file=sys.stderr)
+    dc = summary.get("delay_check")
+    if dc and not dc["checked"] and dc["why"] != "--force":
+        print(f"se3sync run: warning: the worst-case delay of {dc['worst_delay_s']:.4g} s "
+              f"({dc['key']}) was not checked against the delay margin: {dc['why']}",
+              file=sys.stderr)
+    if summary.get("jump_bound_exceeded"):
+        print(f"se3sync run: warning: {summary['n_jumps']} jumps, more than the bound "
+              f"⌈V̄(0)/(k_X δ)⌉ = {summary['jump_bound']} of Theorem 1: the run left the region "
+              "the analysis covers (\"jump_bound_exceeded\": true)", file=sys.stderr)
     if summary.get("interrupted"):
         print(f"se3sync run: interrupted after {summary['sim_time_s']:.4g} s simulated",
               file=sys.stderr)
         return 130
+    dv = summary.get("diverged")
+    if dv:
+        print(f"se3sync run: diverged at t = {dv['t']:.6g} s (step {dv['step']}): {dv['reason']}; "
+              f"stopped after {summary['steps']} steps (exit status {EXIT_DIVERGED})",
+              file=sys.stderr)
+        return EXIT_DIVERGED
     return 0
+
+
+def _guards(args, sc, at) -> dict:
+    """The checks before a run (unless --force): the step's stability, then the [network]
+    delay against the delay margin (`cosim.guards.delay_guard`); what they found, for the
+    summary."""
+    from ..analysis.stability import analyse
+    from ..controllers import make_controller
+    from ..scenario import ScenarioError
+
+    net = sc.tables.get("network")
+    if args.force:
+        if net is None:
+            return {}
+        d, key, _ = net.worst_delay(sc.graph, sc.step)
+        return {"delay_check": {"worst_delay_steps": d, "worst_delay_s": round(d * sc.step, 12),
+                                "key": key, "delay_margin_steps": None, "delay_margin_s": None,
+                                "checked": d == 0, "why": "no delay" if d == 0 else "--force"}}
+    at("checking the step's stability")
+    st = analyse(sc, law=args.controller, bisect=False)
+    if not st["stable"]:
+        st = analyse(sc, law=args.controller, bisect=True)
+        raise ScenarioError(
+            "simulation.step",
+            f"h = {sc.step:g} s makes the sampled loop unstable (spectral radius "
+            f"{st['spectral_radius']:.6f} >= 1; max_stable_step = {st['max_stable_step']:.3g} s); "
+            "use a smaller step or --force", sc.path)
+    if net is None:
+        return {}
+    at("computing the delay margin")
+    from ..analysis.delay_guard import delay_guard     # scipy: only with a [network] table
+    progress = None
+    if sys.stderr.isatty():
+        def progress(d, rho, seconds, outside=None):
+            what = (f"spectral radius {rho:.8f}" if outside is None
+                    else f"{outside} roots outside the unit circle")
+            print(f"se3sync run: delay margin: d = {d} steps, {what} ({seconds:.1f} s)",
+                  file=sys.stderr, flush=True)
+    hybrid = make_controller(args.controller, sc).hybrid
+    return {"delay_check": delay_guard(sc, hybrid, args.delay_agents, progress)}
 
 
 def _cmd_check(args) -> int:

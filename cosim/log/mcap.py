@@ -43,6 +43,7 @@ from controller import layout
 from controller.errors import Se3SyncError
 
 from ..files import atomic_path
+from ..guards import outcome_metadata
 from . import cdr
 from . import foxglove as fg
 
@@ -269,6 +270,29 @@ class _ChunkIndex(ChunkIndex):
         stream.write(struct.pack("<BQ", 0x08, len(body)) + body)
 
 
+class _PackedRecord:
+    """A summary-section record (a chunk index) kept as its bytes until the file is finished:
+    a long log has one per chunk (16,000 for a 467 MB log), and as mcap's objects with their
+    channel → offset dicts they held ~2.3 KB each, the run's memory growing with the log."""
+
+    __slots__ = ("data",)
+
+    def __init__(self, record):
+        parts = []
+        record.write(_Sink(parts.append))
+        self.data = b"".join(parts)
+
+    def write(self, stream):
+        stream.write(self.data)
+
+
+class _Sink:
+    __slots__ = ("write",)
+
+    def __init__(self, write):
+        self.write = write
+
+
 class _MessageAppender:
     """``add(channel_id, log_time, data, sequence)``: what ``Writer.add_message(channel_id,
     log_time, data, log_time, sequence)`` does, the same bytes in the same file, at ~1/10 of the
@@ -425,7 +449,7 @@ class _MessageAppender:
             rb.write(b"".join(parts))
         index.message_index_length = rb.count
         flush()
-        w._Writer__chunk_indices.append(index)
+        w._Writer__chunk_indices.append(_PackedRecord(index))
 
     def _slow(self, channel_id, log_time, data, sequence):
         self._w.add_message(channel_id, log_time, bytes(data), log_time, sequence)
@@ -1006,6 +1030,11 @@ class McapLogger:
         ts = {"sec": t_ns // 1_000_000_000, "nsec": t_ns % 1_000_000_000}
         self._msg("/link/stats", t_ns, _dumps(dict(stats, timestamp=ts), default=float))
 
+    def outcome(self, summary: dict) -> None:
+        """A metadata record ``se3sync.outcome`` with how the run ended (steps, interrupted,
+        stopped_during, diverged, n_jumps, jump_bound_exceeded), written before `close`."""
+        self._w.add_metadata("se3sync.outcome", outcome_metadata(summary))
+
     def close(self, discard: bool = False):
         """Finishes the file (and writes the layout beside it); ``discard=True`` removes the
         log instead: a run that failed leaves nothing that looks whole. A log that cannot be
@@ -1049,7 +1078,8 @@ class McapLogger:
 
 def read_log(path, topics=None) -> dict:
     """Reads an se3sync MCAP back: {"metadata": {...}, "attachments": {name: bytes},
-    "messages": {topic: [(log_time_ns, decoded JSON), ...]}, "truncated": bool}. A CDR message
+    "messages": {topic: [(log_time_ns, decoded JSON), ...]}, "truncated": bool, "outcome":
+    {steps, interrupted, diverged, ...} or None (`McapLogger.outcome`)}. A CDR message
     is decoded to the dict its JSON message would give (`cdr.decode`). ``topics``: decode the
     messages of these topics only (the scene and 1000 trails of a large log are most of it).
 
@@ -1057,7 +1087,8 @@ def read_log(path, topics=None) -> dict:
     torn tail (a killed run), yields every record before the tear. Raises Se3SyncError (one
     line) when the file is unreadable or is not an se3sync log.
     """
-    out = {"metadata": None, "attachments": {}, "messages": {}, "truncated": False}
+    out = {"metadata": None, "attachments": {}, "messages": {}, "truncated": False,
+           "outcome": None}
     channels, schemas = {}, {}
     n_records = 0
     try:
@@ -1091,6 +1122,8 @@ def read_log(path, topics=None) -> dict:
                 elif isinstance(rec, Metadata):
                     if rec.name == "se3sync":
                         out["metadata"] = dict(rec.metadata)
+                    elif rec.name == "se3sync.outcome":
+                        out["outcome"] = {k: json.loads(v) for k, v in rec.metadata.items()}
                 elif isinstance(rec, Attachment):
                     out["attachments"][rec.name] = bytes(rec.data)
         except Exception as exc:  # mcap raises assorted errors on garbage or torn input

@@ -57,7 +57,7 @@ COLUMNS = {
     "kind": "str",            # "random" | "adversarial-edge" | "adversarial-all"
     "edge": "int",            # adversarial-edge: the edge k on the critical point (1-based); else 0
     "eigvec": "int",          # adversarial: eigenvector e of W (1..3, ascending eigenvalues); else 0
-    "status": "str",          # "ok" | "error" | "timeout"
+    "status": "str",          # "ok" | "error" | "timeout" | "diverged"
     "error": "str",           # one-line message ("" when ok)
     "converged": "bool",      # rot_err < rot_tol and pos_err < pos_tol at the end
     "t_converge": "float",    # first sample time after which both stay below (NaN if not converged)
@@ -289,6 +289,9 @@ def _run(spec: SweepSpec, sc, index: int, controller: str, t_wall: float) -> dic
     if summary.get("timed_out"):
         status = "timeout"
         message = f"wall-clock timeout of {spec.timeout:g} s after {n * h:.6g} s simulated"
+    elif summary.get("diverged"):   # stopped by the master's guard (cosim.guards)
+        status = "diverged"
+        message = f"diverged at t = {summary['diverged']['t']:.6g} s: {summary['diverged']['reason']}"
     rf, pf, xf = final["rot_err"], final["pos_err"], final["xi_max"]
     rot0, pos0 = series[0]["rot_err"], series[0]["pos_err"]
     u0_max = float(np.abs(m.u0).max()) if m.u0 is not None else float("nan")
@@ -307,8 +310,9 @@ def _run(spec: SweepSpec, sc, index: int, controller: str, t_wall: float) -> dic
     return {
         "sample": int(index), "controller": controller, "kind": kind, "edge": int(edge),
         "eigvec": int(e), "status": status, "error": message, "converged": bool(converged),
-        "t_converge": float(t_conv), "n_jumps": len(m.jumps), "jump_bound": int(m.jump_bound),
-        "V0": float(m.V0), "t_last_jump": float(m.jumps[-1]["t"]) if m.jumps else float("nan"),
+        "t_converge": float(t_conv), "n_jumps": int(m.n_jumps), "jump_bound": int(m.jump_bound),
+        "V0": float(m.V0),
+        "t_last_jump": float(m.last_jump["t"]) if m.last_jump else float("nan"),
         "rot_err0": float(rot0), "pos_err0": float(pos0), "u0_max": u0_max,
         "rot_err": float(rf), "pos_err": float(pf), "xi_max": float(xf),
         "theta_max": float(np.abs(theta_end).max()) if M else 0.0,
