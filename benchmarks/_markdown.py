@@ -82,7 +82,8 @@ def _revision() -> str:
         return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True).stdout.strip()
     rev = git("rev-parse", "--short", "HEAD") or "unknown"
     # documentation does not change what a benchmark measures
-    dirty = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":!docs", ":!*.md")
+    dirty = git("status", "--porcelain", "--untracked-files=no", "--", ".", ":!docs", ":!*.md",
+                ":!mkdocs.yml")
     return rev + (" with uncommitted changes to the code" if dirty else "")
 
 
