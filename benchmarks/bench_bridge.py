@@ -125,6 +125,10 @@ def run_case(n, rate, duration, tmp):
     }
 
 
+def _ms(x) -> str:
+    return "n/a" if x is None else f"{x:.2f}"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--case", action="append", help="NxHZ, e.g. 6x250 (repeatable; default 6x250 and 64x100)")
@@ -145,8 +149,8 @@ def main(argv=None):
                    "vehicle fail-safes"],
                   [(r["case"], f"{r['bridge_cpu_pct_of_core']} % of a core",
                     f"{r['vehicle_cpu_pct_of_core']} %",
-                    f"{r['latency_ms_p50']} / {r['latency_ms_p99']} ms",
-                    f"{r['state_age_ms_p50']} / {r['state_age_ms_p99']} ms",
+                    f"{_ms(r['latency_ms_p50'])} / {_ms(r['latency_ms_p99'])} ms",
+                    f"{_ms(r['state_age_ms_p50'])} / {_ms(r['state_age_ms_p99'])} ms",
                     f"{r['dropped_vehicle_to_bridge']}, {r['dropped_bridge_to_vehicle']}",
                     r["late_steps"], r["vehicle_failsafes_during_run"]) for r in out],
                   caption=f"{a.duration:g} s of real time per case")
