@@ -19,6 +19,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import _markdown
+
 ROOT = Path(__file__).resolve().parents[1]
 HIL = ROOT / "scenarios" / "hil_6uav.toml"
 
@@ -60,7 +62,17 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--cases", default="6x250,32x100")
+    _markdown.add_option(ap)
     a = ap.parse_args(argv)
+    with _markdown.Report(a.markdown) as rep:
+        rows = bench(a)
+        rep.table(["case", "CPU per agent process (share of a core)", "late steps (median)",
+                   "data age p50 / p99 (steps)", "lost", "final rot_err", "exit"], rows,
+                  caption=f"one swarm run per case, {a.duration:g} s, loopback vehicles, no logs")
+
+
+def bench(a) -> list:
+    rows = []
     for case in a.cases.split(","):
         n, rate = case.split("x")
         r = run_case(int(n), float(rate), a.duration)
@@ -72,6 +84,14 @@ def main(argv=None) -> None:
               f"of {r['sent']}; final rot_err {f.get('rot_err', float('nan')):.3g} "
               f"(exit {r['exit']})")
         print(json.dumps(r), file=sys.stderr)
+        rows.append((f"{r['agents']} agents at {r['rate_hz']:g} Hz, {r['steps']} steps",
+                     f"median {r['cpu_median']:.3f}, max {r['cpu_max']:.3f}",
+                     f"{r['late_steps_median']} of {r['steps']}",
+                     f"≤ {r['age_p50_steps_max']} / median {r['age_p99_steps_median']}, "
+                     f"max {r['age_p99_steps_max']}",
+                     f"{r['lost']} of {r['sent']}", f"{f.get('rot_err', float('nan')):.3g}",
+                     r["exit"]))
+    return rows
 
 
 if __name__ == "__main__":

@@ -25,6 +25,8 @@ import time
 from bridge.link import free_base_port
 from pathlib import Path
 
+import _markdown
+
 os.environ.setdefault("MAVLINK20", "1")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -123,20 +125,35 @@ def run_case(n, rate, duration, tmp):
     }
 
 
+def _ms(x) -> str:
+    return "n/a" if x is None else f"{x:.2f}"
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--case", action="append", help="NxHZ, e.g. 6x250 (repeatable; default 6x250 and 64x100)")
     ap.add_argument("--duration", type=float, default=10.0, help="seconds per case (default 10)")
     ap.add_argument("--json", help="write the results here")
+    _markdown.add_option(ap)
     a = ap.parse_args(argv)
     cases = a.case or ["6x250", "64x100"]
     out = []
-    with tempfile.TemporaryDirectory() as tmp:
+    with _markdown.Report(a.markdown) as rep, tempfile.TemporaryDirectory() as tmp:
         for c in cases:
             n, r = c.lower().split("x")
             res = run_case(int(n), float(r), a.duration, tmp)
             out.append(res)
             print(json.dumps(res), flush=True)
+        rep.table(["case", "bridge CPU", "vehicle CPU", "latency p50 / p99", "state age p50 / p99",
+                   "dropped (vehicle → bridge, bridge → vehicle)", "late steps",
+                   "vehicle fail-safes"],
+                  [(r["case"], f"{r['bridge_cpu_pct_of_core']} % of a core",
+                    f"{r['vehicle_cpu_pct_of_core']} %",
+                    f"{_ms(r['latency_ms_p50'])} / {_ms(r['latency_ms_p99'])} ms",
+                    f"{_ms(r['state_age_ms_p50'])} / {_ms(r['state_age_ms_p99'])} ms",
+                    f"{r['dropped_vehicle_to_bridge']}, {r['dropped_bridge_to_vehicle']}",
+                    r["late_steps"], r["vehicle_failsafes_during_run"]) for r in out],
+                  caption=f"{a.duration:g} s of real time per case")
     if a.json:
         Path(a.json).write_text(json.dumps(out, indent=1))
     return 0

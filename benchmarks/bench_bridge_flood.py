@@ -28,13 +28,21 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bridge.link import Counters, Peer, free_base_port  # noqa: E402
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import _markdown  # noqa: E402
 
 
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--root", default=str(ROOT), help="source tree the vehicle runs from")
     ap.add_argument("--cycles", type=int, default=6)
+    _markdown.add_option(ap)
     a = ap.parse_args()
+    with _markdown.Report(a.markdown):
+        return bench(a)
+
+
+def bench(a) -> int:
     h = 0.004
     port = free_base_port(1)
     stats = Path(tempfile.mkdtemp()) / "stats.json"

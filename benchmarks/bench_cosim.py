@@ -24,6 +24,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import _markdown  # noqa: E402
 PAPER = ROOT / "scenarios" / "paper_6uav.toml"
 
 
@@ -179,7 +181,13 @@ def main():
     ap.add_argument("--naive-steps", type=int, default=10_000,
                     help="steps of the naive version actually timed (scaled to the full run)")
     ap.add_argument("--skip-fmpy", action="store_true", help="skip fmpy.simulate_fmu")
+    _markdown.add_option(ap)
     args = ap.parse_args()
+    with _markdown.Report(args.markdown):
+        bench(args)
+
+
+def bench(args):
 
     from cosim.run import run_scenario
     from cosim.scenario import load_scenario

@@ -31,6 +31,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import _markdown  # noqa: E402
 PAPER = ROOT / "scenarios" / "paper_6uav.toml"
 HIL = ROOT / "scenarios" / "hil_6uav.toml"
 
@@ -150,7 +152,13 @@ def main():
                     help="simulated seconds of the big run (trails fill up after 5 s)")
     ap.add_argument("--repeat", type=int, default=3,
                     help="paper and big runs: best of this many, interleaved")
+    _markdown.add_option(ap)
     args = ap.parse_args()
+    with _markdown.Report(args.markdown):
+        bench(args)
+
+
+def bench(args):
     if args.startup_only:
         startup()
         return

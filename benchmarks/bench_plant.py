@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+import _markdown
 from plant_fmu import build, layout
 from plant_fmu.fast import FleetFMU
 
@@ -88,11 +89,17 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="fewer iterations")
     ap.add_argument("--against", metavar="REV", help="also time the plant compiled from REV's C sources")
     ap.add_argument("--terms-only", action="store_true", help="only the optional-terms comparison")
+    _markdown.add_option(ap)
     args = ap.parse_args(argv)
+    with _markdown.Report(args.markdown) as rep:
+        bench(args, rep)
+
+
+def bench(args, rep):
     k = 0.2 if args.quick else 1.0
     rows = compare_terms(args.against, int(1000 * k))
     if args.terms_only:
-        _print(rows)
+        _print(rows, rep)
         return
 
     # 1. C cost per body per internal step
@@ -169,14 +176,19 @@ def main(argv=None):
     rows.append(("1000 bodies, fast path per communication step (1 internal step)", best_of(fast_big, int(500 * k))))
     f.close()
 
-    _print(rows)
+    _print(rows, rep, per)
 
 
-def _print(rows) -> None:
+def _print(rows, rep, per=None) -> None:
     print(f"plant FMU benchmark ({build.platform_tag()}, FMU compiled with {' '.join(build.CFLAGS)})")
     print(f"{'case':<80} {'time':>12}")
     for name, sec in rows:
         print(f"{name:<80} {sec * 1e6:>9.3f} us")
+    rep.table(["case", "time (µs)"], [(name, f"{sec * 1e6:.3f}") for name, sec in rows])
+    if per is not None:
+        rep.note(f"Bodies two at a time: {per['one body at a time'] / per['two bodies at a time']:.2f}× "
+                 f"faster than one at a time. FMU compiled with `{' '.join(build.CFLAGS)}` "
+                 f"({build.platform_tag()}); times are the best of several repeats.")
 
 
 if __name__ == "__main__":

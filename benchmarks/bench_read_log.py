@@ -19,6 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_fastloop import random_tree_text  # noqa: E402
+import _markdown  # noqa: E402
 
 PLOT_TOPICS = {"/tf", "/edges", "/agents", "/lyapunov", "/jumps"}
 
@@ -29,7 +30,13 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=1.0)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--reference", action="store_true")
+    _markdown.add_option(ap)
     args = ap.parse_args()
+    with _markdown.Report(args.markdown):
+        return bench(args)
+
+
+def bench(args) -> int:
     from cosim.log import cdr
     from cosim.log import mcap as mcaplog
 

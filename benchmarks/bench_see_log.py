@@ -1,13 +1,16 @@
 """Cost of McapLogger.record at N = 6 with and without the Foxglove /scene and /trail channels.
 
-Run: .venv/bin/python benchmarks/bench_see_log.py   (prints µs per record and the ratio)
+Run: .venv/bin/python benchmarks/bench_see_log.py [--markdown FILE.md]   (prints µs per record
+and the ratio)
 """
+import argparse
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+import _markdown
 from cosim.log.mcap import McapLogger
 from cosim.scenario import load_scenario
 
@@ -35,8 +38,11 @@ def per_record(scene_rate, n=4000, log_rate=100.0):
 
 
 if __name__ == "__main__":
-    base = per_record(0)
-    with_scene = per_record(20.0)
-    print(f"record() at N=6, log_rate 100 Hz: {base:.1f} µs without /scene+/trail, "
-          f"{with_scene:.1f} µs with them at 20 Hz (ratio {with_scene / base:.2f}, "
-          f"extra {with_scene - base:.1f} µs per record)")
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    _markdown.add_option(ap)
+    with _markdown.Report(ap.parse_args().markdown):
+        base = per_record(0)
+        with_scene = per_record(20.0)
+        print(f"record() at N=6, log_rate 100 Hz: {base:.1f} µs without /scene+/trail, "
+              f"{with_scene:.1f} µs with them at 20 Hz (ratio {with_scene / base:.2f}, "
+              f"extra {with_scene - base:.1f} µs per record)")

@@ -36,6 +36,8 @@ import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
+import _markdown  # noqa: E402
 
 
 def check_cost(N, kind, tmp):
@@ -225,7 +227,13 @@ def main():
                     help="only time the delay margin from counts of the roots outside the unit "
                          "circle on these agent counts (6: hil_6uav), against the sweep and the "
                          "radii up to 100 agents")
+    _markdown.add_option(ap)
     a = ap.parse_args()
+    with _markdown.Report(a.markdown):
+        bench(a, ap)
+
+
+def bench(a, ap):
     for option, job in (("crossing", crossing), ("delay", delay_search),
                         ("shift_invert", shift_invert), ("count", count_search)):
         counts = getattr(a, option)

@@ -19,6 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _revisions import trees as revision_trees  # noqa: E402
+import _markdown  # noqa: E402
 COMMANDS = {"--help": ["--help"], "check paper": ["check", "scenarios/paper_6uav.toml"],
             "run paper": ["run", "scenarios/paper_6uav.toml", "--duration", "0.01",
                           "--log", "{tmp}/run.mcap"]}
@@ -35,8 +36,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--against", metavar="REV", help="also time this revision (git worktree)")
     ap.add_argument("--repeat", type=int, default=7)
+    _markdown.add_option(ap)
     args = ap.parse_args()
-    with revision_trees(args.against) as trees, tempfile.TemporaryDirectory() as tmp:
+    rows = []
+    with _markdown.Report(args.markdown) as rep, revision_trees(args.against) as trees, \
+            tempfile.TemporaryDirectory() as tmp:
         for name, cmd in COMMANDS.items():
             cmd = [c.format(tmp=tmp) for c in cmd]
             times = {k: [] for k in trees}
@@ -50,6 +54,13 @@ def main() -> int:
             if args.against:
                 line += f"; ratio {med['this tree'] / med[args.against]:.2f}"
             print(f"se3sync {name:12s} median of {args.repeat}: {line}")
+            rows.append([f"`se3sync {' '.join(COMMANDS[name])}`".replace("{tmp}/", "")]
+                        + [f"{v * 1e3:.0f}" for v in med.values()]
+                        + ([f"{med['this tree'] / med[args.against]:.2f}"] if args.against else []))
+        rep.table(["command"] + [f"{k} (ms)" for k in trees]
+                  + (["ratio"] if args.against else []), rows,
+                  caption=f"median wall time of {args.repeat} fresh processes each, numba's "
+                          f"on-disk cache warm")
     return 0
 
 

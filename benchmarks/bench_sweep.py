@@ -26,6 +26,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import _markdown
+
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "scenarios" / "sweep_small.toml"
 
@@ -43,7 +45,13 @@ def main() -> None:
                     help="repetitions of each throughput measurement; the best is kept (the "
                          "machine's 2 cores are shared, so single runs are noisy)")
     ap.add_argument("--json", help="write the numbers as JSON here")
+    _markdown.add_option(ap)
     args = ap.parse_args()
+    with _markdown.Report(args.markdown):
+        bench(args)
+
+
+def bench(args) -> None:
 
     from distributed import Client, LocalCluster, wait
 

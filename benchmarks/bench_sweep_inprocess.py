@@ -18,6 +18,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from _revisions import trees as revision_trees  # noqa: E402
+import _markdown  # noqa: E402
 
 
 def sweep(tree: Path, samples: int, out: Path) -> float:
@@ -34,7 +35,13 @@ def main() -> int:
     ap.add_argument("--against", metavar="REV")
     ap.add_argument("--samples", type=int, default=300)
     ap.add_argument("--repeat", type=int, default=2)
+    _markdown.add_option(ap)
     args = ap.parse_args()
+    with _markdown.Report(args.markdown):
+        return bench(args)
+
+
+def bench(args) -> int:
     runs = 2 * (12 + args.samples)  # sweep_small: 3M + 3 = 12 adversarial samples, 2 laws
     with tempfile.TemporaryDirectory() as tmp, revision_trees(args.against) as trees:
         best = {}

@@ -34,12 +34,48 @@ def test_docs_site_builds_strictly(tmp_path):
     assert (tmp_path / "site" / "index.html").is_file()
 
 
+READMES = ("README.md", "bridge/README.md", "plant_fmu/README.md", "cosim/sweep/SWEEP.md")
+
+
 def test_readme_links_resolve():
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    """Markdown links and images, and HTML src attributes, of the READMEs (which GitHub shows
+    outside the docs site) point at files that exist."""
     bad = []
-    for target in re.findall(r"\]\(([^)\s]+)\)", text):
-        if re.match(r"[a-z]+://|#|mailto:", target):
-            continue
-        if not (ROOT / target.split("#")[0]).exists():
-            bad.append(target)
+    for name in READMES:
+        path = ROOT / name
+        text = path.read_text(encoding="utf-8")
+        targets = re.findall(r"\]\(([^)\s]+)\)", text) + re.findall(r'src="([^"]+)"', text)
+        for target in targets:
+            if re.match(r"[a-z]+://|#|mailto:", target):
+                continue
+            if not (path.parent / target.split("#")[0]).exists():
+                bad.append(f"{name}: {target}")
     assert not bad, bad
+
+
+def test_readme_is_short():
+    """The README introduces and points into docs/ (issue 32): at most 8 KB."""
+    assert (ROOT / "README.md").stat().st_size <= 8 * 1024
+
+
+def test_readme_image_is_small():
+    """The picture the README shows is kept small (it is in every clone)."""
+    images = re.findall(r'src="([^"]+\.png)"|!\[[^\]]*\]\(([^)\s]+\.png)\)',
+                        (ROOT / "README.md").read_text(encoding="utf-8"))
+    paths = [ROOT / (a or b) for a, b in images]
+    assert paths and all(p.stat().st_size < 150 * 1024 for p in paths), paths
+
+
+def test_performance_fragments_name_the_command_that_wrote_them():
+    """docs/performance.md includes only fragments written by a benchmark script's --markdown
+    option: each records its command, which names an existing script and the fragment itself."""
+    page = (ROOT / "docs" / "performance.md").read_text(encoding="utf-8")
+    included = re.findall(r'^--8<-- "([^"]+)"$', page, flags=re.M)
+    assert included
+    for name in included:
+        text = (ROOT / "docs" / "performance" / name).read_text(encoding="utf-8")
+        m = re.search(r"\*\*Command\*\*: `python (benchmarks/\S+\.py) (.*)`", text)
+        assert m, f"{name}: no command recorded"
+        assert (ROOT / m.group(1)).is_file(), f"{name}: {m.group(1)} does not exist"
+        assert f"--markdown docs/performance/{name}" in m.group(2), f"{name}: written elsewhere"
+        assert "**Load average**" in text and "**Machine**" in text, name
