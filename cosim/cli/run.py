@@ -110,9 +110,11 @@ def register(sub) -> None:
 
     p = sub.add_parser(
         "animate", help="render a 3D animation (MP4 or GIF) of a run log",
-        description="Render the bodies (boxes of their inertia, with axes) and the graph edges "
-                    "(coloured by ‖I − R̄_k‖_F, green to red on a log scale) of an se3sync MCAP "
-                    "log, with the simulated time and the max edge error. MP4 needs ffmpeg; GIF "
+        description="Render the bodies (boxes of their inertia, with axes, one colour and a "
+                    "number label per agent; bodies at one place drawn as nested boxes under "
+                    "one label, e.g. 1 = 3 = 5) and the graph edges (coloured by ‖I − R̄_k‖_F, "
+                    "green to red on a log scale, with a colour bar) of an se3sync MCAP log, "
+                    "with the simulated time and the max edge error. MP4 needs ffmpeg; GIF "
                     "uses Pillow.")
     p.add_argument("log", help="an MCAP log written by `se3sync run --log`")
     p.add_argument("-o", "--output", required=True, metavar="OUT.mp4|OUT.gif",
