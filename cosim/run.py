@@ -8,6 +8,7 @@ import math
 from . import signals
 from .controllers import law_name, make_controller
 from .files import write_json_atomic
+from .log.live import live_logger
 from .log.mcap import McapLogger
 from .master import Master
 from .network import networked
@@ -41,12 +42,13 @@ def with_timing(scenario, duration=None, step=None):
 def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                  summary_path=None, duration=None, step=None, progress=False,
                  fmu_path=None, log_metadata=None, summary_extra=None,
-                 log_encoding="json") -> dict:
+                 log_encoding="json", live=None) -> dict:
     """Runs a scenario (a Scenario or a path to a TOML file) and returns the summary dict.
 
     plant: "fleet" | "per-body" | a Plant instance (closed by the caller);
     controller: "hybrid" | "gradient" | a controller instance. log_path: MCAP written
-    (streamed) there, its per-record channels in log_encoding ("json" or "cdr"); summary_path: summary JSON written atomically. log_metadata adds to (or
+    (streamed) there, its per-record channels in log_encoding ("json" or "cdr"); summary_path: summary JSON written atomically. live: (host, port, rate) of a
+    live view (cosim/log/live.py) or None. log_metadata adds to (or
     overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C or SIGTERM the
     run stops cleanly, the log is finished and the summary has "interrupted": true. A run that
     fails (an exception) removes its log: no output is better than one that looks whole.
@@ -73,6 +75,7 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                                     model_description=md() if md is not None else None,
                                     encoding=log_encoding,
                                     extra_metadata={"plant": plant_kind, **(log_metadata or {})})
+            logger = live_logger(logger, live, scenario, encoding=log_encoding)
             master = Master(scenario, p, ctrl, logger)
         if requested:
             master.request_stop()

@@ -8,6 +8,7 @@ import time
 from controller.errors import Se3SyncError
 
 from ..files import check_output
+from .live_options import add_live_options, live_target
 from ..analysis import DELAY_MAX_AGENTS
 from ..registry import LAWS, PLANTS
 
@@ -61,6 +62,7 @@ def register(sub) -> None:
                    help="; ".join(f"{k}: {v[1]}" for k, v in LAWS.items()) + " (default hybrid)")
     p.add_argument("--force", action="store_true",
                    help="run even if the sampled loop is unstable at this step")
+    add_live_options(p, insecure=True)
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser(
@@ -136,6 +138,7 @@ def _cmd_run(args) -> int:
     for opt, path, sfx in (("--log", args.log, (".mcap",)), ("--summary", args.summary, None)):
         if path is not None:
             check_output(opt, path, sfx)
+    live = live_target(args)
     sc = load_scenario(args.scenario, args.overrides, duration=args.duration, step=args.step)
     if not args.force:
         st = analyse(sc, law=args.controller, bisect=False)
@@ -150,7 +153,7 @@ def _cmd_run(args) -> int:
     try:
         summary = run_scenario(sc, plant=args.plant or sc.plant_mode, controller=args.controller,
                                log_path=args.log, summary_path=args.summary, progress=progress,
-                               log_encoding=args.log_encoding)
+                               log_encoding=args.log_encoding, live=live)
     except OSError as exc:  # the streamed log is the file being written when the disk fills up
         raise Se3SyncError(f"{exc.filename or args.log or args.summary}: "
                            f"{exc.strerror or exc}") from None
