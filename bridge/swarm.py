@@ -41,6 +41,7 @@ from cosim.scenario import design_summary
 from cosim.network import parse_network
 from cosim.scenario import ScenarioError, load_scenario
 
+from .live import SwarmLive
 from . import frames
 from .config import default_config, read_key_file
 from .link import require_key_or_insecure
@@ -294,10 +295,11 @@ class _Children:
 def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockstep: bool = False,
               log_path=None, summary_path=None, workdir=None, duration=None, law: str = "hybrid",
               key_file=None, start_delay=None, insecure: bool = False, progress: bool = False,
-              python=None, on_event=None, log_encoding: str = "json") -> tuple:
+              python=None, on_event=None, log_encoding: str = "json", live=None) -> tuple:
     """Launches the swarm and merges its outputs; returns (merged summary, exit status): 0 all
     agents finished, EXIT_AGENT_FAILED an agent failed (the others are stopped), 130/143 a
-    signal stopped everything. The merged outputs are written in every case."""
+    signal stopped everything. The merged outputs are written in every case. live: (host, port,
+    rate) of the merged live view (bridge/live.py), or None."""
     say = on_event or (lambda s: print(f"se3sync swarm: {s}", file=sys.stderr, flush=True))
     sc = load_scenario(scenario_path, overrides, duration=duration)
     N = sc.graph.n
@@ -316,6 +318,12 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
         common += ["--duration", repr(float(duration))]
     sec = (["--key", str(key_file)] if key_file else []) + (["--insecure"] if insecure else [])
     kids = _Children()
+    view = None
+    if live is not None:   # the merged live view; each agent feeds it its own row
+        view = SwarmLive(sc, live[0], live[1], rate=live[2], encoding=log_encoding)
+        view.announce()
+    feed = ([] if view is None else
+            ["--live-feed", view.feed, "--live-rate", repr(float(live[2]))])
     rc = 0
     interrupted = False
     stop_requested = []
@@ -337,7 +345,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                     "--controller", law, "--summary", str(wd / f"agent_{i}.json"),
                     *(["--log", str(wd / f"agent_{i}.mcap"), "--log-encoding", log_encoding]
                       if log_path is not None else []),
-                    *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec],
+                    *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec,
+                    *feed],
                     wd / f"agent_{i}.err")
             say(f"{N} agent processes{' and the loopback vehicles' if vehicles == 'loopback' else ''}"
                 f" started ({'lockstep' if lockstep else 'real time'}); outputs in {wd}")
@@ -390,6 +399,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
         if bar is not None:
             bar.close()
         kids.stop()
+        if view is not None:
+            view.close()
     wall = time.monotonic() - t0
     summaries = {}
     for i in range(1, N + 1):
@@ -452,7 +463,8 @@ def run_swarm_cli(args) -> int:
                            log_path=args.log, summary_path=args.summary, workdir=args.dir,
                            duration=args.duration, law=args.controller, key_file=args.key,
                            start_delay=args.start_delay, insecure=args.insecure,
-                           progress=sys.stderr.isatty(), log_encoding=args.log_encoding)
+                           progress=sys.stderr.isatty(), log_encoding=args.log_encoding,
+                           live=getattr(args, "live_target", None))
     f = merged.get("final") or {}
     tot = merged["link_total"]
     print(f"{sc.name}: {len(merged['agents']) - len(merged['agents_missing'])} agents, "

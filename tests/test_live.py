@@ -85,10 +85,16 @@ def test_tee_sends_the_newest_record_at_most_rate_times_per_second(monkeypatch):
         def record(self, t_ns, *a):
             sent.append(t_ns)
 
+    class Sink:
+        @staticmethod
+        def watched():
+            return True
+
     class Server:
         rate = 30.0
         encoder = Enc()
         frames = 0
+        sink = Sink()
 
     tee = L.LiveTee(None, Server())
     for k in range(1000):

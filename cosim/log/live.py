@@ -10,8 +10,9 @@ Bounded rate. `LiveTee` wraps the run's logger (or stands in for it when there i
 sees every record the master hands to it: in the compiled loop those come on the log's writer
 thread, a block at a time, so the control loop does no work for the live view beyond the
 records a logged run takes anyway. A record is encoded for the live view only when 1/rate s of
-wall time have passed since the last one (default 30 Hz), and only its newest row; jumps are
-always sent (they are rare, and the view marks them). The messages keep the log's time stamps
+wall time have passed since the last one (default 30 Hz), and only its newest row, and only
+while a client subscribes to some channel; jumps are always sent (they are rare, and the view
+marks them). The messages keep the log's time stamps
 (simulated time, or the wall clock's t = n·h of a hardware run).
 
 Access. The WebSocket has no authentication: a socket on a non-loopback address is refused
@@ -95,6 +96,10 @@ class _Sink:
                 message_encoding=menc, context=self.context)
         return ch
 
+    def watched(self) -> bool:
+        """Whether any client subscribes to any channel (no viewer: nothing to encode)."""
+        return any(ch.has_sinks() for ch in self._chan.values())
+
     def add(self, channel_id, log_time, data, sequence):
         self._channel(channel_id).log(bytes(data), log_time=int(log_time))
         self.sent += 1
@@ -145,6 +150,8 @@ class LiveServer:
             self.server.stop()
             raise
         self.sink.logger = self.encoder
+        for cid in list(self.encoder.channels):   # advertised now, before the first frame
+            self.sink._channel(cid)
         self._lock = threading.Lock()
         self.frames = 0
         self._closed = False
@@ -196,6 +203,8 @@ class LiveTee:
         if now < self._next:
             return False
         self._next = now + self._period
+        if not self.server.sink.watched():   # nobody is looking: no frame to encode
+            return False
         self.server.frames += 1
         return True
 
