@@ -453,4 +453,8 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, sm
         if free is not None:   # encoded: the loop may fill these buffers again
             free.append(rec)
 
-    writer.put(write)
+    if getattr(writer.logger, "inline", False):
+        write()   # a logger that asks to be called here (the live view alone: cheap, see
+        # cosim/log/live.py): no hand-over to the writer thread for every block
+    else:
+        writer.put(write)

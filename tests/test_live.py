@@ -96,13 +96,72 @@ def test_tee_sends_the_newest_record_at_most_rate_times_per_second(monkeypatch):
         frames = 0
         sink = Sink()
 
-    tee = L.LiveTee(None, Server())
+    class Inner:   # a log beside the view: the tee encodes where it is called
+        counts = {}
+
+        def record(self, *a):
+            pass
+
+    tee = L.LiveTee(Inner(), Server())
     for k in range(1000):
         clock.t = 100.0 + k * 0.002
         tee.record(k, None)
     # a frame every ⌈(1/30) / 0.002⌉ = 17 records: the first record at or after the previous
     # frame + 1/30 s
     assert sent == list(range(0, 1000, 17))
+
+
+def test_inline_tee_encodes_copies_on_its_own_thread_and_drops_when_behind(monkeypatch):
+    """Without a log the tee is `inline` (the loop calls it in its own thread): a frame is a
+    copy of the record (the loop reuses its buffers) encoded on the tee's thread; while two
+    frames wait, later ones are dropped, never waited for; jumps are never dropped."""
+    import threading
+
+    import numpy as np
+
+    clock = FakeClock()
+    monkeypatch.setattr(L.time, "monotonic", clock)
+    gate = threading.Event()
+    frames, jumps = [], []
+
+    class Enc:
+        def record_block(self, t_ns, S):
+            gate.wait(30)
+            frames.append((list(t_ns), S.copy()))
+
+        def jump(self, *a):
+            jumps.append(a)
+
+    class Sink:
+        @staticmethod
+        def watched():
+            return True
+
+    class Server:
+        rate = 30.0
+        encoder = Enc()
+        frames = 0
+        sink = Sink()
+
+        def close(self):
+            pass
+
+    tee = L.LiveTee(None, Server())
+    assert tee.inline
+    buf = np.zeros((2, 3))
+    for k in range(5):   # 5 frames due while the encoder is stuck on the first
+        clock.t += 1.0
+        buf[:] = k
+        tee.record_block([k, k], buf)
+        tee.jump(k, 0.0, 1, 0.0, 1.0, 0.5)
+    gate.set()
+    tee.close()
+    # the first frame (taken before the encoder blocked) and one more were queued, the rest
+    # dropped; each is the record as it was when taken
+    assert tee.dropped + len(frames) == 5 and len(frames) <= 3 and tee.dropped >= 2
+    for t, S in frames:
+        assert t == [t[0]] and (S == t[0]).all() and S.shape == (1, 3)
+    assert len(jumps) == 5
 
 
 def test_the_log_is_the_same_with_and_without_live(tmp_path):
