@@ -8,7 +8,7 @@ import math
 from . import signals
 from .controllers import law_name, make_controller
 from .files import write_json_atomic
-from .log.live import live_logger
+from .log.live import live_logger, live_only
 from .log.mcap import McapLogger
 from .master import Master
 from .network import networked
@@ -56,6 +56,8 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
     if not isinstance(scenario, Scenario):
         scenario = load_scenario(scenario)
     scenario = with_timing(scenario, duration, step)
+    if log_path is None:
+        scenario = live_only(scenario, live)   # records at most at the live view's rate
     own_plant = isinstance(plant, str)
     plant_kind = plant if own_plant else type(plant).__name__
     ctrl = make_controller(controller, scenario) if isinstance(controller, str) else controller

@@ -20,6 +20,7 @@ unless ``insecure`` (the MAVLink sockets' rule, `se3sync connect --insecure`).
 """
 from __future__ import annotations
 
+import dataclasses
 import ipaddress
 import os
 import queue
@@ -35,7 +36,7 @@ from controller.errors import Se3SyncError
 
 from .mcap import McapLogger
 
-__all__ = ["DEFAULT_RATE", "parse_live", "LiveServer", "LiveTee", "live_logger"]
+__all__ = ["DEFAULT_RATE", "parse_live", "LiveServer", "LiveTee", "live_logger", "live_only"]
 
 DEFAULT_RATE = 30.0          # Hz of wall time: live frames per second
 LOCAL_NAMES = ("localhost",)
@@ -305,6 +306,19 @@ class LiveTee:
                 self._q.put(None)
                 self._worker.join()
             self.server.close()
+
+
+def live_only(scenario, live):
+    """The scenario a run with a live view and no log steps: its records (the master takes them
+    at ``simulation.log_rate`` of simulated time) at most at the live rate, since no more
+    frames than that are shown per second of wall time in a run at real time or faster; the
+    rest of the scenario unchanged. With a log, or without ``live``, the scenario itself."""
+    if live is None:
+        return scenario
+    rate = live[2] if not isinstance(live, str) and len(live) > 2 else DEFAULT_RATE
+    if scenario.log_rate <= rate:
+        return scenario
+    return dataclasses.replace(scenario, log_rate=float(rate))
 
 
 def live_logger(logger, live, scenario, *, command: str = "se3sync", encoding: str = "json",
