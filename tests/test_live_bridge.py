@@ -102,7 +102,10 @@ def _client_frames(url, want, deadline=60):
     t0 = time.monotonic()
     try:
         while time.monotonic() - t0 < deadline:
-            m = ws.recv()
+            try:
+                m = ws.recv()
+            except (websocket.WebSocketConnectionClosedException, ConnectionError):
+                break   # the server closed (or reset) the connection at the end of the run
             if isinstance(m, str):
                 o = json.loads(m) if m else {}
                 if o.get("op") == "advertise":
@@ -112,7 +115,8 @@ def _client_frames(url, want, deadline=60):
                         subs[len(subs) + 1] = c["id"]
                         new.append({"id": len(subs), "channelId": c["id"]})
                     ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
-                    yield "subscribed"
+                    if len(subs) == len(new):   # the first advertisement
+                        yield "subscribed"
                 continue
             if m[0] == 1:
                 sid = int.from_bytes(m[1:5], "little")
@@ -128,7 +132,7 @@ def _client_frames(url, want, deadline=60):
 def test_merged_view_of_the_agents_feeds(sc, state):
     """Six agents' datagrams (each its own row and owned edges, one with a jump) make one
     frame whose /edges errors and V̄ are those of the whole network, computed independently."""
-    view = BL.SwarmLive(sc, "127.0.0.1", 0, rate=1000)
+    view = BL.SwarmLive(sc, "127.0.0.1", 0, rate=1e9)   # every datagram its own frame
     try:
         gen = _client_frames(view.server.url,
                              lambda got: any(g[0] == "/lyapunov" and g[1] == 120_000_000
@@ -209,7 +213,7 @@ def test_vehicle_view_shows_the_vehicles_state(sc, state):
     class Srv:
         vehicles = [V(i) for i in range(6)]
 
-    view = BL.VehicleLive(sc, "127.0.0.1", 0, rate=1000, step=0.004)
+    view = BL.VehicleLive(sc, "127.0.0.1", 0, rate=1e9, step=0.004)
     try:
         gen = _client_frames(view.server.url, lambda got: any(g[0] == "/lyapunov" for g in got))
         assert next(gen) == "subscribed"
@@ -228,3 +232,58 @@ def test_vehicle_view_shows_the_vehicles_state(sc, state):
     assert all(e["theta"] is None and e["U"] is None for e in edges)
     assert all(e["rot_err"] >= 0 for e in edges)
     assert [g for g in got if g[0] == "/lyapunov"][0][2]["V"] is None
+
+
+@pytest.mark.timeout(300)
+def test_connect_live_view_over_mavlink(tmp_path, monkeypatch):
+    """`connect --live` (run_hil with live): six lockstep loopback vehicles over real UDP; a
+    WebSocket client subscribed before the first step receives the log's /tf and /edges
+    messages, byte for byte."""
+    import os
+    import threading
+
+    os.environ.setdefault("MAVLINK20", "1")
+    from bridge.hil import run_hil
+    from bridge.plant import MavlinkPlant
+    from cosim.log import live as L
+    from test_bridge_helpers import VehicleThread, free_base_port, load
+    from test_live import _messages_with_bytes
+
+    urls, servers = [], []
+
+    def announce(self, command):   # hold the run until a client watches (no race with it)
+        servers.append(self)
+        urls.append(self.url)
+        t0 = time.monotonic()
+        while not self.sink.watched() and time.monotonic() - t0 < 60:
+            time.sleep(0.01)
+
+    monkeypatch.setattr(L.LiveServer, "announce", announce)
+    sc = load([f"bridge.base_port={free_base_port(6)}", "simulation.duration=1.0"])
+    log = tmp_path / "hil.mcap"
+    out = {}
+    with VehicleThread(scenario=sc, lockstep=True, aux_rate=0):
+        p = MavlinkPlant(sc, lockstep=True, connect_timeout=30, on_event=lambda s: None)
+        try:
+            p.connect()
+
+            def go():
+                out["summary"] = run_hil(sc, p, log_path=log, live=("127.0.0.1", 0, 200.0))
+
+            t = threading.Thread(target=go)
+            t.start()
+            t0 = time.monotonic()
+            while not urls and time.monotonic() - t0 < 60:
+                time.sleep(0.01)
+            gen = _client_frames(urls[0], lambda got: False, deadline=120)
+            assert next(gen) == "subscribed"
+            got = next(gen)   # until the run ends and the server closes
+            t.join(120)
+        finally:
+            p.close()
+    assert out["summary"]["steps"] == 250
+    logged = _messages_with_bytes(log)
+    rec = [g for g in got if g[0] in ("/tf", "/edges")]
+    assert rec
+    for topic, t_ns, msg in rec:
+        assert json.loads(logged[(topic, t_ns)]) == msg
