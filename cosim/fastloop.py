@@ -290,6 +290,8 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
         writer = _Writer(logger, 8 * (N * 28 + 5 * M) * ((MAX_BLOCK - 1) // dec + 1))
     block = FIRST_LOGGED_BLOCK if logging else MAX_BLOCK
     target = TARGET_LOGGED_BLOCK_S if logging else TARGET_BLOCK_S
+    # a logger may ask for blocks of its own length (the live view alone: a block per frame)
+    target = getattr(logger, "block_seconds", None) or target
     k0 = int(plant._k)
     n = 0
     interrupted = timed_out = False

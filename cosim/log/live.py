@@ -7,13 +7,14 @@ What is served is what the MCAP log holds, the same messages on the same channel
 encoder, `McapLogger`, given a sink that hands them to foxglove-sdk's channels instead of a file.
 
 Bounded rate. `LiveTee` wraps the run's logger (or stands in for it when there is no log) and
-sees every record the master hands to it: in the compiled loop those come on the log's writer
-thread, a block at a time, so the control loop does no work for the live view beyond the
-records a logged run takes anyway. A record is encoded for the live view only when 1/rate s of
-wall time have passed since the last one (default 30 Hz), and only its newest row, and only
-while a client subscribes to some channel; jumps are always sent (they are rare, and the view
-marks them). The messages keep the log's time stamps
-(simulated time, or the wall clock's t = n·h of a hardware run).
+sees every record the master hands to it, a block at a time in the compiled loop: with a log, on
+the log's writer thread; without one, in the loop's own thread between blocks, where it only
+reads the clock (``inline``; frames are encoded on a thread of its own). A record becomes a
+frame only when 1/rate s of wall time have passed since the last one (default 30 Hz), only its
+newest row, and only while a client subscribes to some channel; jumps are always sent (they are
+rare, and the view marks them). Without a log the run takes its records at most at the live rate
+of simulated time (`live_only`) and in blocks of a frame period. The messages keep the log's time
+stamps (simulated time, or the wall clock's t = n·h of a hardware run).
 
 Access. The WebSocket has no authentication: a socket on a non-loopback address is refused
 unless ``insecure`` (the MAVLink sockets' rule, `se3sync connect --insecure`).
@@ -113,7 +114,8 @@ class _Sink:
             self.add(cid, log_time, row.tobytes(), 0)
 
     def close(self):
-        for ch in self._chan.values():
+        chans, self._chan = self._chan, {}
+        for ch in chans.values():
             ch.close()
 
 
@@ -139,11 +141,11 @@ class LiveServer:
                                f"{' '.join(str(exc).split())}") from None
         self.host, self.port = host, int(self.server.port)
         self.sink = _Sink(self.context)
-        # the log's encoder (the scene at the log's rate of simulated time, 20 Hz, at most
-        # one per frame; an edge is drawn jumping for one scene period, as in the log)
-        # Its file (MCAP header, schemas, channels; the messages go to the sink) is a private
-        # temporary one, removed at the end. Never a shared path such as os.devnull: closing a
-        # discarded log unlinks its file.
+        # The log's encoder (the scene at the log's rate of simulated time, 20 Hz, at most one
+        # per frame; an edge is drawn jumping for one scene period, as in the log). Its file
+        # (MCAP header, schemas, channels; the messages go to the sink) is a private temporary
+        # one, removed at the end. Never a shared path such as os.devnull: closing a discarded
+        # log unlinks its file.
         self._dir = tempfile.mkdtemp(prefix="se3sync-live-")
         try:
             self.encoder = McapLogger(os.path.join(self._dir, "live.mcap"), scenario,
@@ -156,7 +158,6 @@ class LiveServer:
         self.sink.logger = self.encoder
         for cid in list(self.encoder.channels):   # advertised now, before the first frame
             self.sink._channel(cid)
-        self._lock = threading.Lock()
         self.frames = 0
         self._closed = False
 
@@ -210,6 +211,9 @@ class LiveTee:
         self._next = 0.0
         self.counts = inner.counts if inner is not None else {}
         self.inline = inner is None
+        # inline, the loop's blocks need be no shorter than a frame period (the writer thread's
+        # 10 ms blocks are for a log's encoding): fewer returns to Python per second
+        self.block_seconds = self._period if self.inline else None
         self.dropped = 0
         self._q = self._worker = None
         self._pending = 0
