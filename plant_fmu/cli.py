@@ -58,9 +58,10 @@ def _cmd_build(args: argparse.Namespace) -> int:
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "fmu",
-        help="build the plant FMU (rigid bodies on SE(3), FMI 2.0 or 3.0 Co-Simulation)",
+        help="build the plant FMU (rigid bodies on SE(3), FMI 2.0 or 3.0 Co-Simulation) or a "
+             "scenario's controller FMU",
         description="The plant: N rigid bodies on SE(3) as an FMI 2.0 (default) or FMI 3.0 Co-Simulation FMU "
-        "compiled from C.",
+        "compiled from C; or, with --controller, a scenario's law as an FMI 2.0 Co-Simulation FMU.",
     )
     sub = p.add_subparsers(dest="fmu_command", required=True, metavar="ACTION")
     b = sub.add_parser(
