@@ -40,6 +40,7 @@ from .mcap import McapLogger
 __all__ = ["DEFAULT_RATE", "parse_live", "LiveServer", "LiveTee", "live_logger", "live_only"]
 
 DEFAULT_RATE = 30.0          # Hz of wall time: live frames per second
+WORKER_NICE = 10             # the live view's encoding thread, below the control loop
 LOCAL_NAMES = ("localhost",)
 
 
@@ -230,6 +231,12 @@ class LiveTee:
         return getattr(inner, name)
 
     def _work(self):
+        # the view must not take CPU time from the control loop: this thread runs at a lower
+        # scheduling priority (Linux: a thread is a task with its own nice value; best effort)
+        try:
+            os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), WORKER_NICE)
+        except (AttributeError, OSError):
+            pass
         while True:
             item = self._q.get()
             if item is None:
