@@ -51,6 +51,7 @@ from cosim.scenario import restrict
 from .agent_link import AgentLink
 from .config import check_endpoint, default_config, read_key_file
 from .link import require_key_or_insecure
+from .live import feed_logger
 from .plant import LinkError, MavlinkPlant
 
 __all__ = ["AgentNode", "DEFAULT_MAX_AGE_STEPS", "LAWS", "join_step"]
@@ -535,7 +536,8 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
               start: float | None = None, start_file=None, key_file=None, insecure: bool = False,
               vehicle: str | None = None, connect_timeout: float | None = None,
               signing_state=None, tlog=None, log_path=None, summary_path=None,
-              log_encoding: str = "json", progress: bool = False, on_event=None) -> dict:
+              log_encoding: str = "json", progress: bool = False, on_event=None,
+              live_feed=None) -> dict:
     """Agent ``agent_id`` from its vehicle's connection to its summary (see the module
     docstring); the library entry point of `se3sync agent`. Raises ConnectError (the vehicle
     never connected) and LinkError (lockstep: a vehicle or neighbour stopped answering; a late
@@ -569,6 +571,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
                                  "wall (paced: t = n·h from the swarm's start)",
                     "first_step": node.first_step, "start_unix": "" if start is None else repr(start)},
                     log_encoding)
+            logger = feed_logger(logger, live_feed, node)   # swarm --live (bridge/live.py)
             master = Master(node.local, node.plant, node.controller, logger,
                             first_step=node.first_step)
         if requested:

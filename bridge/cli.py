@@ -1,10 +1,13 @@
 """Sub-commands `vehicle` (the loopback test vehicle) and `connect` (hardware in the loop)."""
 from __future__ import annotations
 
+import argparse
+
 import sys
 from pathlib import Path
 
 from controller.errors import Se3SyncError
+from cosim.cli.live_options import add_live_options, live_target
 from cosim.cli.run import add_log_encoding
 from cosim.registry import AGENT_LAWS, LAWS
 
@@ -79,6 +82,7 @@ def register(sub) -> None:
                    help="with --sim-protocol: write the stack's parameters that make its mixer match the "
                         "scenario's allocation (ArduPilot: a .parm file for --defaults; PX4: param set-default "
                         "lines) and exit; '{i}' in FILE writes one file per vehicle")
+    add_live_options(p)
     p.set_defaults(func=_cmd_vehicle)
 
     p = sub.add_parser(
@@ -107,6 +111,7 @@ def register(sub) -> None:
     p.add_argument("--tlog", metavar="FILE", help="write all traffic to this tlog (mavlogdump.py reads it)")
     p.add_argument("--force", action="store_true", help="run even if the sampled loop is unstable at this step")
     _security_options(p)
+    add_live_options(p)
     p.set_defaults(func=_cmd_connect)
 
 
@@ -153,6 +158,9 @@ def register(sub) -> None:
                    "connected after S seconds (default: bridge.connect_timeout, 10)")
     p.add_argument("--tlog", metavar="FILE", help="write the vehicle link's traffic to this tlog")
     _security_options(p)
+    # the swarm's merged live view (`swarm --live`): where this agent sends its own row
+    p.add_argument("--live-feed", metavar="HOST:PORT", help=argparse.SUPPRESS)
+    p.add_argument("--live-rate", type=float, default=30.0, help=argparse.SUPPRESS)
     p.set_defaults(func=_cmd_agent)
 
     p = sub.add_parser(
@@ -191,6 +199,7 @@ def register(sub) -> None:
                    help="allow sockets reachable from other machines without --key")
     p.add_argument("--force", action="store_true",
                    help="run even if the sampled loop is unstable at this step")
+    add_live_options(p)
     p.set_defaults(func=_cmd_swarm)
 
 
@@ -206,6 +215,11 @@ def _cmd_agent(args) -> int:
     if args.start_file is not None and not Path(args.start_file).parent.is_dir():
         raise Se3SyncError(f"--start-file: {args.start_file!r}: directory "
                            f"{str(Path(args.start_file).parent)!r} does not exist")
+    feed = None
+    if args.live_feed is not None:
+        from cosim.log.live import parse_live
+
+        feed = (*parse_live(args.live_feed, option="--live-feed"), args.live_rate)
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
     if args.start is not None and not (args.start == args.start and abs(args.start) < 1e11):
         raise Se3SyncError(f"--start: must be a Unix time in seconds, got {args.start!r}")
@@ -218,7 +232,8 @@ def _cmd_agent(args) -> int:
                             vehicle=args.vehicle, connect_timeout=args.connect_timeout,
                             signing_state=args.signing_state, tlog=args.tlog,
                             log_path=args.log, summary_path=args.summary,
-                            log_encoding=args.log_encoding, progress=sys.stderr.isatty())
+                            log_encoding=args.log_encoding, progress=sys.stderr.isatty(),
+                            live_feed=feed)
     except ConnectError as exc:
         print(f"se3sync agent: error: {exc}", file=sys.stderr)
         return EXIT_NOT_CONNECTED
@@ -244,6 +259,7 @@ def _cmd_swarm(args) -> int:
     from .swarm import run_swarm_cli
 
     _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None))
+    args.live_target = live_target(args)
     return run_swarm_cli(args)
 
 
@@ -291,6 +307,11 @@ def _cmd_vehicle(args) -> int:
     if args.count is not None and args.count < 1:
         raise Se3SyncError(f"--count: must be >= 1, got {args.count}")
     _outputs(("--tlog", args.tlog, None), ("--stats", args.stats, None))
+    args.live_target = live_target(args)
+    if args.live_target is not None and not args.scenario:
+        raise Se3SyncError("--live: needs --scenario (the graph and the bodies to draw)")
+    if args.live_target is not None and getattr(args, "sim_protocol", None):
+        raise Se3SyncError("--live: not with --sim-protocol")
     if getattr(args, "sim_protocol", None):
         from .sim_cli import run_sim_cli
 
@@ -309,6 +330,7 @@ def _cmd_connect(args) -> int:
     _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None),
              ("--tlog", args.tlog, None))
     _timeout("--connect-timeout", args.connect_timeout)
+    live = live_target(args)
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
     cfg = sc.bridge or default_config(sc.n_agents)
     if args.vehicle:
@@ -336,7 +358,8 @@ def _cmd_connect(args) -> int:
             return EXIT_NOT_CONNECTED
         try:
             summary = run_hil(sc, plant, log_path=args.log, summary_path=args.summary,
-                              log_encoding=args.log_encoding, progress=sys.stderr.isatty())
+                              log_encoding=args.log_encoding, progress=sys.stderr.isatty(),
+                              live=live)
         except LinkError as exc:
             print(f"se3sync connect: error: {exc}", file=sys.stderr)
             return EXIT_LINK

@@ -19,13 +19,13 @@ def warm_up(scenario) -> None:
 
 
 def run_hil(scenario, plant, *, log_path=None, summary_path=None, progress=False,
-            controller="hybrid", log_encoding: str = "json") -> dict:
+            controller="hybrid", log_encoding: str = "json", live=None) -> dict:
     """cosim's run over a connected MavlinkPlant; the MCAP log says the time base is the wall
-    clock (t = n·h, paced) or lockstep."""
+    clock (t = n·h, paced) or lockstep. live: (host, port, rate) of a live view, or None."""
     tb = "simulated (lockstep)" if plant.lockstep else "wall (paced: t = n·h from the start of the run)"
     return run_scenario(
         scenario, plant=plant, controller=controller, log_path=log_path,
-        summary_path=summary_path, progress=progress, log_encoding=log_encoding,
+        summary_path=summary_path, progress=progress, log_encoding=log_encoding, live=live,
         log_metadata={"plant": "mavlink", "time_base": tb,
                       "endpoints": ",".join(v.sock.endpoint for v in plant.vehicles)},
         summary_extra={"plant": "mavlink", "lockstep": bool(plant.lockstep)})

@@ -44,6 +44,7 @@ from cosim.scenario import design_summary
 from cosim.network import parse_network
 from cosim.scenario import ScenarioError, load_scenario
 
+from .live import SwarmLive
 from . import frames
 from .config import default_config, read_key_file
 from .link import parse_endpoint, require_key_or_insecure
@@ -404,13 +405,14 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
               log_path=None, summary_path=None, workdir=None, duration=None, law: str = "hybrid",
               key_file=None, start_delay=None, insecure: bool = False, progress: bool = False,
               python=None, on_event=None, log_encoding: str = "json",
-              stop_requested: list | None = None) -> tuple:
+              stop_requested: list | None = None, live=None) -> tuple:
     """Launches the swarm and merges its outputs; returns (merged summary, exit status): 0 all
     agents finished, EXIT_AGENT_FAILED an agent failed (the others are stopped), 130/143 a
     signal stopped everything (also one noted in ``stop_requested`` before the call: then no
     process is started). The merged outputs are written in every case. Raises Se3SyncError
     before starting anything when a port of the swarm is taken or already receives traffic
-    (`check_ports`)."""
+    (`check_ports`). live: (host, port, rate) of the merged live view (bridge/live.py), or
+    None."""
     say = on_event or (lambda s: print(f"se3sync swarm: {s}", file=sys.stderr, flush=True))
     sc = load_scenario(scenario_path, overrides, duration=duration)
     stop_requested = [] if stop_requested is None else stop_requested
@@ -432,6 +434,12 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
         common += ["--duration", repr(float(duration))]
     sec = (["--key", str(key_file)] if key_file else []) + (["--insecure"] if insecure else [])
     kids = _Children()
+    view = None
+    if live is not None:   # the merged live view; each agent feeds it its own row
+        view = SwarmLive(sc, live[0], live[1], rate=live[2], encoding=log_encoding)
+        view.announce()
+    feed = ([] if view is None else
+            ["--live-feed", view.feed, "--live-rate", repr(float(live[2]))])
     rc = 0
     interrupted = False
     t0 = time.monotonic()
@@ -457,7 +465,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                     "--controller", law, "--summary", str(wd / f"agent_{i}.json"),
                     *(["--log", str(wd / f"agent_{i}.mcap"), "--log-encoding", log_encoding]
                       if log_path is not None else []),
-                    *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec],
+                    *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec,
+                    *feed],
                     wd / f"agent_{i}.err")
             agents = [a for a in (f"agent {i}" for i in range(1, N + 1)) if a in kids.procs]
             if agents:
@@ -512,6 +521,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
         if bar is not None:
             bar.close()
         kids.stop()
+        if view is not None:
+            view.close()
     wall = time.monotonic() - t0
     summaries = {}
     for i in range(1, N + 1):
@@ -599,7 +610,7 @@ def _swarm_cli(args, early: list) -> int:
                            duration=args.duration, law=args.controller, key_file=args.key,
                            start_delay=args.start_delay, insecure=args.insecure,
                            progress=sys.stderr.isatty(), log_encoding=args.log_encoding,
-                           stop_requested=early)
+                           stop_requested=early, live=getattr(args, "live_target", None))
     f = merged.get("final") or {}
     tot = merged["link_total"]
     print(f"{sc.name}: {len(merged['agents']) - len(merged['agents_missing'])} agents, "

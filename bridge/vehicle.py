@@ -38,6 +38,7 @@ from cosim.files import write_json_atomic
 from cosim.scenario import load_scenario
 from plant_fmu.fast import FleetFMU
 
+from .live import VehicleLive
 from .link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
                    parse_endpoint, receive_datagrams, require_key_or_insecure)
 from .signing_state import open_signing_state
@@ -469,6 +470,7 @@ class VehicleServer:
         host = host if host is not None else (cfg.host if cfg else "127.0.0.1")
         self.count = int(count)
         self.lockstep = bool(lockstep)
+        self.live = None   # a callable(server) after each tick: the live view (bridge/live.py)
         self.key = key
         # only the commander (system, component; component 0 = any) may talk to the vehicles
         self.commander = tuple(commander) if commander is not None else \
@@ -663,6 +665,8 @@ class VehicleServer:
                         if v.last_odom is None or now - v.last_odom > 0.2:
                             v.send_odometry()
                             v.last_odom = now
+                if self.live is not None:   # --live (bridge/live.py): at most its rate
+                    self.live(self)
                 for v in self.vehicles:
                     if self.lockstep:
                         for mid in (ID_HEARTBEAT, ID_ATTQ, ID_LPOS):
@@ -717,6 +721,11 @@ def run_vehicle_cli(args) -> int:
                         tlog=args.tlog, allow_unsigned_heartbeat=args.allow_unsigned_heartbeat,
                         require_arm=args.require_arm, gravity_ned=g, commander=args.commander,
                         insecure=args.insecure, signing_state=args.signing_state, key_file=args.key)
+    live = getattr(args, "live_target", None)
+    if live is not None:
+        srv.live = VehicleLive(scenario, live[0], live[1], rate=live[2],
+                               step=srv.h if srv.lockstep else srv.odom_period)
+        srv.live.announce()
     eps = ", ".join(v.sock.endpoint for v in srv.vehicles[:3]) + (" ..." if srv.count > 3 else "")
     print(f"se3sync vehicle: {srv.count} vehicle(s) ({'lockstep' if srv.lockstep else f'real time, {srv.rate:g} Hz'}) "
           f"-> {eps}", file=sys.stderr, flush=True)
@@ -724,6 +733,8 @@ def run_vehicle_cli(args) -> int:
         st = srv.run(args.duration)
     finally:
         srv.close()
+        if srv.live is not None:
+            srv.live.close()
     if args.stats:
         write_json_atomic(args.stats, st)
     print(f"se3sync vehicle: stopped; sent {st['sent']}, received {st['received']}, malformed {st['malformed']}, "

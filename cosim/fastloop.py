@@ -291,6 +291,8 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
         writer = _Writer(logger, 8 * (N * 28 + 5 * M) * ((MAX_BLOCK - 1) // dec + 1))
     block = FIRST_LOGGED_BLOCK if logging else MAX_BLOCK
     target = TARGET_LOGGED_BLOCK_S if logging else TARGET_BLOCK_S
+    # a logger may ask for blocks of its own length (the live view alone: a block per frame)
+    target = getattr(logger, "block_seconds", None) or target
     k0 = int(plant._k)
     n = 0
     interrupted = timed_out = False
@@ -460,4 +462,8 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, sm
         if free is not None:   # encoded: the loop may fill these buffers again
             free.append(rec)
 
-    writer.put(write)
+    if getattr(writer.logger, "inline", False):
+        write()   # a logger that asks to be called here (the live view alone: cheap, see
+        # cosim/log/live.py): no hand-over to the writer thread for every block
+    else:
+        writer.put(write)

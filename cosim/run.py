@@ -10,6 +10,7 @@ from . import signals
 from .controllers import law_name, make_controller
 from .early_stop import stopped_before_start
 from .files import write_json_atomic
+from .log.live import live_logger, live_only
 from .log.mcap import McapLogger
 from .master import Master
 from .network import networked
@@ -43,12 +44,13 @@ def with_timing(scenario, duration=None, step=None):
 def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                  summary_path=None, duration=None, step=None, progress=False,
                  fmu_path=None, log_metadata=None, summary_extra=None,
-                 log_encoding="json", stage=None) -> dict:
+                 log_encoding="json", stage=None, live=None) -> dict:
     """Runs a scenario (a Scenario or a path to a TOML file) and returns the summary dict.
 
     plant: "fleet" | "per-body" | a Plant instance (closed by the caller);
     controller: "hybrid" | "gradient" | a controller instance. log_path: MCAP written
-    (streamed) there, its per-record channels in log_encoding ("json" or "cdr"); summary_path: summary JSON written atomically. log_metadata adds to (or
+    (streamed) there, its per-record channels in log_encoding ("json" or "cdr"); summary_path: summary JSON written atomically. live: (host, port, rate) of a
+    live view (cosim/log/live.py) or None. log_metadata adds to (or
     overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C or SIGTERM the
     run stops cleanly, the log is finished and the summary has "interrupted": true, also
     before the first step (building the controller, the plant FMU, the log: `"steps": 0` and
@@ -62,6 +64,7 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
 
     def at(name):
         where[0] = name
+        signals.set_stage(name)
         if stage is not None:
             stage(name)
 
@@ -75,6 +78,8 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
             if not isinstance(scenario, Scenario):
                 scenario = load_scenario(scenario)
             scenario = with_timing(scenario, duration, step)
+            if log_path is None:
+                scenario = live_only(scenario, live)   # records at most at the live view's rate
             at("building the controller")
             ctrl = (make_controller(controller, scenario) if isinstance(controller, str)
                     else controller)
@@ -95,6 +100,7 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                                         encoding=log_encoding,
                                         extra_metadata={"plant": plant_kind,
                                                         **(log_metadata or {})})
+                logger = live_logger(logger, live, scenario, encoding=log_encoding)
                 master = Master(scenario, p, ctrl, logger)
             if requested:
                 master.request_stop()
@@ -104,7 +110,8 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
             # before the loop (which handles its own signals): nothing was stepped
             lg, logger = logger, None
             return stopped_before_start(
-                scenario if isinstance(scenario, Scenario) else None, stage=where[0],
+                scenario if isinstance(scenario, Scenario) else None,
+                stage=signals.stage_at_signal() or where[0],
                 scenario_path=getattr(scenario, "path", scenario), controller=ctrl_kind,
                 plant=plant_kind, log_path=log_path, summary_path=summary_path,
                 log_encoding=log_encoding, logger=lg, log_metadata=log_metadata,

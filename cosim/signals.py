@@ -16,16 +16,30 @@ import sys
 import threading
 
 __all__ = ["install", "uninstall", "note", "requested", "pending", "received", "exit_status", "reset",
-           "catching", "deferred", "interruptible"]
+           "catching", "deferred", "interruptible", "set_stage", "stage_at_signal"]
 
 _received: list = []
 _installed: list = []
+_stage: list = [None]      # what the command is doing (`set_stage`), for a stop before any step
+_stage_at: list = []       # ... when the first signal arrived
 STATUS = {"SIGINT": 130, "SIGTERM": 143}
 
 
 def note(signum) -> None:
     name = signal.Signals(signum).name if isinstance(signum, int) else str(signum)
+    if not _received:
+        _stage_at.append(_stage[0])
     _received.append(name)
+
+
+def set_stage(name: str | None) -> None:
+    """Names what the command is doing now; a signal remembers the stage it arrived in."""
+    _stage[0] = name
+
+
+def stage_at_signal() -> str | None:
+    """The stage (`set_stage`) in which the first signal arrived, or None."""
+    return _stage_at[0] if _stage_at else None
 
 
 def requested() -> bool:
@@ -48,6 +62,8 @@ def exit_status() -> int:
 
 def reset() -> None:
     _received.clear()
+    _stage_at.clear()
+    _stage[0] = None
 
 
 def _raise(signum, frame):
@@ -137,8 +153,8 @@ def interruptible(fn, *args):
     For the long LAPACK calls of the analysis: a dense eigenproblem of 4000 states is one call
     of 20–30 s, and Python runs a signal handler only between bytecodes, so Ctrl-C or SIGTERM
     would wait for it to return. LAPACK runs without the GIL, so the waiting thread takes the
-    signal at once; the abandoned computation ends with the process (`se3sync` exits with
-    os._exit after a signal)."""
+    signal at once (or, under `deferred`, sees it noted within 0.1 s); the abandoned computation
+    ends with the process (`se3sync` exits with os._exit after a signal)."""
     box = {}
 
     def work():
@@ -151,6 +167,8 @@ def interruptible(fn, *args):
     t.start()
     while t.is_alive():
         t.join(0.1)
+        if _received:   # noted under `deferred` (as `run` sets itself up): stop here
+            raise KeyboardInterrupt
     if "error" in box:
         raise box["error"]
     return box["value"]

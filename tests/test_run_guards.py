@@ -365,12 +365,13 @@ _HOOKED = textwrap.dedent("""
     ("cosim.analysis.stability.analyse", "checking the step's stability"),
     ("cosim.analysis.delay_margin.delay_margin", "computing the delay margin"),
     ("plant_fmu.fast.FleetFMU.__init__", "loading the plant FMU"),
-    ("cosim.master.Master.__init__", "starting the run"),   # held there, stopped right after
+    ("cosim.master.Master.__init__", "opening the log"),   # held there, stopped right after
 ])
 def test_sigterm_before_the_first_step_leaves_summary_and_log(where, stage, tmp_path):
     """SIGTERM sent by the process to itself as it enters each part of the set-up (a hook, not a
     sleep: the moment does not depend on the machine's load): exit 143, the summary says
-    "interrupted" with 0 steps and where it stopped, the log is a finished MCAP."""
+    "interrupted" with 0 steps and the part of the set-up the signal arrived in, the log is a
+    finished MCAP."""
     log, summ = tmp_path / "l.mcap", tmp_path / "s.json"
     argv = ["run", HIL, "--log", str(log), "--summary", str(summ)]
     if "delay_margin" in where:

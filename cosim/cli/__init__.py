@@ -50,7 +50,7 @@ __all__ = ["main", "entry", "build_parser", "require", "install_hint"]
 
 # Optional dependencies and the extra that installs them.
 _EXTRAS = {"pymavlink": "mavlink", "fastcrc": "mavlink", "dask": "sweep", "distributed": "sweep",
-           "pyarrow": "sweep"}
+           "pyarrow": "sweep", "pythonfmu": "fmi", "foxglove": "live"}
 
 
 def install_hint(extra: str) -> str:

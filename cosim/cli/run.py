@@ -8,10 +8,11 @@ import time
 from controller.errors import Se3SyncError
 
 from .. import signals
-from ..files import check_output
 from ..analysis import DELAY_MAX_AGENTS
+from ..files import check_output
 from ..guards import EXIT_DIVERGED, RUN_DELAY_MAX_AGENTS
 from ..registry import LAWS, PLANTS
+from .live_options import add_live_options, live_target
 
 __all__ = ["register", "add_log_encoding", "EXIT_UNSTABLE", "EXIT_DIVERGED"]
 
@@ -75,6 +76,7 @@ def register(sub) -> None:
                         f"run only for graphs of at most N agents (default {RUN_DELAY_MAX_AGENTS}"
                         ": 6-10 s on 2 cores at 1000 agents, about 1.6 s at 6; 0 never); "
                         "above, the delay is not checked and a warning says so")
+    add_live_options(p, insecure=True)
     p.set_defaults(func=_cmd_run, stops_cleanly=True)
 
     p = sub.add_parser(
@@ -124,9 +126,11 @@ def register(sub) -> None:
 
     p = sub.add_parser(
         "animate", help="render a 3D animation (MP4 or GIF) of a run log",
-        description="Render the bodies (boxes of their inertia, with axes) and the graph edges "
-                    "(coloured by ‖I − R̄_k‖_F, green to red on a log scale) of an se3sync MCAP "
-                    "log, with the simulated time and the max edge error. MP4 needs ffmpeg; GIF "
+        description="Render the bodies (boxes of their inertia, with axes, one colour and a "
+                    "number label per agent; bodies at one place drawn as nested boxes under "
+                    "one label, e.g. 1 = 3 = 5) and the graph edges (coloured by ‖I − R̄_k‖_F, "
+                    "green to red on a log scale, with a colour bar) of an se3sync MCAP log, "
+                    "with the simulated time and the max edge error. MP4 needs ffmpeg; GIF "
                     "uses Pillow.")
     p.add_argument("log", help="an MCAP log written by `se3sync run --log`")
     p.add_argument("-o", "--output", required=True, metavar="OUT.mp4|OUT.gif",
@@ -150,6 +154,7 @@ def _cmd_run(args) -> int:
             check_output(opt, path, sfx)
     if isinstance(args.delay_agents, bool) or args.delay_agents < 0:
         raise Se3SyncError(f"--delay-agents: must be an integer >= 0, got {args.delay_agents!r}")
+    live = live_target(args)
 
     def at(name):
         # a signal noted where Python could not raise (inside a callback from C, as numba
@@ -157,32 +162,43 @@ def _cmd_run(args) -> int:
         if signals.requested():
             raise KeyboardInterrupt
         stage[0] = name
+        signals.set_stage(name)
 
-    try:
-        at("loading the scenario")
-        from ..scenario import load_scenario
-
-        sc = load_scenario(args.scenario, args.overrides, duration=args.duration, step=args.step)
-        extra = _guards(args, sc, at)
-        at("loading the simulation")
-        from ..run import run_scenario
-
-        progress = sys.stderr.isatty()
+    # The set-up (imports of numba, the kernels and fmpy; the analysis; the FMU) runs with the
+    # signals only noted: a KeyboardInterrupt raised inside an import would leave a module half
+    # initialised, and writing the outputs after it would fail on that module. The stop happens
+    # at the next stage (`at`), or at once inside the analysis' long LAPACK calls
+    # (`signals.interruptible`); a second signal still raises at once.
+    with signals.deferred():
         try:
-            summary = run_scenario(sc, plant=args.plant or sc.plant_mode,
-                                   controller=args.controller, log_path=args.log,
-                                   summary_path=args.summary, progress=progress,
-                                   log_encoding=args.log_encoding, summary_extra=extra, stage=at)
-        except OSError as exc:  # the streamed log is the file being written when the disk fills up
-            raise Se3SyncError(f"{exc.filename or args.log or args.summary}: "
-                               f"{exc.strerror or exc}") from None
-    except KeyboardInterrupt:
-        from ..early_stop import stopped_before_start
+            at("loading the scenario")
+            from ..scenario import load_scenario
 
-        summary = stopped_before_start(
-            sc, stage=stage[0], scenario_path=args.scenario, controller=args.controller,
-            plant=args.plant or (sc.plant_mode if sc is not None else "fleet"),
-            log_path=args.log, summary_path=args.summary, log_encoding=args.log_encoding)
+            sc = load_scenario(args.scenario, args.overrides, duration=args.duration,
+                               step=args.step)
+            extra = _guards(args, sc, at)
+            at("loading the simulation")
+            from ..run import run_scenario
+
+            progress = sys.stderr.isatty()
+            try:
+                summary = run_scenario(sc, plant=args.plant or sc.plant_mode,
+                                       controller=args.controller, log_path=args.log,
+                                       summary_path=args.summary, progress=progress,
+                                       log_encoding=args.log_encoding, summary_extra=extra,
+                                       stage=at, live=live)
+            except OSError as exc:  # the streamed log is the file being written when the disk is full
+                raise Se3SyncError(f"{exc.filename or args.log or args.summary}: "
+                                   f"{exc.strerror or exc}") from None
+        except KeyboardInterrupt:
+            from ..early_stop import stopped_before_start
+
+            summary = stopped_before_start(
+                sc, stage=signals.stage_at_signal() or stage[0], scenario_path=args.scenario,
+                controller=args.controller,
+                plant=args.plant or (sc.plant_mode if sc is not None else "fleet"),
+                log_path=args.log, summary_path=args.summary, log_encoding=args.log_encoding)
+
     if summary.get("stopped_during"):
         print(f"se3sync run: interrupted while {summary['stopped_during']}, before the first "
               "step" + (" (summary and log written)" if args.summary or args.log else ""),

@@ -645,7 +645,8 @@ class McapLogger:
     def __init__(self, path, scenario, controller: str = "hybrid", model_description=None,
                  chunk_size: int = 256 * 1024, extra_metadata: dict | None = None,
                  scene_rate: float = 20.0, trail_seconds: float = 5.0, trail_rate: float = 5.0,
-                 layout_path="auto", agent_ids=None, edge_ids=None, encoding: str = "json"):
+                 layout_path="auto", agent_ids=None, edge_ids=None, encoding: str = "json",
+                 sink=None):
         if encoding not in ENCODINGS:
             raise Se3SyncError(f"log encoding {encoding!r}: expected one of "
                                f"{', '.join(ENCODINGS)}")
@@ -666,6 +667,9 @@ class McapLogger:
             w.start(profile="", library=f"se3sync {__version__}")
             self._ch = {}
             self._schema_ids = {}
+            # channel id → (topic, message encoding, schema id); schema id → (name, encoding,
+            # bytes): what a `sink` needs to describe the channels elsewhere (cosim/log/live.py)
+            self.channels, self.schemas = {}, {}
             for topic in ("/tf", "/edges", "/agents", "/lyapunov", "/jumps"):
                 self._channel(topic)
             meta = {
@@ -727,7 +731,10 @@ class McapLogger:
                         for i in aid]
         self._edge_pre = [f'{{"edge":{eid[k]},"positive":{aid[a - 1]},"negative":{aid[b - 1]},'
                           for k, (a, b) in enumerate(scenario.graph.edge_list)]
-        self._app = (_MessageAppender(w) if encoding == "json"
+        # ``sink``: an object with the appender's add(channel_id, log_time, data, sequence),
+        # add_rows(channel_ids, log_time, rows, sequence) and close() that takes the messages
+        # instead of the file (the live view encodes its records with this class)
+        self._app = (sink if sink is not None else _MessageAppender(w) if encoding == "json"
                      else _MessageAppender(w, CDR_ZSTD_LEVEL, frame_checksum=True))
         self._add = self._app.add
         self.counts = {}
@@ -752,10 +759,13 @@ class McapLogger:
         gives its bytes)."""
         sid = self._schema_ids.get(name)
         if sid is None:
+            b = data()
             sid = self._schema_ids[name] = self._w.register_schema(
-                name=name, encoding=schema_encoding, data=data())
-        self._ch[topic] = self._w.register_channel(topic=topic, message_encoding=message_encoding,
-                                                   schema_id=sid)
+                name=name, encoding=schema_encoding, data=b)
+            self.schemas[sid] = (name, schema_encoding, b)
+        cid = self._ch[topic] = self._w.register_channel(
+            topic=topic, message_encoding=message_encoding, schema_id=sid)
+        self.channels[cid] = (topic, message_encoding, sid)
 
     def _channel(self, topic):
         if topic in self._ch:

@@ -103,19 +103,36 @@ def make_figure(paths, labels=None, *, linear=False, tmin=None, tmax=None):
             return {"color": c, "ls": LINESTYLES[k % len(LINESTYLES)], "lw": 1.2}
 
         tr = _positive if not linear else np.asarray
+
+        def curve(a, x, y, label, name, st):
+            """A curve on axes a; on a log axis one with nothing to show (exactly zero, e.g.
+            the gradient baseline's velocities at a critical point) gets no legend entry of
+            its own but is named in one "≡ 0" entry per run and axes."""
+            y = tr(y)
+            if not linear and not np.isfinite(y).any():
+                zero.setdefault((id(a), r), (a, st, []))[2].append(name)
+                label = None
+            a.plot(x, y, label=label, **st)
+
+        zero = {}
         for k in range(M):
-            ax_R.plot(t, tr(d["rot_err"][:, k]), label=f"{pre}k={eid[k]}", **style(k))
-            ax_p.plot(t, tr(d["pos_err"][:, k]), label=f"{pre}k={eid[k]}", **style(k))
+            curve(ax_R, t, d["rot_err"][:, k], f"{pre}k={eid[k]}", f"k={eid[k]}", style(k))
+            curve(ax_p, t, d["pos_err"][:, k], f"{pre}k={eid[k]}", f"k={eid[k]}", style(k))
             ax_th.plot(t, d["theta"][:, k], label=f"{pre}k={eid[k]}", **style(k))
             ins.plot(t, d["theta"][:, k], **style(k))
         for i in range(N):
-            ax_w.plot(ta, tr(np.linalg.norm(d["omega"][:, i], axis=1)), label=f"{pre}i={aid[i]}",
-                      **style(i))
-            ax_v.plot(ta, tr(np.linalg.norm(d["v"][:, i], axis=1)), label=f"{pre}i={aid[i]}",
-                      **style(i))
+            curve(ax_w, ta, np.linalg.norm(d["omega"][:, i], axis=1), f"{pre}i={aid[i]}",
+                  f"i={aid[i]}", style(i))
+            curve(ax_v, ta, np.linalg.norm(d["v"][:, i], axis=1), f"{pre}i={aid[i]}",
+                  f"i={aid[i]}", style(i))
         if len(d["V"]):
-            ax_V.plot(d["t_V"], tr(d["V"]), label=f"{lab}" if multi else r"$\bar V$",
-                      color=colors[r % len(colors)], ls=LINESTYLES[r % len(LINESTYLES)])
+            curve(ax_V, d["t_V"], d["V"], f"{lab}" if multi else r"$\bar V$",
+                  f"{lab}" if multi else "V", {"color": colors[r % len(colors)],
+                                               "ls": LINESTYLES[r % len(LINESTYLES)]})
+        for a, st, names in zero.values():
+            every = ", ".join(names) if len(names) <= 3 else f"{names[0]}…{names[-1]}"
+            a.plot([], [], color=st["color"] if multi else "0.4", ls="none", marker="_",
+                   label=f"{pre}{every} ≡ 0 (not on the log axis)")
         # the jumps: a vertical segment from θ⁻ to θ⁺ and a marker at θ⁺, per edge
         for k in range(M):
             js = [j for j in d["jumps"] if j.get("edge") == eid[k]]
@@ -143,8 +160,13 @@ def make_figure(paths, labels=None, *, linear=False, tmin=None, tmax=None):
             a.set_xlim(t_lo, t_hi)
     # inset: the first instants, wide enough to separate the early jumps
     span = max(0.05, 1.25 * (early_end - t_lo)) if early_end > t_lo else min(1.0, t_hi - t_lo)
-    ins.set_xlim(t_lo, t_lo + span if span > 0 else t_lo + 1.0)
-    ins.set_title(f"first {span:.3g} s", fontsize=7)
+    span = span if span > 0 else 1.0
+    # a margin before t_lo, so that the jumps at the first instant are not cut by the frame
+    ins.set_xlim(t_lo - 0.04 * span, t_lo + span)
+    # the title inside the inset: above it, it ran into the panel above
+    ins.text(0.02, 0.97, f"first {span:.3g} s", transform=ins.transAxes, fontsize=7,
+             va="top", ha="left", bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="none",
+                                             alpha=0.8))
     ins.tick_params(labelsize=6)
     ins.grid(True, alpha=0.3)
     ylab = [r"$\|I-\bar R_k\|_F$", r"$\|\bar p_k\|$ (m)", r"$\|\omega_i\|$ (rad/s)",
