@@ -24,7 +24,8 @@ import numpy as np
 
 from controller import JumpEvent
 from controller.errors import ConfigError, Se3SyncError
-from controller.kernels import delayed_network_step
+
+from .network_step import delayed_network_step
 
 __all__ = ["NetworkConfig", "LinkSpec", "parse_network", "check_links", "NetworkController",
            "networked", "DEFAULT_HOST", "DEFAULT_BASE_PORT"]
@@ -185,7 +186,7 @@ def _steps(seconds: float, h: float) -> int:
 class NetworkController:
     """The hybrid law (or the gradient baseline) of ``inner`` run per agent on neighbour data that
     crosses the ``[network]`` links: the `cosim.controllers.Controller` protocol, one compiled
-    call (`controller.kernels.delayed_network_step`) per step.
+    call (`cosim.network_step.delayed_network_step`) per step.
 
     Links are numbered 2k (edge k's positive end → negative end) and 2k + 1 (back). The schedule
     of each link (loss, jitter) comes from its own random stream, spawned from ``seed``, drawn
