@@ -3,16 +3,20 @@
 Between two returns to Python (at most a block of steps), one numba function runs, per step n,
 exactly what the reference loop in `master.py` does through Python:
 
-    fmi2GetReal(S) ; network_step(S, θ, ...) → u ; fmi2SetReal(u) ; fmi2DoStep(n·h, h)
+    fmi2GetReal(S) ; law_step(law, S, h) → u ; fmi2SetReal(u) ; fmi2DoStep(k·h, h) ; k += 1
 
 calling the FMU's C functions through the raw addresses that fmpy loaded (the FMU stays a real
-FMU) and the controller kernel directly. What the reference loop does at its ticks is gathered
+FMU) and the law's compiled step directly. What the reference loop does at its ticks is gathered
 into preallocated arrays instead: the raw rows and metrics of every log record, every jump with
 its exact step, the state of a 1 s summary sample. Python then encodes those outside the loop,
 on a writer thread, while the next block runs with the GIL released.
 
-The addresses are arguments, never globals, so `cache=True` machine code holds no
-process-specific pointer.
+What the loop needs it gets through public, typed records: the plant's `cosim.plants.CompiledPlant`
+(the FMU's calls and buffers, and the plant's clock k, which the loop advances in place: the
+plant owns its time), the law's compiled record (`cosim.controllers.law_step` is specialised for
+its type) and `cosim.controllers.EdgeState`, the master's metric buffers (`Metrics`), and the
+buffers the block fills (`LogRecords`, `Jumps`, `Samples`). The addresses are arguments, never
+globals, so `cache=True` machine code holds no process-specific pointer.
 """
 from __future__ import annotations
 
@@ -20,27 +24,26 @@ import queue
 import sys
 import threading
 import time
+from typing import NamedTuple
 
 import numpy as np
 from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from controller import HybridController
 from controller import layout
-from controller.kernels import metrics, network_step, network_U
-from plant_fmu.fast import FleetFMU
+from controller.kernels import metrics, network_U
+from plant_fmu.fast import CALL_NAMES
 
 from . import signals
-from .plants import FmuPlant
+from .controllers import law_step
 
 MAX_BLOCK = 1000  # steps between two checks for Ctrl-C / progress updates
 
-__all__ = ["compiled_fleet", "run_compiled"]
+__all__ = ["compiled_pair", "run_compiled", "Metrics", "LogRecords", "Jumps", "Samples"]
 
-# which FMI call failed (returned by the block as out[O_CALL])
+# which FMI call failed (returned by the block as out[O_CALL]), in `CALL_NAMES` order
 CALL_GET, CALL_SET, CALL_STEP = 0, 1, 2
-CALL_NAMES = ("fmi2GetReal", "fmi2SetReal", "fmi2DoStep")
 # slots of the block's int64 result vector
 O_N, O_REC, O_JMP, O_STATUS, O_CALL, O_SAMPLED = range(6)
 FMI2_ERROR = 3
@@ -97,84 +100,160 @@ def _fmi2_do_step(typingctx, fn, comp, t, h):
     return sig, codegen
 
 
+class Metrics(NamedTuple):
+    """The master's metric parameters and buffers (`cosim.master.NetworkMetrics`)."""
+
+    edges: np.ndarray
+    P: np.ndarray
+    kX: float
+    masses: np.ndarray
+    J: np.ndarray
+    rot: np.ndarray
+    pos: np.ndarray
+    U: np.ndarray
+    quat: np.ndarray
+
+    @classmethod
+    def of(cls, m) -> "Metrics":
+        return cls(m.edges, m.P, m.kX, m.masses, m.J, m.rot, m.pos, m.U, m.quat)
+
+
+class LogRecords(NamedTuple):
+    """The block's log records: the step of each, the raw rows and the metrics."""
+
+    step: np.ndarray
+    S: np.ndarray
+    u: np.ndarray
+    theta: np.ndarray
+    mu: np.ndarray
+    jumped: np.ndarray
+    rot: np.ndarray
+    pos: np.ndarray
+    U: np.ndarray
+    quat: np.ndarray
+    V: np.ndarray
+
+    @classmethod
+    def empty(cls, cap, N, M) -> "LogRecords":
+        return cls(np.empty(cap, np.int64), np.empty((cap, N, layout.S_WIDTH)),
+                   np.empty((cap, N, 6)), np.empty((cap, M)), np.empty((cap, M)),
+                   np.empty((cap, M), np.bool_), np.empty((cap, M)), np.empty((cap, M)),
+                   np.empty((cap, M)), np.empty((cap, N, 4)), np.empty(cap))
+
+    @property
+    def cap(self) -> int:
+        return self.step.shape[0]
+
+
+class Jumps(NamedTuple):
+    """The block's jumps: step, edge (from 1), θ before and after, μ."""
+
+    step: np.ndarray
+    edge: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
+    mu: np.ndarray
+
+    @classmethod
+    def empty(cls, cap) -> "Jumps":
+        return cls(np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap),
+                   np.empty(cap), np.empty(cap))
+
+
+class Samples(NamedTuple):
+    """The block's summary samples (step, S and θ after the jump stage) and u(0)."""
+
+    step: np.ndarray
+    S: np.ndarray
+    theta: np.ndarray
+    u0: np.ndarray
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu, jumped,
-              theta_prev, theta_jump, n0, n1, dec, spl, Pm, kX, masses, J, rot, pos, U, quat,
-              rec_step, rec_S, rec_u, rec_theta, rec_mu, rec_jumped, rec_rot, rec_pos, rec_U,
-              rec_quat, rec_V, jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu,
-              smp_step, smp_S, smp_theta, smp_u, k0, out):
+def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
     """Steps n0 … n1−1 (stopping early before a step whose jumps might not fit the buffers).
 
-    fn = (fmi2GetReal, fmi2SetReal, fmi2DoStep) addresses, comp the fmi2Component. A step n
-    with dec > 0 and n % dec == 0 stores a log record; n % spl == 0 stores a summary sample
-    (S and θ after the jump stage; at n = 0 also u, for u(0)), as many as the block crosses. doStep runs from (n + k0)·h: k0 is the plant's
-    own step counter at the start of the run (FmuPlant.advance steps from k·h). out receives the steps done (completed doSteps),
-    records, jumps (those of a failing step included, as the Python loop has them), the first
-    FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
+    plant: a `CompiledPlant` (doStep runs from k·h, k = plant.clock[0], advanced after each
+    completed doStep); law: the law's compiled record (`law_step`), which computes the wrench
+    into plant.fmi.inputs; es: its `EdgeState`. A step n with dec > 0 and n % dec == 0 stores a
+    log record in rec (metrics from mx); n % spl == 0 stores a summary sample in smp (S and θ
+    after the jump stage; at n = 0 also u, for u(0)), as many as the block crosses. out receives
+    the steps done (completed doSteps), records, jumps (those of a failing step included, as
+    the Python loop has them), the first FMI status ≥ fmi2Error (else 0), the failing call and
+    whether a sample was taken.
     """
-    M = edges.shape[0]
+    fmi = plant.fmi
+    fn = fmi.calls
+    comp = fmi.component
+    clock = plant.clock
+    S = fmi.state
+    u = fmi.inputs
+    M = mx.edges.shape[0]
     n_st = S.size
     n_in = u.size
     p_S = S.ctypes.data
     p_u = u.ctypes.data
-    p_vs = vr_state.ctypes.data
-    p_vi = vr_input.ctypes.data
+    p_vs = fmi.vr_state.ctypes.data
+    p_vi = fmi.vr_input.ctypes.data
     nrec = 0
     njmp = 0
     out[O_STATUS] = 0
     out[O_SAMPLED] = 0
     n = n0
     while n < n1:
-        if njmp + M > jmp_step.shape[0]:
+        if njmp + M > jmp.step.shape[0]:
             break  # the jump buffers might overflow: hand them to Python first
         st = _fmi2_xreal(fn[0], comp, p_vs, n_st, p_S)
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
             out[O_CALL] = CALL_GET
             break
-        nj = network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev, theta_jump)
+        nj = law_step(law, S, h)
         if nj > 0:
             for k in range(M):
-                if jumped[k]:
-                    jmp_step[njmp] = n
-                    jmp_edge[njmp] = k + 1
-                    jmp_before[njmp] = theta_prev[k]
-                    jmp_after[njmp] = theta_jump[k]
-                    jmp_mu[njmp] = mu[k]
+                if es.jumped[k]:
+                    jmp.step[njmp] = n
+                    jmp.edge[njmp] = k + 1
+                    jmp.before[njmp] = es.theta_prev[k]
+                    jmp.after[njmp] = es.theta_jump[k]
+                    jmp.mu[njmp] = es.mu[k]
                     njmp += 1
         if n % spl == 0:
             ns = out[O_SAMPLED]
-            smp_step[ns] = n
-            smp_S[ns] = S
-            smp_theta[ns] = theta_jump
+            smp.step[ns] = n
+            smp.S[ns] = S
+            smp.theta[ns] = es.theta_jump
             if n == 0:
-                smp_u[:, :] = u
+                smp.u0[:, :] = u
             out[O_SAMPLED] = ns + 1
         if dec > 0 and n % dec == 0:
-            network_U(S, theta_jump, edges, Pm, U)
-            V, ximax = metrics(S, edges, U, kX, masses, J, rot, pos, quat)
-            rec_step[nrec] = n
-            rec_S[nrec] = S
-            rec_u[nrec] = u
-            rec_theta[nrec] = theta_jump
-            rec_mu[nrec] = mu
-            rec_jumped[nrec] = jumped
-            rec_rot[nrec] = rot
-            rec_pos[nrec] = pos
-            rec_U[nrec] = U
-            rec_quat[nrec] = quat
-            rec_V[nrec] = V
+            network_U(S, es.theta_jump, mx.edges, mx.P, mx.U)
+            V, ximax = metrics(S, mx.edges, mx.U, mx.kX, mx.masses, mx.J, mx.rot, mx.pos,
+                               mx.quat)
+            rec.step[nrec] = n
+            rec.S[nrec] = S
+            rec.u[nrec] = u
+            rec.theta[nrec] = es.theta_jump
+            rec.mu[nrec] = es.mu
+            rec.jumped[nrec] = es.jumped
+            rec.rot[nrec] = mx.rot
+            rec.pos[nrec] = mx.pos
+            rec.U[nrec] = mx.U
+            rec.quat[nrec] = mx.quat
+            rec.V[nrec] = V
             nrec += 1
         st = _fmi2_xreal(fn[1], comp, p_vi, n_in, p_u)
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
             out[O_CALL] = CALL_SET
             break
-        st = _fmi2_do_step(fn[2], comp, (n + k0) * h, h)
+        k = clock[0]
+        st = _fmi2_do_step(fn[2], comp, k * h, h)
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
             out[O_CALL] = CALL_STEP
             break
+        clock[0] = k + 1
         n += 1
     out[O_N] = n
     out[O_REC] = nrec
@@ -182,14 +261,16 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def sample_metrics(smp_S, smp_theta, nsmp, edges, P, kX, masses, J, U, rot, pos, quat, out):
+def sample_metrics(smp, nsmp, mx, out):
     """out[q] = (V̄, max|ξ|, max rot_err, max pos_err) of the block's summary sample q: what
     `NetworkMetrics.sample` computes, the same kernels in the same order (max propagates NaN as
     numpy's does), in one call instead of a few Python-level calls per sample."""
-    M = edges.shape[0]
+    M = mx.edges.shape[0]
+    rot = mx.rot
+    pos = mx.pos
     for q in range(nsmp):
-        network_U(smp_S[q], smp_theta[q], edges, P, U)
-        V, ximax = metrics(smp_S[q], edges, U, kX, masses, J, rot, pos, quat)
+        network_U(smp.S[q], smp.theta[q], mx.edges, mx.P, mx.U)
+        V, ximax = metrics(smp.S[q], mx.edges, mx.U, mx.kX, mx.masses, mx.J, rot, pos, mx.quat)
         r = rot[0] if M else 0.0
         p = pos[0] if M else 0.0
         for k in range(1, M):
@@ -203,21 +284,23 @@ def sample_metrics(smp_S, smp_theta, nsmp, edges, P, kX, masses, J, U, rot, pos,
         out[q, 3] = p
 
 
-def compiled_fleet(plant, controller):
-    """The FleetFMU under ``plant`` when the pair can run the compiled loop, else None:
-    a `cosim.plants.FmuPlant` (one FMI 2.0 instance for all bodies) and the network
-    `HybridController`/`GradientController` stepping through `network_step`."""
-    if type(plant) is not FmuPlant or not isinstance(controller, HybridController):
+def compiled_pair(plant, controller):
+    """(the plant's `CompiledPlant`, the law's compiled record) when the pair can run the
+    compiled loop, else None: a plant with ``compiled_plant()`` (the FMU plant: one FMI 2.0
+    instance for all bodies) and a law with ``compiled_step()`` whose wrench buffer is the
+    plant's input buffer (`cosim.master.Master` arranges that through ``write_wrench_into``).
+    A plant with ``stats`` runs in Python: its statistics are read at the sample ticks."""
+    cp = getattr(plant, "compiled_plant", None)
+    cs = getattr(controller, "compiled_step", None)
+    if cp is None or cs is None or getattr(plant, "stats", None) is not None:
         return None
-    if type(controller).step_state is not HybridController.step_state:
-        return None  # a subclass with its own step: only the Python loop knows it
-    fmu = getattr(plant, "_fmu", None)
-    if not isinstance(fmu, FleetFMU) or fmu._closed:
+    p, law = cp(), cs()
+    if p is None or law is None:
         return None
-    u = controller.u
-    if not (u.flags.c_contiguous and u.dtype == np.float64 and u.shape == (fmu.n, 6)):
+    u = getattr(law, "u", None)
+    if u is not p.fmi.inputs or p.fmi.state.shape[0] != u.shape[0]:
         return None
-    return fmu
+    return p, law
 
 
 class _Writer:
@@ -255,42 +338,34 @@ class _Writer:
             raise self.error
 
 
-def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
-    """The compiled counterpart of the loop in `Master.run`; returns (n, interrupted,
-    timed_out).
+def run_compiled(master, plant, law, n_steps, bar, spl, dec, budget=None):
+    """The compiled counterpart of the loop in `Master.run`, on the records of `compiled_pair`;
+    returns (n, interrupted, timed_out).
 
     Same per-step semantics, ticks and events as the reference loop: jumps are recorded with
     their exact step, log records at n % dec == 0, summary samples at n % spl == 0. Between
     blocks of at most MAX_BLOCK steps (cut shorter when they would take more than
-    TARGET_BLOCK_S): Ctrl-C / SIGTERM / `Master.request_stop` (master._stop) and the wall-clock
-    budget, counted from the end of the first block as in the reference loop.
+    TARGET_BLOCK_S): Ctrl-C / SIGTERM / `Master.request_stop` (`Master.stop_requested`) and the
+    wall-clock budget, counted from the end of the first block as in the reference loop.
     """
-    ctrl, plant = master.controller, master.plant
     h = master.h
     N, M = master.N, master.M
     logger = master.logger
     logging = logger is not None
-    fn = _addresses(fmu)
-    comp = int(fmu._c.value)
-    S = fmu._state
-    u = ctrl.u
-    theta = ctrl.theta
-    rot, pos, U, quat = master._rot, master._pos, master._U, master._quat
+    es = master.edge_state
+    mx = Metrics.of(master.metrics)
     jcap = max(M, JUMP_CAPACITY)
     # summary samples: as many as the longest block crosses (blocks do not stop at them, so
     # a sweep sampling every few steps still runs up to MAX_BLOCK steps per compiled call)
     scap = MAX_BLOCK // spl + 2
-    smp_step = np.zeros(scap, np.int64)
-    smp_S = np.zeros((scap, N, layout.S_WIDTH))
-    smp_theta = np.zeros((scap, M))
-    smp_u = np.zeros((N, 6))
+    smp = Samples(np.zeros(scap, np.int64), np.zeros((scap, N, layout.S_WIDTH)),
+                  np.zeros((scap, M)), np.zeros((N, 6)))
     out = np.zeros(6, dtype=np.int64)
     writer = None
     if logging:
         writer = _Writer(logger, 8 * (N * 28 + 5 * M) * ((MAX_BLOCK - 1) // dec + 1))
     block = FIRST_LOGGED_BLOCK if logging else MAX_BLOCK
     target = TARGET_LOGGED_BLOCK_S if logging else TARGET_BLOCK_S
-    k0 = int(plant._k)
     n = 0
     interrupted = timed_out = False
     deadline = None
@@ -298,14 +373,14 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
     # record buffers the writer has encoded, for the next blocks: fresh ones cost the loop a
     # page fault per 4 KiB written (a 1000-agent record is 0.26 MB)
     free = []
-    # a signal only sets master._stop while blocks run (they are short): Python would run a
-    # raising handler between blocks only, where a KeyboardInterrupt would lose the step count
+    # a signal only asks the master to stop while blocks run (they are short): Python would run
+    # a raising handler between blocks only, where a KeyboardInterrupt would lose the step count
     catcher = signals.catching(master.request_stop).__enter__()
     switch = sys.getswitchinterval()
     if logging:
         sys.setswitchinterval(min(switch, LOGGED_SWITCH_S))
     try:
-        while n < n_steps and not master._stop:
+        while n < n_steps and not master.stop_requested:
             nxt = min(n_steps, n + block)
             cap = (nxt - n - 1) // dec + 1 if logging else 0
             rec = None
@@ -313,34 +388,25 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
                 r = free.pop()
                 rec = r if r.cap >= cap else None
             if rec is None:
-                rec = _RecordBuffers(cap, N, M)
-            jb = (np.empty(jcap, np.int64), np.empty(jcap, np.int64), np.empty(jcap),
-                  np.empty(jcap), np.empty(jcap))
+                rec = LogRecords.empty(cap, N, M)
+            jb = Jumps.empty(jcap)
             t0 = time.perf_counter()
-            run_block(fn, comp, fmu._vr_state, fmu._vr_input, S, u, theta, ctrl.edges, ctrl.P,
-                      h, bool(ctrl.hybrid), ctrl.mu, ctrl.jumped, ctrl.theta_prev,
-                      ctrl.theta_jump, n, nxt, dec, spl, master._P, master._kX, master._masses,
-                      master._J, rot, pos, U, quat, *rec.arrays(), *jb, smp_step, smp_S,
-                      smp_theta, smp_u, k0, out)
+            run_block(plant, law, es, mx, rec, jb, smp, h, n, nxt, dec, spl, out)
             now = time.perf_counter()
             dt = now - t0
             n0, n = n, int(out[O_N])
-            plant._k = k0 + n
-            fmu.time = (k0 + n) * h
-            if u is not fmu._u:
-                fmu._u[...] = u
             if n > n0 and dt > target * 1.5:
                 block = max(1, int((n - n0) * target / dt))
             elif block < MAX_BLOCK and dt < target / 2:
                 block = min(MAX_BLOCK, 2 * block)
             _hand_over(master, writer, rec, int(out[O_REC]), jb, int(out[O_JMP]), h,
-                       int(out[O_SAMPLED]), smp_step, smp_S, smp_theta, smp_u, free)
+                       int(out[O_SAMPLED]), smp, free)
             if out[O_STATUS]:
                 pending = (CALL_NAMES[int(out[O_CALL])], int(out[O_STATUS]))
                 break
             if bar is not None:
                 bar.update(n - bar.n)
-            if master._stop:
+            if master.stop_requested:
                 interrupted = n < n_steps
                 break
             if budget is not None:
@@ -357,52 +423,22 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
         if writer is not None:
             writer.close()
     if pending is not None:
-        fmu._fail(*pending)
+        master.plant.raise_fmi_status(*pending)
     return n, interrupted, timed_out
 
 
-def _addresses(fmu):
-    import ctypes
-
-    dll = fmu._slave.dll
-    return np.array([ctypes.cast(getattr(dll, name), ctypes.c_void_p).value
-                     for name in CALL_NAMES], dtype=np.int64)
-
-
-class _RecordBuffers:
-    def __init__(self, cap, N, M):
-        self.cap = cap
-        self.step = np.empty(cap, np.int64)
-        self.S = np.empty((cap, N, layout.S_WIDTH))
-        self.u = np.empty((cap, N, 6))
-        self.theta = np.empty((cap, M))
-        self.mu = np.empty((cap, M))
-        self.jumped = np.empty((cap, M), np.bool_)
-        self.rot = np.empty((cap, M))
-        self.pos = np.empty((cap, M))
-        self.U = np.empty((cap, M))
-        self.quat = np.empty((cap, N, 4))
-        self.V = np.empty(cap)
-
-    def arrays(self):
-        return (self.step, self.S, self.u, self.theta, self.mu, self.jumped, self.rot, self.pos,
-                self.U, self.quat, self.V)
-
-
-def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, smp_theta,
-               smp_u, free=None):
+def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp, free=None):
     """The block's events, in step order: the summary samples (main thread, they fill
     master.samples), jumps (master.jumps now, the log on the writer) and log records."""
     if nsmp:
         m = master.metrics
         out = np.empty((nsmp, 4))
-        sample_metrics(smp_S, smp_theta, nsmp, m.edges, m.P, m.kX, m.masses, m.J, m.U, m.rot,
-                       m.pos, m.quat, out)
-        steps = smp_step[:nsmp].tolist()
+        sample_metrics(smp, nsmp, Metrics.of(m), out)
+        steps = smp.step[:nsmp].tolist()
         if steps[0] == 0:
-            master.u0 = smp_u.copy()
+            master.u0 = smp.u0.copy()
         for q, (V, ximax, r, p) in enumerate(out.tolist()):
-            master.samples.append(m.record(steps[q] * h, r, p, ximax, smp_theta[q], V))
+            master.samples.append(m.record(steps[q] * h, r, p, ximax, smp.theta[q], V))
     jstep, jedge, jbefore, jafter, jmu = (a[:njmp].tolist() for a in jb)
     for s, e, b, a, m in zip(jstep, jedge, jbefore, jafter, jmu):
         master.jumps.append({"t": s * h, "edge": e, "theta_before": b, "theta_after": a,
@@ -411,7 +447,7 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, sm
         if free is not None and writer is not None:
             free.append(rec)
         return
-    kX = master._kX
+    kX = master.metrics.kX
 
     sleep = time.sleep
 

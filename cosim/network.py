@@ -25,6 +25,7 @@ import numpy as np
 from controller import JumpEvent
 from controller.errors import ConfigError, Se3SyncError
 
+from .controllers import law_name, require
 from .network_step import delayed_network_step
 
 __all__ = ["NetworkConfig", "LinkSpec", "parse_network", "check_links", "NetworkController",
@@ -194,24 +195,19 @@ class NetworkController:
     """
 
     def __init__(self, scenario, inner, net: NetworkConfig):
-        if not hasattr(inner, "edges") or not hasattr(inner, "P"):
-            raise Se3SyncError(f"the [network] table needs a law with the network view "
-                               f"(hybrid or gradient), got {type(inner).__name__}")
+        law = require(inner, "delayed_step", "[network]",
+                      "the table runs a law per agent on delayed data")()
         check_links(net, scenario.graph)
         self.inner = inner
         self.net = net
-        self.name = getattr(inner, "name", "hybrid")
-        self.hybrid = bool(inner.hybrid)
-        self.params = inner.params
-        self.P = inner.P
-        self.edges = inner.edges
+        self.name = law_name(inner)
+        self.hybrid = bool(law.hybrid)
+        self.P = law.P
+        self.edges = law.edges
         self.N, self.M = scenario.graph.n, scenario.graph.M
-        self.theta = inner.theta
-        self.mu = inner.mu
-        self.jumped = inner.jumped
-        self.theta_prev = inner.theta_prev
-        self.theta_jump = inner.theta_jump
-        self.u = inner.u
+        self.edge_state = getattr(inner, "edge_state", None)
+        self.theta, self.theta_prev, self.theta_jump, self.mu, self.jumped = law.state
+        self.u = law.u
         self.theta0 = self.theta.copy()
         M2 = 2 * self.M
         self.specs = [net.link(*self._ends(l)) for l in range(M2)]
@@ -227,7 +223,7 @@ class NetworkController:
 
     def write_wrench_into(self, buf):
         self.inner.write_wrench_into(buf)
-        self.u = self.inner.u
+        self.u = self.inner.delayed_step().u
 
     def reset(self, theta0=None) -> None:
         self.inner.reset(theta0)

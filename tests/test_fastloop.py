@@ -65,7 +65,7 @@ def run_both(sc, tmp_path, controller="hybrid", log=True, steps=None, fast_json=
         try:
             m = Master(sc, plant, controller, logger)
             m.use_compiled = compiled
-            assert (fastloop.compiled_fleet(plant, m.controller) is not None)
+            assert (fastloop.compiled_pair(plant, m.controller) is not None)
             s = m.run(sc.n_steps() if steps is None else steps)
             S = plant.read().copy()
         finally:
@@ -171,14 +171,13 @@ def test_record_buffers_are_reused_once_encoded(tmp_path, monkeypatch):
     writer encoding each block as it is handed over (so that reuse does not depend on timing),
     one set of buffers serves every 40-step block of 4 records."""
     made = []
-    real = fastloop._RecordBuffers
+    real = fastloop.LogRecords.empty.__func__
 
-    class Counted(real):
-        def __init__(self, *a):
-            made.append(a[0])
-            super().__init__(*a)
+    def counted(cls, cap, N, M):
+        made.append(cap)
+        return real(cls, cap, N, M)
 
-    monkeypatch.setattr(fastloop, "_RecordBuffers", Counted)
+    monkeypatch.setattr(fastloop.LogRecords, "empty", classmethod(counted))
     monkeypatch.setattr(fastloop, "FIRST_LOGGED_BLOCK", 40)
     monkeypatch.setattr(fastloop, "MAX_BLOCK", 40)
     monkeypatch.setattr(fastloop, "TARGET_LOGGED_BLOCK_S", 10.0)   # never cut shorter
@@ -211,28 +210,35 @@ def test_fmu_failure_raises_the_same_error(tmp_path):
         with pytest.raises(FMUError) as ei:
             m.run(sc.n_steps())
         logger.close()
-        res.append((str(ei.value), ei.value.function, plant._k, m.jumps, messages(path)))
+        res.append((str(ei.value), ei.value.function, plant.steps, m.jumps, messages(path)))
         plant.close()
     assert res[0] == res[1]
     assert "fmi2DoStep" in res[0][0]
 
 
 def test_only_fleet_fmu_with_network_controller_is_compiled():
+    """The compiled loop asks for capabilities: the plant's `compiled_plant()` (the fleet FMU
+    plant has it, the per-body one not), the law's `compiled_step()` whose wrench buffer is the
+    plant's input buffer (which the master arranges), not a type."""
     sc = load_scenario(PAPER, ["simulation.duration=0.01"])
     from cosim.master import make_controller
 
     ctrl = make_controller("hybrid", sc)
     p = PerBodyFmuPlant.from_scenario(sc)
     try:
-        assert fastloop.compiled_fleet(p, ctrl) is None
+        assert fastloop.compiled_pair(p, ctrl) is None
     finally:
         p.close()
     p = FmuPlant.from_scenario(sc)
     try:
-        assert fastloop.compiled_fleet(p, ctrl) is p._fmu
-        assert fastloop.compiled_fleet(p, object()) is None
+        assert fastloop.compiled_pair(p, ctrl) is None   # the law writes its own buffer
+        Master(sc, p, ctrl)                             # ... until the master hands it the plant's
+        cp, law = fastloop.compiled_pair(p, ctrl)
+        assert law.u is cp.fmi.inputs is p.input_buffer and cp.clock[0] == p.steps == 0
+        assert fastloop.compiled_pair(p, object()) is None
     finally:
         p.close()
+    assert p.compiled_plant() is None
 
 
 def test_record_fast_equals_record(tmp_path):
@@ -329,7 +335,7 @@ def test_budget_and_request_stop_between_blocks(tmp_path):
         s = m.run(sc.n_steps(), budget=0.0)
         assert s.get("timed_out") is True and s["interrupted"] is False
         n1 = s["steps"]
-        assert 0 < n1 <= 2000 and plant._k == n1
+        assert 0 < n1 <= 2000 and plant.steps == n1
         S_mid = plant.read().copy()
         m2 = Master(sc, plant, "hybrid")
         m2.request_stop()
@@ -348,21 +354,27 @@ def test_budget_and_request_stop_between_blocks(tmp_path):
 
 def test_second_run_on_the_same_plant(tmp_path):
     # a Master run on a plant that has already stepped: doStep times continue from the
-    # plant's own step counter, as FmuPlant.advance does
+    # plant's own clock, which either loop advances in place (nothing copies it back)
     sc = load_scenario(PAPER, ["simulation.duration=0.1"])
     finals = []
     for compiled in (False, True):
         plant = FmuPlant.from_scenario(sc)
+        times = []
+        real = plant._do_step if not compiled else None
+        if real is not None:   # the Python loop's doStep times
+            plant._do_step = lambda t, h: (times.append(t), real(t, h))
         try:
             for _ in range(2):
                 m = Master(sc, plant, "hybrid")
                 m.use_compiled = compiled
                 m.run(sc.n_steps())
-            finals.append((plant.read().copy(), plant._k, plant._fmu.time))
+            finals.append((plant.read().copy(), plant.steps))
         finally:
             plant.close()
+        if times:
+            assert times == [k * sc.step for k in range(2 * sc.n_steps())]
     assert np.array_equal(finals[0][0], finals[1][0])
-    assert finals[0][1:] == finals[1][1:] == (2 * sc.n_steps(), finals[0][2])
+    assert finals[0][1] == finals[1][1] == 2 * sc.n_steps()
 
 
 def test_record_block_equals_record_per_row(tmp_path):
