@@ -25,7 +25,7 @@ these seams only. Laws are registered in `cosim.registry.LAWS`.
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Protocol, runtime_checkable
+from typing import Callable, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 from numba import njit, types
@@ -35,6 +35,7 @@ from controller import AgentStepper, GradientController, HybridController
 from controller.errors import Se3SyncError
 from controller.kernels import network_step
 
+from .network_step import delayed_network_step
 from .registry import LAWS, resolve
 
 __all__ = ["Controller", "EdgeState", "make_controller", "law_names", "law_name", "hybrid",
@@ -162,13 +163,14 @@ def _paper_step(a, S, h):
 
 
 class DelayedLaw(NamedTuple):
-    """What `cosim.network_step.delayed_network_step` needs of a law: the paper's per-edge
-    parameters P, the edges, whether θ flows and jumps, and the law's state and output."""
+    """What `cosim.network.NetworkController` needs of a law to run it per agent on delayed data:
+    ``step(S, n, sched, r, ring_S, ring_theta, arrival, held, recv_S, recv_theta, term, max_age,
+    hold, h, age_hist, counts, failsafe) -> jumps``, the law's delayed step with its parameters
+    bound (the arrays of `cosim.network_step`), its `EdgeState` (None: no θ) and its wrench
+    buffer u."""
 
-    edges: np.ndarray
-    P: np.ndarray
-    hybrid: bool
-    state: EdgeState
+    step: Callable
+    state: EdgeState | None
     u: np.ndarray
 
 
@@ -196,9 +198,17 @@ class _PaperCapabilities:
                                                 in local.items() if a == i})
 
     def delayed_step(self):
-        return DelayedLaw(self.edges, self.P, bool(self.hybrid),
-                          EdgeState(self.theta, self.theta_prev, self.theta_jump, self.mu,
-                                    self.jumped), self.u)
+        theta, edges, P, hybrid, u = self.theta, self.edges, self.P, bool(self.hybrid), self.u
+        mu, jumped, theta_prev, theta_jump = self.mu, self.jumped, self.theta_prev, self.theta_jump
+
+        def step(S, n, sched, r, ring_S, ring_theta, arrival, held, recv_S, recv_theta, term,
+                 max_age, hold, h, age_hist, counts, failsafe):
+            return delayed_network_step(S, n, sched, r, ring_S, ring_theta, arrival, held,
+                                        recv_S, recv_theta, term, max_age, hold, theta, edges,
+                                        P, h, hybrid, u, mu, jumped, theta_prev, theta_jump,
+                                        age_hist, counts, failsafe)
+
+        return DelayedLaw(step, EdgeState(theta, theta_prev, theta_jump, mu, jumped), u)
 
 
 class HybridLaw(_PaperCapabilities, HybridController):
