@@ -22,6 +22,8 @@ LAWS = {
     "hybrid": ("cosim.controllers:hybrid", "the paper's distributed hybrid feedback "
                                            "(ex_controller)"),
     "gradient": ("cosim.controllers:gradient", "the gradient-only baseline (θ ≡ 0, no jumps)"),
+    "decoupled": ("cosim.laws.decoupled:make", "decoupled SO(3) × R³ synchronisation, the design "
+                                               "the paper contrasts itself with"),
 }
 
 # name -> ("module:attribute" of a Plant class with from_scenario(scenario, **options), description)
