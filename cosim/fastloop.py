@@ -24,6 +24,7 @@ import queue
 import sys
 import threading
 import time
+from types import FunctionType
 from typing import NamedTuple
 
 import numpy as np
@@ -173,35 +174,40 @@ class Samples(NamedTuple):
 def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
     """Steps n0 … n1−1 (stopping early before a step whose jumps might not fit the buffers).
 
-    plant: a `CompiledPlant` (doStep runs from k·h, k = plant.clock[0], advanced after each
-    completed doStep); law: the law's compiled record (`law_step`), which computes the wrench
-    into plant.fmi.inputs; es: its `EdgeState`. A step n with dec > 0 and n % dec == 0 stores a
-    log record in rec (metrics from mx); n % spl == 0 stores a summary sample in smp (S and θ
-    after the jump stage; at n = 0 also u, for u(0)), as many as the block crosses. out receives
-    the steps done (completed doSteps), records, jumps (those of a failing step included, as
-    the Python loop has them), the first FMI status ≥ fmi2Error (else 0), the failing call and
-    whether a sample was taken.
+    plant: a `CompiledPlant` (doStep runs from k·h, k = its clock, advanced after each completed
+    doStep); law: the law's compiled record (`law_step`), which computes the wrench into the
+    plant's input buffer; es: its `EdgeState`. A step n with dec > 0 and n % dec == 0 stores a
+    log record in rec (`LogRecords`, metrics from mx, `Metrics`); n % spl == 0 stores a summary
+    sample in smp (`Samples`: S and θ after the jump stage; at n = 0 also u, for u(0)), as many
+    as the block crosses; jmp (`Jumps`) the jumps. out receives the steps done (completed
+    doSteps), records, jumps (those of a failing step included, as the Python loop has them),
+    the first FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
+
+    Every record but ``law`` comes as a plain tuple of its fields (`_plain`): numba types a
+    plain tuple at a call in half the time of a NamedTuple (the block's call costs about what
+    49 separate arguments did); ``law`` keeps its class, which selects its `law_step`.
     """
-    fmi = plant.fmi
-    fn = fmi.calls
-    comp = fmi.component
-    clock = plant.clock
-    S = fmi.state
-    u = fmi.inputs
-    M = mx.edges.shape[0]
+    (fn, comp, vr_state, vr_input, S, u), clock = plant
+    theta_prev, theta_jump, mu, jumped = es[1], es[2], es[3], es[4]
+    edges, Pm, kX, masses, J, rot, pos, U, quat = mx
+    jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu = jmp
+    smp_step, smp_S, smp_theta, smp_u = smp
+    rec_step, rec_S, rec_u, rec_theta, rec_mu, rec_jumped, rec_rot, rec_pos, rec_U, rec_quat, \
+        rec_V = rec
+    M = edges.shape[0]
     n_st = S.size
     n_in = u.size
     p_S = S.ctypes.data
     p_u = u.ctypes.data
-    p_vs = fmi.vr_state.ctypes.data
-    p_vi = fmi.vr_input.ctypes.data
+    p_vs = vr_state.ctypes.data
+    p_vi = vr_input.ctypes.data
     nrec = 0
     njmp = 0
     out[O_STATUS] = 0
     out[O_SAMPLED] = 0
     n = n0
     while n < n1:
-        if njmp + M > jmp.step.shape[0]:
+        if njmp + M > jmp_step.shape[0]:
             break  # the jump buffers might overflow: hand them to Python first
         st = _fmi2_xreal(fn[0], comp, p_vs, n_st, p_S)
         if st >= FMI2_ERROR:
@@ -211,36 +217,35 @@ def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
         nj = law_step(law, S, h)
         if nj > 0:
             for k in range(M):
-                if es.jumped[k]:
-                    jmp.step[njmp] = n
-                    jmp.edge[njmp] = k + 1
-                    jmp.before[njmp] = es.theta_prev[k]
-                    jmp.after[njmp] = es.theta_jump[k]
-                    jmp.mu[njmp] = es.mu[k]
+                if jumped[k]:
+                    jmp_step[njmp] = n
+                    jmp_edge[njmp] = k + 1
+                    jmp_before[njmp] = theta_prev[k]
+                    jmp_after[njmp] = theta_jump[k]
+                    jmp_mu[njmp] = mu[k]
                     njmp += 1
         if n % spl == 0:
             ns = out[O_SAMPLED]
-            smp.step[ns] = n
-            smp.S[ns] = S
-            smp.theta[ns] = es.theta_jump
+            smp_step[ns] = n
+            smp_S[ns] = S
+            smp_theta[ns] = theta_jump
             if n == 0:
-                smp.u0[:, :] = u
+                smp_u[:, :] = u
             out[O_SAMPLED] = ns + 1
         if dec > 0 and n % dec == 0:
-            network_U(S, es.theta_jump, mx.edges, mx.P, mx.U)
-            V, ximax = metrics(S, mx.edges, mx.U, mx.kX, mx.masses, mx.J, mx.rot, mx.pos,
-                               mx.quat)
-            rec.step[nrec] = n
-            rec.S[nrec] = S
-            rec.u[nrec] = u
-            rec.theta[nrec] = es.theta_jump
-            rec.mu[nrec] = es.mu
-            rec.jumped[nrec] = es.jumped
-            rec.rot[nrec] = mx.rot
-            rec.pos[nrec] = mx.pos
-            rec.U[nrec] = mx.U
-            rec.quat[nrec] = mx.quat
-            rec.V[nrec] = V
+            network_U(S, theta_jump, edges, Pm, U)
+            V, ximax = metrics(S, edges, U, kX, masses, J, rot, pos, quat)
+            rec_step[nrec] = n
+            rec_S[nrec] = S
+            rec_u[nrec] = u
+            rec_theta[nrec] = theta_jump
+            rec_mu[nrec] = mu
+            rec_jumped[nrec] = jumped
+            rec_rot[nrec] = rot
+            rec_pos[nrec] = pos
+            rec_U[nrec] = U
+            rec_quat[nrec] = quat
+            rec_V[nrec] = V
             nrec += 1
         st = _fmi2_xreal(fn[1], comp, p_vi, n_in, p_u)
         if st >= FMI2_ERROR:
@@ -264,13 +269,14 @@ def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
 def sample_metrics(smp, nsmp, mx, out):
     """out[q] = (V̄, max|ξ|, max rot_err, max pos_err) of the block's summary sample q: what
     `NetworkMetrics.sample` computes, the same kernels in the same order (max propagates NaN as
-    numpy's does), in one call instead of a few Python-level calls per sample."""
-    M = mx.edges.shape[0]
-    rot = mx.rot
-    pos = mx.pos
+    numpy's does), in one call instead of a few Python-level calls per sample. smp, mx: the
+    plain tuples of `Samples` and `Metrics`."""
+    smp_S, smp_theta = smp[1], smp[2]
+    edges, P, kX, masses, J, rot, pos, U, quat = mx
+    M = edges.shape[0]
     for q in range(nsmp):
-        network_U(smp.S[q], smp.theta[q], mx.edges, mx.P, mx.U)
-        V, ximax = metrics(smp.S[q], mx.edges, mx.U, mx.kX, mx.masses, mx.J, rot, pos, mx.quat)
+        network_U(smp_S[q], smp_theta[q], edges, P, U)
+        V, ximax = metrics(smp_S[q], edges, U, kX, masses, J, rot, pos, quat)
         r = rot[0] if M else 0.0
         p = pos[0] if M else 0.0
         for k in range(1, M):
@@ -282,6 +288,35 @@ def sample_metrics(smp, nsmp, mx, out):
         out[q, 1] = ximax
         out[q, 2] = r
         out[q, 3] = p
+
+
+_BLOCKS: dict = {}
+
+
+def _block_loop(law):
+    """`run_block` compiled for the type of the law's record, with an on-disk cache of its own.
+
+    numba keeps one cache index per function, every compiled signature in it, and unpickles all
+    of them to load any one; a law's record class is in its signature, so with one run_block
+    for every law, loading the paper's loop would import every other law's module first (about
+    10 ms each per process). A copy of run_block per record type (the same code, a qualname
+    naming the type) keeps the indexes apart."""
+    kind = type(law)
+    loop = _BLOCKS.get(kind)
+    if loop is None:
+        py = getattr(run_block, "py_func", None)
+        if py is None:            # NUMBA_DISABLE_JIT=1: plain Python
+            return run_block
+        f = FunctionType(py.__code__, py.__globals__, py.__name__, py.__defaults__)
+        f.__qualname__ = f"run_block_{kind.__module__}_{kind.__qualname__}".replace(".", "_")
+        f.__doc__ = py.__doc__
+        loop = _BLOCKS[kind] = njit(cache=True, nogil=True, error_model="numpy")(f)
+    return loop
+
+
+def _plain(record) -> tuple:
+    """A record as the plain tuple of its fields, nested records too (see `run_block`)."""
+    return tuple(_plain(x) if isinstance(x, tuple) else x for x in record)
 
 
 def compiled_pair(plant, controller):
@@ -352,14 +387,17 @@ def run_compiled(master, plant, law, n_steps, bar, spl, dec, budget=None):
     N, M = master.N, master.M
     logger = master.logger
     logging = logger is not None
-    es = master.edge_state
-    mx = Metrics.of(master.metrics)
+    es = _plain(master.edge_state)
+    mx = _plain(Metrics.of(master.metrics))
+    cplant = _plain(plant)
+    loop = _block_loop(law)
     jcap = max(M, JUMP_CAPACITY)
     # summary samples: as many as the longest block crosses (blocks do not stop at them, so
     # a sweep sampling every few steps still runs up to MAX_BLOCK steps per compiled call)
     scap = MAX_BLOCK // spl + 2
     smp = Samples(np.zeros(scap, np.int64), np.zeros((scap, N, layout.S_WIDTH)),
                   np.zeros((scap, M)), np.zeros((N, 6)))
+    smp_t = _plain(smp)
     out = np.zeros(6, dtype=np.int64)
     writer = None
     if logging:
@@ -391,7 +429,7 @@ def run_compiled(master, plant, law, n_steps, bar, spl, dec, budget=None):
                 rec = LogRecords.empty(cap, N, M)
             jb = Jumps.empty(jcap)
             t0 = time.perf_counter()
-            run_block(plant, law, es, mx, rec, jb, smp, h, n, nxt, dec, spl, out)
+            loop(cplant, law, es, mx, tuple(rec), tuple(jb), smp_t, h, n, nxt, dec, spl, out)
             now = time.perf_counter()
             dt = now - t0
             n0, n = n, int(out[O_N])
@@ -400,7 +438,7 @@ def run_compiled(master, plant, law, n_steps, bar, spl, dec, budget=None):
             elif block < MAX_BLOCK and dt < target / 2:
                 block = min(MAX_BLOCK, 2 * block)
             _hand_over(master, writer, rec, int(out[O_REC]), jb, int(out[O_JMP]), h,
-                       int(out[O_SAMPLED]), smp, free)
+                       int(out[O_SAMPLED]), smp, mx, free)
             if out[O_STATUS]:
                 pending = (CALL_NAMES[int(out[O_CALL])], int(out[O_STATUS]))
                 break
@@ -427,13 +465,13 @@ def run_compiled(master, plant, law, n_steps, bar, spl, dec, budget=None):
     return n, interrupted, timed_out
 
 
-def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp, free=None):
+def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp, mx, free=None):
     """The block's events, in step order: the summary samples (main thread, they fill
     master.samples), jumps (master.jumps now, the log on the writer) and log records."""
     if nsmp:
         m = master.metrics
         out = np.empty((nsmp, 4))
-        sample_metrics(smp, nsmp, Metrics.of(m), out)
+        sample_metrics(_plain(smp), nsmp, mx, out)
         steps = smp.step[:nsmp].tolist()
         if steps[0] == 0:
             master.u0 = smp.u0.copy()

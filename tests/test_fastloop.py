@@ -149,13 +149,17 @@ def test_steps_not_multiple_of_ticks(tmp_path, monkeypatch):
     """Also: a logged compiled run shortens the GIL switch interval while it steps (its blocks
     would wait for the encoder thread) and gives the caller's back."""
     seen = []
-    real = fastloop.run_block
+    real = fastloop._block_loop
 
-    def spy(*args):
-        seen.append(sys.getswitchinterval())
-        return real(*args)
+    def loop_for(law):
+        block = real(law)
 
-    monkeypatch.setattr(fastloop, "run_block", spy)
+        def spy(*args):
+            seen.append(sys.getswitchinterval())
+            return block(*args)
+        return spy
+
+    monkeypatch.setattr(fastloop, "_block_loop", loop_for)
     before = sys.getswitchinterval()
     sc = load_scenario(PAPER, ["simulation.duration=1", "simulation.log_rate=30"])
     ref, fast = run_both(sc, tmp_path, steps=4321)
