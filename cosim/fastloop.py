@@ -20,6 +20,9 @@ globals, so `cache=True` machine code holds no process-specific pointer.
 """
 from __future__ import annotations
 
+import hashlib
+import inspect
+import os
 import queue
 import sys
 import threading
@@ -300,15 +303,24 @@ def _block_loop(law):
     of them to load any one; a law's record class is in its signature, so with one run_block
     for every law, loading the paper's loop would import every other law's module first (about
     10 ms each per process). A copy of run_block per record type (the same code, a qualname
-    naming the type) keeps the indexes apart."""
+    naming the type) keeps the indexes apart. numba checks a cached function against its own
+    source file only, not against the functions it inlines: the qualname also carries the stamp
+    of the file defining the record (where a law's compiled step lives), so that editing a law
+    recompiles its loop instead of running the old machine code."""
     kind = type(law)
     loop = _BLOCKS.get(kind)
     if loop is None:
         py = getattr(run_block, "py_func", None)
         if py is None:            # NUMBA_DISABLE_JIT=1: plain Python
             return run_block
+        try:
+            st = os.stat(inspect.getfile(kind))
+            stamp = hashlib.sha1(f"{st.st_mtime_ns} {st.st_size}".encode()).hexdigest()[:10]
+        except (OSError, TypeError):
+            stamp = "0"
         f = FunctionType(py.__code__, py.__globals__, py.__name__, py.__defaults__)
-        f.__qualname__ = f"run_block_{kind.__module__}_{kind.__qualname__}".replace(".", "_")
+        f.__qualname__ = (f"run_block_{kind.__module__}_{kind.__qualname__}".replace(".", "_")
+                          + f"_{stamp}")
         f.__doc__ = py.__doc__
         loop = _BLOCKS[kind] = njit(cache=True, nogil=True, error_model="numpy")(f)
     return loop

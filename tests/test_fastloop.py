@@ -407,3 +407,30 @@ def test_record_block_equals_record_per_row(tmp_path):
     assert sum(m[0] == "/lyapunov" for m in a) == R
     assert messages(paths[2]) == a
     assert messages(paths[1], decoded=True) == messages(paths[0], decoded=True)
+
+
+def test_each_law_gets_its_own_loop_cache_renewed_when_its_module_changes(tmp_path, monkeypatch):
+    """numba checks a cached function against its own file only: the compiled loop of a law is
+    cached under a name carrying the stamp of the law's module, so that an edited law is
+    compiled again rather than run from the old machine code; and two laws never share an index
+    (loading one would import the other)."""
+    import importlib
+    import os
+
+    mod = tmp_path / "law_stamp_probe.py"
+    mod.write_text("from typing import NamedTuple\nclass Rec(NamedTuple):\n    x: int\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    m = importlib.import_module("law_stamp_probe")
+    monkeypatch.setattr(fastloop, "_BLOCKS", {})
+    a = fastloop._block_loop(m.Rec(1)).py_func.__qualname__
+    assert a.startswith("run_block_law_stamp_probe_Rec_")
+    st = mod.stat()
+    os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    monkeypatch.setattr(fastloop, "_BLOCKS", {})
+    b = fastloop._block_loop(m.Rec(1)).py_func.__qualname__
+    assert b != a and b.startswith("run_block_law_stamp_probe_Rec_")
+    from cosim.controllers import PaperStep
+    from cosim.laws.decoupled import DecoupledStep
+    names = {fastloop._block_loop(cls.__new__(cls, *[None] * len(cls._fields))).py_func.__qualname__
+             for cls in (PaperStep, DecoupledStep)}
+    assert len(names) == 2

@@ -220,7 +220,7 @@ class DecoupledStep(NamedTuple):
 
 
 @compiled_law_step(DecoupledStep)
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _step(a, S, h):
     return decoupled_step(S, a.edges, a.Q, a.u)
 
