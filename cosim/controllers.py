@@ -2,7 +2,8 @@
 
 Every law is a `Controller`: a ``name``, ``step_state(S, h) -> (u, events)`` and ``reset``.
 Anything else a law can do it declares as a capability, and the code that needs one asks for it
-(``getattr(law, name, None)``), never for a concrete type; a law without it is told so on one line (`require`):
+(``getattr(law, name, None)``), never for a concrete type; a law without it is told so on one
+line (`require`):
 
 =====================  ==========================================================  ===================
 capability             what the law provides                                        who asks
@@ -13,8 +14,8 @@ capability             what the law provides                                    
 ``compiled_step()``    a numba record that `law_step` steps (`compiled_law_step`)   compiled loop
                                                                                     (cosim/fastloop.py)
 ``agent_view(i)``      agent i's view (the `controller.AgentStepper` interface)     ``agent``, ``swarm``
-``delayed_step()``     the paper's per-edge data for the delayed step              ``[network]``
-                       (`cosim.network_step`)
+``delayed_step()``     its step on delayed neighbour data (`DelayedLaw`, built on   ``[network]``
+                       the link pieces of `cosim.network_step`)
 =====================  ==========================================================  ===================
 
 ``check`` asks for nothing more: the loop is linearised by finite differences of the law's own
