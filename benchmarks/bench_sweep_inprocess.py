@@ -4,7 +4,9 @@ revision in the same run (interleaved, so load affects both alike).
     python benchmarks/bench_sweep_inprocess.py [--against REV] [--samples K] [--repeat R]
 
 Reports runs per minute on scenarios/sweep_small.toml (the adversarial samples plus K random ones,
-hybrid and gradient), best of R, start-up excluded (a 1-sample sweep is timed and subtracted).
+with every law the tree registers, or the hybrid law only with --hybrid-only: the same runs on
+both sides when the two revisions register different laws), best of R, start-up excluded (a
+1-sample sweep is timed and subtracted). Runs are counted in the output file.
 """
 from __future__ import annotations
 
@@ -21,13 +23,17 @@ from _revisions import trees as revision_trees  # noqa: E402
 import _markdown  # noqa: E402
 
 
-def sweep(tree: Path, samples: int, out: Path) -> float:
+def sweep(tree: Path, samples: int, out: Path, hybrid_only: bool = False) -> tuple:
+    """(seconds, runs) of one sweep; runs counted in the CSV it wrote."""
     out.unlink(missing_ok=True)
     t = time.perf_counter()
     subprocess.run([sys.executable, "-m", "cosim.cli", "sweep", "scenarios/sweep_small.toml",
-                    "--samples", str(samples), "--workers", "0", "--out", str(out)], cwd=tree,
+                    "--samples", str(samples), "--workers", "0", "--out", str(out)]
+                   + (["--no-baseline"] if hybrid_only else []), cwd=tree,
                    check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return time.perf_counter() - t
+    wall = time.perf_counter() - t
+    with open(out) as f:
+        return wall, sum(1 for _ in f) - 1
 
 
 def main() -> int:
@@ -35,6 +41,7 @@ def main() -> int:
     ap.add_argument("--against", metavar="REV")
     ap.add_argument("--samples", type=int, default=300)
     ap.add_argument("--repeat", type=int, default=2)
+    ap.add_argument("--hybrid-only", action="store_true", help="sweep the hybrid law only")
     _markdown.add_option(ap)
     args = ap.parse_args()
     with _markdown.Report(args.markdown):
@@ -42,21 +49,22 @@ def main() -> int:
 
 
 def bench(args) -> int:
-    runs = 2 * (12 + args.samples)  # sweep_small: 3M + 3 = 12 adversarial samples, 2 laws
+    ho = args.hybrid_only
     with tempfile.TemporaryDirectory() as tmp, revision_trees(args.against) as trees:
-        best = {}
+        best, runs = {}, {}
         for tree in trees.values():   # a fresh worktree compiles its numba cache: not timed
-            sweep(tree, 1, Path(tmp) / "w.csv")
+            sweep(tree, 1, Path(tmp) / "w.csv", ho)
         for _ in range(args.repeat):
             for k, tree in trees.items():
-                base = sweep(tree, 1, Path(tmp) / "b.csv")
-                full = sweep(tree, args.samples, Path(tmp) / "f.csv")
-                rate = (runs - 26) / max(full - base, 1e-9) * 60
+                base, n0 = sweep(tree, 1, Path(tmp) / "b.csv", ho)
+                full, n1 = sweep(tree, args.samples, Path(tmp) / "f.csv", ho)
+                runs[k] = n1
+                rate = (n1 - n0) / max(full - base, 1e-9) * 60
                 best[k] = max(best.get(k, 0.0), rate)
-        line = ", ".join(f"{k} {v:,.0f} runs/min" for k, v in best.items())
+        line = ", ".join(f"{k} {v:,.0f} runs/min ({runs[k]} runs)" for k, v in best.items())
         if args.against:
             line += f"; ratio {best['this tree'] / best[args.against]:.2f}"
-        print(f"sweep_small in one process, {runs} runs: {line}")
+        print(f"sweep_small in one process{' (hybrid only)' if ho else ''}: {line}")
     return 0
 
 

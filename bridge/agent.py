@@ -37,14 +37,15 @@ from pathlib import Path
 
 import numpy as np
 
-from controller import AgentStepper, JumpEvent, LawParameters, layout
+from controller import JumpEvent, LawParameters, layout
 from controller.errors import Se3SyncError
 from controller.kernels import metrics, network_U, relative_pose
 from cosim import signals
+from cosim.controllers import EdgeState, agent_view
 from cosim.log.mcap import McapLogger
 from cosim.master import Master
 from cosim.network import parse_network
-from cosim.registry import AGENT_LAWS
+from cosim.registry import LAWS
 from cosim.run import finish_summary
 from cosim.scenario import restrict
 
@@ -59,7 +60,6 @@ __all__ = ["AgentNode", "DEFAULT_MAX_AGE_STEPS", "LAWS", "join_step"]
 # Without a max_age in [network], an agent process still never runs on data of unbounded age: the
 # co-simulation's default (inf) is for studies; a vehicle's controller holds after this many steps.
 DEFAULT_MAX_AGE_STEPS = 10
-LAWS = AGENT_LAWS
 RESEND_S = 0.02          # lockstep: a step's messages go out again after this long without progress
 
 
@@ -107,7 +107,6 @@ class _AgentLaw:
         self.node = node
         self.name = node.law
         self.hybrid = node.stepper.hybrid
-        self.params = node.stepper.params
         M = len(node.edge_ids)
         self.theta = node.local.theta0.copy() if self.hybrid else np.zeros(M)
         self.theta_jump = self.theta.copy()
@@ -115,6 +114,11 @@ class _AgentLaw:
         self.mu = np.full(M, np.nan)
         self.jumped = np.zeros(M, dtype=bool)
         self.u = np.zeros((len(node.agents), 6))
+
+    @property
+    def edge_state(self) -> EdgeState:
+        """θ of the neighbourhood's edges, as the master logs them."""
+        return EdgeState(self.theta, self.theta_prev, self.theta_jump, self.mu, self.jumped)
 
     def step_state(self, S, h: float):
         return self.node._step(S, float(h))
@@ -143,8 +147,8 @@ class AgentNode:
                 or not 1 <= agent_id <= N:
             raise Se3SyncError(f"--id: must be an agent number in 1..{N}, got {agent_id!r}")
         if law not in LAWS:
-            raise Se3SyncError(f"--controller: an agent process runs one of {', '.join(LAWS)} "
-                               f"(the laws with a per-agent view), got {law!r}")
+            raise Se3SyncError(f"--controller: must be one of {', '.join(LAWS)}, got {law!r}")
+        self.stepper = agent_view(law, sc, int(agent_id))   # or: what the law lacks, one line
         self.sc = sc
         self.i = i = int(agent_id)
         self.law = law
@@ -201,10 +205,8 @@ class AgentNode:
             self.vehicle.add_reader(fd, self.link.poll)
         self.vehicle.drain_per_step = True
         self.lockstep_timeout = float(cfg.lockstep_timeout)
-        design = sc.design if law == "hybrid" else None
-        self.stepper = AgentStepper(i, sc.graph.local_edges(i), sc.weighting, design, sc.gains,
-                                    theta0={k: float(sc.theta0[k - 1]) for k in self.owned})
-        self.params = LawParameters.of(sc.weighting, design, sc.gains)
+        design = sc.design if self.stepper.hybrid else None
+        self.params = LawParameters.of(sc.weighting, design, sc.gains)   # the metrics' U
         self.first_step = 0
         self.n_steps = None
         self._S = self.local.S0.copy()
@@ -520,8 +522,7 @@ def _agent_logger(path, node: AgentNode, extra_metadata: dict, encoding: str = "
 def _warm_up(node: AgentNode) -> None:
     """The compiled kernels the steps use, loaded (or compiled) now rather than while the vehicle
     and the neighbours wait for the first step."""
-    AgentStepper(node.i, node.sc.graph.local_edges(node.i), node.sc.weighting,
-                 node.sc.design if node.stepper.hybrid else None, node.sc.gains).wrench(
+    agent_view(node.law, node.sc, node.i).wrench(
         {k: node._rel(node.local.S0, k) for k in node.edge_ids}, np.zeros(6),
         {j: np.zeros(6) for j in node.neighbours}, {k: 0.0 for k in node.edge_ids})
     loc = node.local

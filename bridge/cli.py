@@ -9,7 +9,7 @@ from pathlib import Path
 from controller.errors import Se3SyncError
 from cosim.cli.live_options import add_live_options, live_target
 from cosim.cli.run import add_log_encoding
-from cosim.registry import AGENT_LAWS, LAWS
+from cosim.registry import LAWS
 
 __all__ = ["register", "EXIT_NOT_CONNECTED", "EXIT_LINK"]
 
@@ -144,8 +144,9 @@ def register(sub) -> None:
     p.add_argument("--vehicle", metavar="ENDPOINT",
                    help="the vehicle's bridge-side endpoint (udpin:HOST:PORT | udpout:HOST:PORT); "
                         "default: vehicle I of the scenario's [bridge] table")
-    p.add_argument("--controller", choices=AGENT_LAWS, default="hybrid",
-                   help="the law (default hybrid); " + "; ".join(f"{k}: {LAWS[k][1]}" for k in AGENT_LAWS))
+    p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
+                   help="the law (default hybrid), one with a per-agent view; "
+                        + "; ".join(f"{k}: {v[1]}" for k, v in LAWS.items()))
     p.add_argument("--log", metavar="OUT.mcap", help="write the agent's MCAP log here")
     add_log_encoding(p, "the agent's log's")
     p.add_argument("--summary", metavar="OUT.json", help="write the agent's summary JSON here")
@@ -189,8 +190,8 @@ def register(sub) -> None:
                    "simulation.duration)")
     p.add_argument("--set", action="append", default=[], metavar="KEY.PATH=VALUE",
                    help="override a scenario value (passed to every process); repeatable")
-    p.add_argument("--controller", choices=AGENT_LAWS, default="hybrid",
-                   help="the law every agent runs (default hybrid)")
+    p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
+                   help="the law every agent runs (default hybrid), one with a per-agent view")
     p.add_argument("--key", metavar="FILE", help="MAVLink 2 signing key file for every link")
     p.add_argument("--start-delay", type=float, default=None, metavar="S",
                    help="real time: step 0 comes this long after every agent has connected to "

@@ -2,18 +2,19 @@
 from __future__ import annotations
 
 from cosim.master import Master
-from cosim.plants import FmuPlant
+from cosim.plants import make_plant
 from cosim.run import run_scenario
 
 __all__ = ["warm_up", "run_hil"]
 
 
-def warm_up(scenario) -> None:
-    """Two co-simulation steps of the scenario (JIT compilation of the controller and metrics),
-    so that the first control steps over the links are on time."""
-    p = FmuPlant.from_scenario(scenario)
+def warm_up(scenario, controller: str = "hybrid") -> None:
+    """Two co-simulation steps of the scenario on its registered plant (``plant.mode``): JIT
+    compilation of the controller and metrics, so that the first control steps over the links
+    are on time."""
+    p = make_plant(scenario.plant_mode, scenario)
     try:
-        Master(scenario, p, "hybrid").run(2)
+        Master(scenario, p, controller).run(2)
     finally:
         p.close()
 

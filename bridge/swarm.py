@@ -37,6 +37,7 @@ from controller import V_bar, jump_bound, layout
 from controller.errors import Se3SyncError
 from cosim import signals
 from cosim.analysis.stability import analyse
+from cosim.controllers import agent_view
 from cosim.files import check_output_dir, write_json_atomic
 from cosim.log.mcap import McapLogger, read_log
 from cosim.master import NetworkMetrics
@@ -589,6 +590,7 @@ def _swarm_cli(args, early: list) -> int:
         raise Se3SyncError(f"--start-delay: must be a number of seconds in [0, 3600], got "
                            f"{args.start_delay!r}")
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
+    agent_view(args.controller, sc, 1)   # the law has a per-agent view, or one line saying not
     key = read_key_file(args.key) if args.key else None
     net = sc.tables.get("network") or parse_network({}, sc.n_agents)
     cfg = sc.bridge or default_config(sc.n_agents)

@@ -5,18 +5,25 @@
 * ``network_U(S, theta, edges, P, out)``: U(X̄_k, θ_k) (`U_explicit`) for every edge.
 * ``metrics(S, edges, U, k_X, masses, J, rot_err, pos_err, quat)``: ‖I − R̄_k‖_F, ‖p̄_k‖, the
   agents' quaternions (x, y, z, w) and (V̄, max|ξ|) (`V_def`).
-* ``delayed_network_step(...)``: the law per agent when neighbour data arrives over delayed,
-  lossy links (`cosim.network` drives it; its docstring states the arguments).
 * ``rot_to_quat_rows(R9, out)``: quaternions (w, x, y, z) of row-major rotation matrices.
 * ``relative_pose(A, i, B, j, R, p)``: X̄ = X_j⁻¹X_i into R (3, 3) and p (3,), X_i from row i of
   A and X_j from row j of B (the network step's own products).
+
+The per-edge pieces of the network step, for compiled code elsewhere that evaluates the law on
+other data (`cosim.network_step`: each agent on its neighbours' delayed samples), inlined into
+the caller: ``rel_pose_rows(A, i, B, j)`` (X̄ as (R̄ 9-tuple, p̄ 3-tuple)), ``edge_update(R̄, p̄,
+θ, hybrid, P, h)`` (jump, ψ̄_∇, Ad⁻ᵀψ̄_∇ and the flow of θ), ``prepare(R̄, θ, P)``,
+``gradient_core(R̄, p̄, θ, P, R_a, R_g)`` and ``Ad_inv_T(R̄, p̄, g)``; ``P_KX``, ``P_KXI``,
+``P_KE`` are the offsets of k_X, k_ξ, k_e in P.
 
 ``P`` is ``LawParameters.P``; S follows `controller.layout`; ``edges`` is ``Graph.edges``
 (0-based, (M, 2)). All arrays are C-contiguous float64 (edges int64) and outputs are written in
 place, so a caller can keep its buffers across calls.
 """
-from ._kernels import (delayed_network_step, metrics, network_step, network_U, relative_pose,
+from ._kernels import (P_KE, P_KX, P_KXI, Ad_inv_T, edge_update, gradient_core, metrics,
+                       network_step, network_U, prepare, rel_pose_rows, relative_pose,
                        rot_to_quat_rows)
 
-__all__ = ["network_step", "delayed_network_step", "network_U", "metrics", "rot_to_quat_rows",
-           "relative_pose"]
+__all__ = ["network_step", "network_U", "metrics", "rot_to_quat_rows", "relative_pose",
+           "rel_pose_rows", "edge_update", "prepare", "gradient_core", "Ad_inv_T", "P_KX",
+           "P_KXI", "P_KE"]

@@ -3,45 +3,52 @@
 Between two returns to Python (at most a block of steps), one numba function runs, per step n,
 exactly what the reference loop in `master.py` does through Python:
 
-    fmi2GetReal(S) ; network_step(S, θ, ...) → u ; fmi2SetReal(u) ; fmi2DoStep(n·h, h)
+    fmi2GetReal(S) ; law_step(law, S, h) → u ; fmi2SetReal(u) ; fmi2DoStep(k·h, h) ; k += 1
 
 calling the FMU's C functions through the raw addresses that fmpy loaded (the FMU stays a real
-FMU) and the controller kernel directly. What the reference loop does at its ticks is gathered
+FMU) and the law's compiled step directly. What the reference loop does at its ticks is gathered
 into preallocated arrays instead: the raw rows and metrics of every log record, every jump with
 its exact step, the state of a 1 s summary sample. Python then encodes those outside the loop,
 on a writer thread, while the next block runs with the GIL released.
 
-The addresses are arguments, never globals, so `cache=True` machine code holds no
-process-specific pointer.
+What the loop needs it gets through public, typed records: the plant's `cosim.plants.CompiledPlant`
+(the FMU's calls and buffers, and the plant's clock k, which the loop advances in place: the
+plant owns its time), the law's compiled record (`cosim.controllers.law_step` is specialised for
+its type) and `cosim.controllers.EdgeState`, the master's metric buffers (`Metrics`), and the
+buffers the block fills (`LogRecords`, `Jumps`, `Samples`). The addresses are arguments, never
+globals, so `cache=True` machine code holds no process-specific pointer.
 """
 from __future__ import annotations
 
+import hashlib
+import inspect
+import os
 import queue
 import sys
 import threading
 import time
+from types import FunctionType
+from typing import NamedTuple
 
 import numpy as np
 from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from controller import HybridController
 from controller import layout
 from controller.errors import Se3SyncError
-from controller.kernels import metrics, network_step, network_U
-from plant_fmu.fast import FleetFMU
+from controller.kernels import metrics, network_U
+from plant_fmu.fast import CALL_NAMES
 
 from . import signals
-from .plants import FmuPlant
+from .controllers import law_step
 
 MAX_BLOCK = 1000  # steps between two checks for Ctrl-C / progress updates
 
-__all__ = ["compiled_fleet", "run_compiled"]
+__all__ = ["compiled_pair", "run_compiled", "Metrics", "LogRecords", "Jumps", "Samples"]
 
-# which FMI call failed (returned by the block as out[O_CALL])
+# which FMI call failed (returned by the block as out[O_CALL]), in `CALL_NAMES` order
 CALL_GET, CALL_SET, CALL_STEP = 0, 1, 2
-CALL_NAMES = ("fmi2GetReal", "fmi2SetReal", "fmi2DoStep")
 # slots of the block's int64 result vector
 O_N, O_REC, O_JMP, O_STATUS, O_CALL, O_SAMPLED = range(6)
 FMI2_ERROR = 3
@@ -98,21 +105,99 @@ def _fmi2_do_step(typingctx, fn, comp, t, h):
     return sig, codegen
 
 
+class Metrics(NamedTuple):
+    """The master's metric parameters and buffers (`cosim.master.NetworkMetrics`)."""
+
+    edges: np.ndarray
+    P: np.ndarray
+    kX: float
+    masses: np.ndarray
+    J: np.ndarray
+    rot: np.ndarray
+    pos: np.ndarray
+    U: np.ndarray
+    quat: np.ndarray
+
+    @classmethod
+    def of(cls, m) -> "Metrics":
+        return cls(m.edges, m.P, m.kX, m.masses, m.J, m.rot, m.pos, m.U, m.quat)
+
+
+class LogRecords(NamedTuple):
+    """The block's log records: the step of each, the raw rows and the metrics."""
+
+    step: np.ndarray
+    S: np.ndarray
+    u: np.ndarray
+    theta: np.ndarray
+    mu: np.ndarray
+    jumped: np.ndarray
+    rot: np.ndarray
+    pos: np.ndarray
+    U: np.ndarray
+    quat: np.ndarray
+    V: np.ndarray
+
+    @classmethod
+    def empty(cls, cap, N, M) -> "LogRecords":
+        return cls(np.empty(cap, np.int64), np.empty((cap, N, layout.S_WIDTH)),
+                   np.empty((cap, N, 6)), np.empty((cap, M)), np.empty((cap, M)),
+                   np.empty((cap, M), np.bool_), np.empty((cap, M)), np.empty((cap, M)),
+                   np.empty((cap, M)), np.empty((cap, N, 4)), np.empty(cap))
+
+    @property
+    def cap(self) -> int:
+        return self.step.shape[0]
+
+
+class Jumps(NamedTuple):
+    """The block's jumps: step, edge (from 1), θ before and after, μ."""
+
+    step: np.ndarray
+    edge: np.ndarray
+    before: np.ndarray
+    after: np.ndarray
+    mu: np.ndarray
+
+    @classmethod
+    def empty(cls, cap) -> "Jumps":
+        return cls(np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap),
+                   np.empty(cap), np.empty(cap))
+
+
+class Samples(NamedTuple):
+    """The block's summary samples (step, S and θ after the jump stage) and u(0)."""
+
+    step: np.ndarray
+    S: np.ndarray
+    theta: np.ndarray
+    u0: np.ndarray
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu, jumped,
-              theta_prev, theta_jump, n0, n1, dec, spl, Pm, kX, masses, J, rot, pos, U, quat,
-              rec_step, rec_S, rec_u, rec_theta, rec_mu, rec_jumped, rec_rot, rec_pos, rec_U,
-              rec_quat, rec_V, jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu,
-              smp_step, smp_S, smp_theta, smp_u, k0, out):
+def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
     """Steps n0 … n1−1 (stopping early before a step whose jumps might not fit the buffers).
 
-    fn = (fmi2GetReal, fmi2SetReal, fmi2DoStep) addresses, comp the fmi2Component. A step n
-    with dec > 0 and n % dec == 0 stores a log record; n % spl == 0 stores a summary sample
-    (S and θ after the jump stage; at n = 0 also u, for u(0)), as many as the block crosses. doStep runs from (n + k0)·h: k0 is the plant's
-    own step counter at the start of the run (FmuPlant.advance steps from k·h). out receives the steps done (completed doSteps),
-    records, jumps (those of a failing step included, as the Python loop has them), the first
-    FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
+    plant: a `CompiledPlant` (doStep runs from k·h, k = its clock, advanced after each completed
+    doStep); law: the law's compiled record (`law_step`), which computes the wrench into the
+    plant's input buffer; es: its `EdgeState`. A step n with dec > 0 and n % dec == 0 stores a
+    log record in rec (`LogRecords`, metrics from mx, `Metrics`); n % spl == 0 stores a summary
+    sample in smp (`Samples`: S and θ after the jump stage; at n = 0 also u, for u(0)), as many
+    as the block crosses; jmp (`Jumps`) the jumps. out receives the steps done (completed
+    doSteps), records, jumps (those of a failing step included, as the Python loop has them),
+    the first FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
+
+    Every record but ``law`` comes as a plain tuple of its fields (`_plain`): numba types a
+    plain tuple at a call in half the time of a NamedTuple (the block's call costs about what
+    49 separate arguments did); ``law`` keeps its class, which selects its `law_step`.
     """
+    (fn, comp, vr_state, vr_input, S, u), clock = plant
+    theta_prev, theta_jump, mu, jumped = es[1], es[2], es[3], es[4]
+    edges, Pm, kX, masses, J, rot, pos, U, quat = mx
+    jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu = jmp
+    smp_step, smp_S, smp_theta, smp_u = smp
+    rec_step, rec_S, rec_u, rec_theta, rec_mu, rec_jumped, rec_rot, rec_pos, rec_U, rec_quat, \
+        rec_V = rec
     M = edges.shape[0]
     n_st = S.size
     n_in = u.size
@@ -133,7 +218,7 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
             out[O_STATUS] = st
             out[O_CALL] = CALL_GET
             break
-        nj = network_step(S, theta, edges, P, h, hybrid, u, mu, jumped, theta_prev, theta_jump)
+        nj = law_step(law, S, h)
         if nj > 0:
             for k in range(M):
                 if jumped[k]:
@@ -171,11 +256,13 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
             out[O_STATUS] = st
             out[O_CALL] = CALL_SET
             break
-        st = _fmi2_do_step(fn[2], comp, (n + k0) * h, h)
+        k = clock[0]
+        st = _fmi2_do_step(fn[2], comp, k * h, h)
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
             out[O_CALL] = CALL_STEP
             break
+        clock[0] = k + 1
         n += 1
     out[O_N] = n
     out[O_REC] = nrec
@@ -183,10 +270,13 @@ def run_block(fn, comp, vr_state, vr_input, S, u, theta, edges, P, h, hybrid, mu
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def sample_metrics(smp_S, smp_theta, nsmp, edges, P, kX, masses, J, U, rot, pos, quat, out):
+def sample_metrics(smp, nsmp, mx, out):
     """out[q] = (V̄, max|ξ|, max rot_err, max pos_err) of the block's summary sample q: what
     `NetworkMetrics.sample` computes, the same kernels in the same order (max propagates NaN as
-    numpy's does), in one call instead of a few Python-level calls per sample."""
+    numpy's does), in one call instead of a few Python-level calls per sample. smp, mx: the
+    plain tuples of `Samples` and `Metrics`."""
+    smp_S, smp_theta = smp[1], smp[2]
+    edges, P, kX, masses, J, rot, pos, U, quat = mx
     M = edges.shape[0]
     for q in range(nsmp):
         network_U(smp_S[q], smp_theta[q], edges, P, U)
@@ -204,21 +294,61 @@ def sample_metrics(smp_S, smp_theta, nsmp, edges, P, kX, masses, J, U, rot, pos,
         out[q, 3] = p
 
 
-def compiled_fleet(plant, controller):
-    """The FleetFMU under ``plant`` when the pair can run the compiled loop, else None:
-    a `cosim.plants.FmuPlant` (one FMI 2.0 instance for all bodies) and the network
-    `HybridController`/`GradientController` stepping through `network_step`."""
-    if type(plant) is not FmuPlant or not isinstance(controller, HybridController):
+_BLOCKS: dict = {}
+
+
+def _block_loop(law):
+    """`run_block` compiled for the type of the law's record, with an on-disk cache of its own.
+
+    numba keeps one cache index per function, every compiled signature in it, and unpickles all
+    of them to load any one; a law's record class is in its signature, so with one run_block
+    for every law, loading the paper's loop would import every other law's module first (about
+    10 ms each per process). A copy of run_block per record type (the same code, a qualname
+    naming the type) keeps the indexes apart. numba checks a cached function against its own
+    source file only, not against the functions it inlines: the qualname also carries the stamp
+    of the file defining the record (where a law's compiled step lives), so that editing a law
+    recompiles its loop instead of running the old machine code."""
+    kind = type(law)
+    loop = _BLOCKS.get(kind)
+    if loop is None:
+        py = getattr(run_block, "py_func", None)
+        if py is None:            # NUMBA_DISABLE_JIT=1: plain Python
+            return run_block
+        try:
+            st = os.stat(inspect.getfile(kind))
+            stamp = hashlib.sha1(f"{st.st_mtime_ns} {st.st_size}".encode()).hexdigest()[:10]
+        except (OSError, TypeError):
+            stamp = "0"
+        f = FunctionType(py.__code__, py.__globals__, py.__name__, py.__defaults__)
+        f.__qualname__ = (f"run_block_{kind.__module__}_{kind.__qualname__}".replace(".", "_")
+                          + f"_{stamp}")
+        f.__doc__ = py.__doc__
+        loop = _BLOCKS[kind] = njit(cache=True, nogil=True, error_model="numpy")(f)
+    return loop
+
+
+def _plain(record) -> tuple:
+    """A record as the plain tuple of its fields, nested records too (see `run_block`)."""
+    return tuple(_plain(x) if isinstance(x, tuple) else x for x in record)
+
+
+def compiled_pair(plant, controller):
+    """(the plant's `CompiledPlant`, the law's compiled record) when the pair can run the
+    compiled loop, else None: a plant with ``compiled_plant()`` (the FMU plant: one FMI 2.0
+    instance for all bodies) and a law with ``compiled_step()`` whose wrench buffer is the
+    plant's input buffer (`cosim.master.Master` arranges that through ``write_wrench_into``).
+    A plant with ``stats`` runs in Python: its statistics are read at the sample ticks."""
+    cp = getattr(plant, "compiled_plant", None)
+    cs = getattr(controller, "compiled_step", None)
+    if cp is None or cs is None or getattr(plant, "stats", None) is not None:
         return None
-    if type(controller).step_state is not HybridController.step_state:
-        return None  # a subclass with its own step: only the Python loop knows it
-    fmu = getattr(plant, "_fmu", None)
-    if not isinstance(fmu, FleetFMU) or fmu._closed:
+    p, law = cp(), cs()
+    if p is None or law is None:
         return None
-    u = controller.u
-    if not (u.flags.c_contiguous and u.dtype == np.float64 and u.shape == (fmu.n, 6)):
+    u = getattr(law, "u", None)
+    if u is not p.fmi.inputs or p.fmi.state.shape[0] != u.shape[0]:
         return None
-    return fmu
+    return p, law
 
 
 class _Writer:
@@ -256,35 +386,31 @@ class _Writer:
             raise self.error
 
 
-def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
-    """The compiled counterpart of the loop in `Master.run`; returns (n, interrupted,
-    timed_out).
+def run_compiled(master, plant, law, n_steps, bar, spl, dec, budget=None):
+    """The compiled counterpart of the loop in `Master.run`, on the records of `compiled_pair`;
+    returns (n, interrupted, timed_out).
 
     Same per-step semantics, ticks and events as the reference loop: jumps are recorded with
     their exact step, log records at n % dec == 0, summary samples at n % spl == 0. Between
     blocks of at most MAX_BLOCK steps (cut shorter when they would take more than
-    TARGET_BLOCK_S): Ctrl-C / SIGTERM / `Master.request_stop` (master._stop) and the wall-clock
-    budget, counted from the end of the first block as in the reference loop.
+    TARGET_BLOCK_S): Ctrl-C / SIGTERM / `Master.request_stop` (`Master.stop_requested`) and the
+    wall-clock budget, counted from the end of the first block as in the reference loop.
     """
-    ctrl, plant = master.controller, master.plant
     h = master.h
     N, M = master.N, master.M
     logger = master.logger
     logging = logger is not None
-    fn = _addresses(fmu)
-    comp = int(fmu._c.value)
-    S = fmu._state
-    u = ctrl.u
-    theta = ctrl.theta
-    rot, pos, U, quat = master._rot, master._pos, master._U, master._quat
+    es = _plain(master.edge_state)
+    mx = _plain(Metrics.of(master.metrics))
+    cplant = _plain(plant)
+    loop = _block_loop(law)
     jcap = max(M, JUMP_CAPACITY)
     # summary samples: as many as the longest block crosses (blocks do not stop at them, so
     # a sweep sampling every few steps still runs up to MAX_BLOCK steps per compiled call)
     scap = MAX_BLOCK // spl + 2
-    smp_step = np.zeros(scap, np.int64)
-    smp_S = np.zeros((scap, N, layout.S_WIDTH))
-    smp_theta = np.zeros((scap, M))
-    smp_u = np.zeros((N, 6))
+    smp = Samples(np.zeros(scap, np.int64), np.zeros((scap, N, layout.S_WIDTH)),
+                  np.zeros((scap, M)), np.zeros((N, 6)))
+    smp_t = _plain(smp)
     out = np.zeros(6, dtype=np.int64)
     writer = None
     if logging:
@@ -293,7 +419,6 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
     target = TARGET_LOGGED_BLOCK_S if logging else TARGET_BLOCK_S
     # a logger may ask for blocks of its own length (the live view alone: a block per frame)
     target = getattr(logger, "block_seconds", None) or target
-    k0 = int(plant._k)
     n = 0
     interrupted = timed_out = False
     deadline = None
@@ -301,14 +426,14 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
     # record buffers the writer has encoded, for the next blocks: fresh ones cost the loop a
     # page fault per 4 KiB written (a 1000-agent record is 0.26 MB)
     free = []
-    # a signal only sets master._stop while blocks run (they are short): Python would run a
-    # raising handler between blocks only, where a KeyboardInterrupt would lose the step count
+    # a signal only asks the master to stop while blocks run (they are short): Python would run
+    # a raising handler between blocks only, where a KeyboardInterrupt would lose the step count
     catcher = signals.catching(master.request_stop).__enter__()
     switch = sys.getswitchinterval()
     if logging:
         sys.setswitchinterval(min(switch, LOGGED_SWITCH_S))
     try:
-        while n < n_steps and not master._stop:
+        while n < n_steps and not master.stop_requested:
             nxt = min(n_steps, n + block)
             cap = (nxt - n - 1) // dec + 1 if logging else 0
             rec = None
@@ -316,28 +441,19 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
                 r = free.pop()
                 rec = r if r.cap >= cap else None
             if rec is None:
-                rec = _RecordBuffers(cap, N, M)
-            jb = (np.empty(jcap, np.int64), np.empty(jcap, np.int64), np.empty(jcap),
-                  np.empty(jcap), np.empty(jcap))
+                rec = LogRecords.empty(cap, N, M)
+            jb = Jumps.empty(jcap)
             t0 = time.perf_counter()
-            run_block(fn, comp, fmu._vr_state, fmu._vr_input, S, u, theta, ctrl.edges, ctrl.P,
-                      h, bool(ctrl.hybrid), ctrl.mu, ctrl.jumped, ctrl.theta_prev,
-                      ctrl.theta_jump, n, nxt, dec, spl, master._P, master._kX, master._masses,
-                      master._J, rot, pos, U, quat, *rec.arrays(), *jb, smp_step, smp_S,
-                      smp_theta, smp_u, k0, out)
+            loop(cplant, law, es, mx, tuple(rec), tuple(jb), smp_t, h, n, nxt, dec, spl, out)
             now = time.perf_counter()
             dt = now - t0
             n0, n = n, int(out[O_N])
-            plant._k = k0 + n
-            fmu.time = (k0 + n) * h
-            if u is not fmu._u:
-                fmu._u[...] = u
             if n > n0 and dt > target * 1.5:
                 block = max(1, int((n - n0) * target / dt))
             elif block < MAX_BLOCK and dt < target / 2:
                 block = min(MAX_BLOCK, 2 * block)
             _hand_over(master, writer, rec, int(out[O_REC]), jb, int(out[O_JMP]), h,
-                       int(out[O_SAMPLED]), smp_step, smp_S, smp_theta, smp_u, free)
+                       int(out[O_SAMPLED]), smp, mx, free)
             if out[O_STATUS]:
                 pending = (CALL_NAMES[int(out[O_CALL])], int(out[O_STATUS]))
                 break
@@ -345,7 +461,7 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
                 break
             if bar is not None:
                 bar.update(n - bar.n)
-            if master._stop:
+            if master.stop_requested:
                 interrupted = n < n_steps
                 break
             if budget is not None:
@@ -363,56 +479,27 @@ def run_compiled(master, fmu, n_steps, bar, spl, dec, budget=None):
             writer.close()
     if pending is not None:
         try:
-            fmu._fail(*pending)
+            master.plant.raise_fmi_status(*pending)
         except Se3SyncError as exc:
-            if not master.plant_failed(n, u, exc):   # a non-finite state or wrench: diverged
+            # a non-finite state or wrench (the plant's input buffer): the run diverged
+            if not master.plant_failed(n, plant.fmi.inputs, exc):
                 raise
     return n, interrupted, timed_out
 
 
-def _addresses(fmu):
-    import ctypes
-
-    dll = fmu._slave.dll
-    return np.array([ctypes.cast(getattr(dll, name), ctypes.c_void_p).value
-                     for name in CALL_NAMES], dtype=np.int64)
-
-
-class _RecordBuffers:
-    def __init__(self, cap, N, M):
-        self.cap = cap
-        self.step = np.empty(cap, np.int64)
-        self.S = np.empty((cap, N, layout.S_WIDTH))
-        self.u = np.empty((cap, N, 6))
-        self.theta = np.empty((cap, M))
-        self.mu = np.empty((cap, M))
-        self.jumped = np.empty((cap, M), np.bool_)
-        self.rot = np.empty((cap, M))
-        self.pos = np.empty((cap, M))
-        self.U = np.empty((cap, M))
-        self.quat = np.empty((cap, N, 4))
-        self.V = np.empty(cap)
-
-    def arrays(self):
-        return (self.step, self.S, self.u, self.theta, self.mu, self.jumped, self.rot, self.pos,
-                self.U, self.quat, self.V)
-
-
-def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, smp_theta,
-               smp_u, free=None):
+def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp, mx, free=None):
     """The block's events, in step order: the summary samples (main thread, they fill
     master.add_sample, which checks them for divergence), jumps (master.add_jump now, the log on
     the writer) and log records."""
     if nsmp:
         m = master.metrics
         out = np.empty((nsmp, 4))
-        sample_metrics(smp_S, smp_theta, nsmp, m.edges, m.P, m.kX, m.masses, m.J, m.U, m.rot,
-                       m.pos, m.quat, out)
-        steps = smp_step[:nsmp].tolist()
+        sample_metrics(_plain(smp), nsmp, mx, out)
+        steps = smp.step[:nsmp].tolist()
         if steps[0] == 0:
-            master.u0 = smp_u.copy()
+            master.u0 = smp.u0.copy()
         for q, (V, ximax, r, p) in enumerate(out.tolist()):
-            master.add_sample(m.record(steps[q] * h, r, p, ximax, smp_theta[q], V))
+            master.add_sample(m.record(steps[q] * h, r, p, ximax, smp.theta[q], V))
     jstep, jedge, jbefore, jafter, jmu = (a[:njmp].tolist() for a in jb)
     for s, e, b, a, m in zip(jstep, jedge, jbefore, jafter, jmu):
         master.add_jump({"t": s * h, "edge": e, "theta_before": b, "theta_after": a, "mu": m})
@@ -420,7 +507,7 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp_step, smp_S, sm
         if free is not None and writer is not None:
             free.append(rec)
         return
-    kX = master._kX
+    kX = master.metrics.kX
 
     sleep = time.sleep
 

@@ -20,8 +20,8 @@ from controller.errors import Se3SyncError
 from controller.kernels import metrics, network_U
 
 from . import guards, signals
-from .controllers import law_name, make_controller
-from .fastloop import MAX_BLOCK, compiled_fleet, run_compiled
+from .controllers import edge_state_of, law_name, make_controller
+from .fastloop import MAX_BLOCK, compiled_pair, run_compiled
 from .scenario import design_summary
 
 __all__ = ["Master", "NetworkMetrics", "make_controller", "design_summary"]
@@ -68,7 +68,8 @@ class NetworkMetrics:
 
 class Master:
     """``Master(scenario, plant, controller, logger=None, sample_dt=1.0)``: plant a
-    `cosim.plants.Plant`, controller a `cosim.controllers.Controller` (or a registered law name),
+    `cosim.plants.Plant`, controller a `cosim.controllers.Controller` (or a registered law name;
+    its θ-like state, if it has one, is logged and summarised, else θ ≡ 0),
     logger an McapLogger or None. ``run(n_steps, progress=False, budget=None) -> dict`` (the
     summary, without file names); ``budget`` is a wall-clock limit in seconds, counted from the
     end of the first block (one-time set-up is not held against a run), after which the run stops
@@ -86,6 +87,9 @@ class Master:
     that joins a running swarm): times in the log, the jumps and the summary are (n₀ + n)·h. The
     log and sample ticks stay at multiples of their periods from step 0 of this run, so n₀
     should be a multiple of them for the ticks to fall on the timeline's.
+
+    The master counts the steps of its run (n, its ticks and times); the plant owns its own
+    clock (`cosim.plants`), which the master never reads or writes.
     """
 
     use_compiled = True  # False forces the Python reference loop (tests compare the two)
@@ -108,10 +112,8 @@ class Master:
         N, M = sc.graph.n, sc.graph.M
         self.N, self.M = N, M
         self.edges = np.ascontiguousarray(sc.graph.edges)
-        self.metrics = mx = NetworkMetrics(sc)
-        # the compiled loop reads these buffers and parameters directly
-        self._P, self._kX, self._masses, self._J = mx.P, mx.kX, mx.masses, mx.J
-        self._rot, self._pos, self._U, self._quat = mx.rot, mx.pos, mx.U, mx.quat
+        self.metrics = NetworkMetrics(sc)
+        self.edge_state = edge_state_of(controller, M)
         self._stop = False
         self._start(sc.S0 if S0 is None else np.asarray(S0, float))
 
@@ -128,7 +130,7 @@ class Master:
         self.link_samples = 0
         self.u0 = None
         self.n_done = 0
-        self.V0 = V_bar(sc.graph, sc.weighting, sc.design, sc.gains, S0, self.controller.theta,
+        self.V0 = V_bar(sc.graph, sc.weighting, sc.design, sc.gains, S0, self.edge_state.theta,
                         sc.inertia6)
         self.jump_bound = jump_bound(self.V0, sc.gains.k_X, sc.design.delta)
         self.V_limit = guards.V_limit(self.V0, sc.gravity)
@@ -202,8 +204,8 @@ class Master:
         self.add_sample(self.metrics.sample(t, S, theta))
 
     def _tick(self, n, S, u, do_log, do_sample):
-        ctrl = self.controller
-        theta = ctrl.theta_jump  # θ at t_n after the jump stage
+        es = self.edge_state
+        theta = es.theta_jump  # θ at t_n after the jump stage
         t = (self.first_step + n) * self.h
         if n == 0:
             self.u0 = np.array(u, copy=True)
@@ -215,13 +217,19 @@ class Master:
                 self.link_samples += 1
         if do_log and self.logger is not None:
             V, _ = self._metrics(S, theta)
-            kxu = float(self._kX * self._U.sum())
-            self.logger.record(round(t * 1e9), S, u, theta, ctrl.mu, ctrl.jumped, self._rot,
-                               self._pos, self._U, self._quat, float(V), kxu)
+            mx = self.metrics
+            kxu = float(mx.kX * mx.U.sum())
+            self.logger.record(round(t * 1e9), S, u, theta, es.mu, es.jumped, mx.rot, mx.pos,
+                               mx.U, mx.quat, float(V), kxu)
 
     def request_stop(self) -> None:
         """Stop the run at the next check (between two blocks), as Ctrl-C does."""
         self._stop = True
+
+    @property
+    def stop_requested(self) -> bool:
+        """A stop was asked for (`request_stop`, Ctrl-C, SIGTERM) and the run has not ended."""
+        return self._stop
 
     def _on_signal(self):
         if self._stop:  # a second Ctrl-C or SIGTERM: stop right now
@@ -258,12 +266,12 @@ class Master:
         t0 = time.perf_counter()
         fleet = None
         if self.use_compiled and self.first_step == 0:
-            fleet = compiled_fleet(plant, ctrl)
+            fleet = compiled_pair(plant, ctrl)
         try:
             if fleet is not None:
                 # the plant and controller support the compiled loop (cosim/fastloop.py): the
                 # same steps, ticks and events, blocks of steps without returning to Python
-                n, interrupted, timed_out = run_compiled(self, fleet, n_steps, bar, spl, dec,
+                n, interrupted, timed_out = run_compiled(self, *fleet, n_steps, bar, spl, dec,
                                                          budget)
             # else: the reference loop in Python
             while fleet is None and n < n_steps and not self._stop:
@@ -333,7 +341,7 @@ class Master:
         h = self.h
         t_end = (self.first_step + n) * h
         S = self.plant.read() if not broken else None
-        theta_end = self.controller.theta.copy()
+        theta_end = self.edge_state.theta.copy()
         final = None
         if S is not None:
             final = self.metrics.sample(t_end, S, theta_end)

@@ -24,7 +24,8 @@ import numpy as np
 
 from controller import JumpEvent, layout
 from controller.errors import ConfigError, Se3SyncError
-from controller.kernels import delayed_network_step
+
+from .controllers import EdgeState, law_name, require
 
 __all__ = ["NetworkConfig", "LinkSpec", "parse_network", "check_links", "NetworkController",
            "networked", "DEFAULT_HOST", "DEFAULT_BASE_PORT"]
@@ -218,9 +219,10 @@ def _steps(seconds: float, h: float) -> int:
 
 
 class NetworkController:
-    """The hybrid law (or the gradient baseline) of ``inner`` run per agent on neighbour data that
-    crosses the ``[network]`` links: the `cosim.controllers.Controller` protocol, one compiled
-    call (`controller.kernels.delayed_network_step`) per step.
+    """The law of ``inner`` run per agent on neighbour data that crosses the ``[network]`` links:
+    the `cosim.controllers.Controller` protocol, one compiled call per step of the law's delayed
+    step (its ``delayed_step()`` capability; the paper's is
+    `cosim.network_step.delayed_network_step`).
 
     Links are numbered 2k (edge k's positive end → negative end) and 2k + 1 (back). The schedule
     of each link (loss, jitter) comes from its own random stream, spawned from ``seed``, drawn
@@ -228,24 +230,18 @@ class NetworkController:
     """
 
     def __init__(self, scenario, inner, net: NetworkConfig, horizon: int | None = None):
-        if not hasattr(inner, "edges") or not hasattr(inner, "P"):
-            raise Se3SyncError(f"the [network] table needs a law with the network view "
-                               f"(hybrid or gradient), got {type(inner).__name__}")
+        self._law = require(inner, "delayed_step", "[network]",
+                            "the table runs a law per agent on delayed data")()
         check_links(net, scenario.graph)
         self.inner = inner
         self.net = net
-        self.name = getattr(inner, "name", "hybrid")
-        self.hybrid = bool(inner.hybrid)
-        self.params = inner.params
-        self.P = inner.P
-        self.edges = inner.edges
+        self.name = law_name(inner)
+        self.edges = np.ascontiguousarray(scenario.graph.edges)
         self.N, self.M = scenario.graph.n, scenario.graph.M
-        self.theta = inner.theta
-        self.mu = inner.mu
-        self.jumped = inner.jumped
-        self.theta_prev = inner.theta_prev
-        self.theta_jump = inner.theta_jump
-        self.u = inner.u
+        self.edge_state = getattr(inner, "edge_state", None)
+        es = self._law.state or EdgeState.zeros(self.M)
+        self.theta, self.theta_prev, self.theta_jump, self.mu, self.jumped = es
+        self.u = self._law.u
         self.theta0 = self.theta.copy()
         M2 = 2 * self.M
         self.specs = [net.link(*self._ends(l)) for l in range(M2)]
@@ -290,7 +286,8 @@ class NetworkController:
 
     def write_wrench_into(self, buf):
         self.inner.write_wrench_into(buf)
-        self.u = self.inner.u
+        self._law = self.inner.delayed_step()
+        self.u = self._law.u
 
     def reset(self, theta0=None) -> None:
         self.inner.reset(theta0)
@@ -355,11 +352,10 @@ class NetworkController:
                                "was cut to (NetworkController(horizon=...))")
         if self.r == CHUNK:
             self._draw()
-        nj = delayed_network_step(S, self.n, self.sched, self.r, self.ring_S, self.ring_theta,
-                                  self.arrival, self.held, self.recv_S, self.recv_theta, self.term,
-                                  self.max_age, self.hold, self.theta, self.edges, self.P, self.h,
-                                  self.hybrid, self.u, self.mu, self.jumped, self.theta_prev,
-                                  self.theta_jump, self.age_hist, self.counts, self.failsafe)
+        nj = self._law.step(S, self.n, self.sched, self.r, self.ring_S, self.ring_theta,
+                            self.arrival, self.held, self.recv_S, self.recv_theta, self.term,
+                            self.max_age, self.hold, self.h, self.age_hist, self.counts,
+                            self.failsafe)
         self.n += 1
         self.r += 1
         if nj == 0:

@@ -1,35 +1,42 @@
-"""Plants the master can drive: the protocol, the registry the command line's ``--plant`` choices
-read, and the two FMU-backed implementations.
+"""Plants the master can drive: the protocol, `make_plant` over the registry the command line's
+``--plant`` choices read, and the two FMU-backed implementations.
 
 A plant holds N rigid bodies. Per communication step the master calls, in this order,
 ``read()`` (the state at t_n), ``apply(u)`` (held constant over the step: zero-order hold) and
-``advance(h)`` (t_n → t_n + h). Plants are registered in `cosim.registry.PLANTS`.
+``advance(h)`` (t_n → t_n + h). A plant owns its time: it counts the steps it has advanced
+(t = k·h), and nothing else counts them for it. Plants are registered in
+`cosim.registry.PLANTS`; a Python plant needs no FMU (tests/test_python_plant.py shows one).
 """
 from __future__ import annotations
 
 import zipfile
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
 from controller.errors import Se3SyncError
 from controller import layout
-from plant_fmu.fast import FleetFMU
+from plant_fmu.fast import FleetFMU, FmiCalls
 
 from .registry import PLANTS, resolve
 
-__all__ = ["Plant", "FmuPlant", "PerBodyFmuPlant", "make_plant"]
+__all__ = ["Plant", "CompiledPlant", "FmuPlant", "PerBodyFmuPlant", "make_plant"]
 
 
 @runtime_checkable
 class Plant(Protocol):
     """n: number of bodies; read() -> S (N, 18) [p, R row-major, ξ] (may be a reused buffer);
-    apply(u (N, 6)): the wrench held over the next step; advance(h); close().
+    apply(u (N, 6)): the wrench held over the next step; advance(h); close(). A registered plant
+    class also has ``from_scenario(scenario, **options)`` (options: what a caller may pass
+    through `make_plant`, e.g. an FMU plant's ``fmu_path``).
 
-    Optional: ``stats() -> dict`` (link statistics; logged on /link/stats at 1 Hz and put in
-    the summary under "link"), ``model_description() -> str | None`` (attached to the log),
-    ``input_buffer`` (an (N, 6) array the controller may write its wrench into) and
-    ``reset(S0)`` (start again from S0 at t = 0, so that one plant serves many runs).
+    Optional capabilities, each asked for by the code that uses it: ``stats() -> dict`` (link
+    statistics; logged on /link/stats at 1 Hz and put in the summary under "link"),
+    ``model_description() -> str | None`` (attached to the log), ``input_buffer`` (an (N, 6)
+    array the controller may write its wrench into), ``reset(S0)`` (start again from S0 at
+    t = 0, so that one plant serves many runs: the sweeps need it), ``max_block`` (steps the
+    master may run between two checks for Ctrl-C) and ``compiled_plant()`` (a `CompiledPlant`:
+    the compiled loop of cosim/fastloop.py steps it without Python).
     """
 
     n: int
@@ -51,11 +58,22 @@ def _md_text(path) -> str | None:
         return None
 
 
+class CompiledPlant(NamedTuple):
+    """What the compiled loop (cosim/fastloop.py) needs of a plant: the FMU's raw calls and
+    buffers (`plant_fmu.fast.FmiCalls`) and the plant's clock, an int64 (1,) holding the steps
+    advanced since t = 0 — the same memory `FmuPlant.advance` counts in, so either loop moves
+    the one clock and neither copies it."""
+
+    fmi: FmiCalls
+    clock: np.ndarray
+
+
 class FmuPlant:
     """All N bodies in ONE instance of the plant FMU (a handful of FMI calls per step).
 
     ``FmuPlant(masses (N,), inertias (N,3,3), S0 (N,18), gravity=(0,0,0), internal_step=1e-4,
-    fmu_path=None)``; ``FmuPlant.from_scenario(scenario)``.
+    fmu_path=None)``; ``FmuPlant.from_scenario(scenario, fmu_path=None)``. ``steps`` is its
+    clock: doStep runs from steps·h.
     """
 
     def __init__(self, masses, inertias, S0, gravity=(0.0, 0.0, 0.0), internal_step=1e-4,
@@ -64,7 +82,8 @@ class FmuPlant:
         self.n = n = S0.shape[0]
         # terms: the optional ground and drag (Scenario.plant_terms; none for the paper's runs)
         self._fixed = dict(mass=np.asarray(masses, float), J=np.asarray(inertias, float),
-                           gravity=np.asarray(gravity, float), h_internal=float(internal_step), **(terms or {}))
+                           gravity=np.asarray(gravity, float), h_internal=float(internal_step),
+                           **(terms or {}))
         self._fmu = fmu = FleetFMU(n, fmu_path=fmu_path, instance_name=instance_name)
         try:
             fmu.set_initial_state(S0, **self._fixed)
@@ -72,7 +91,7 @@ class FmuPlant:
         except BaseException:
             fmu.close()
             raise
-        self._k = 0
+        self._clock = np.zeros(1, np.int64)
         self.read = fmu.get_state
         self.apply = fmu.set_input
         self._do_step = fmu.do_step
@@ -81,14 +100,33 @@ class FmuPlant:
         self.input_buffer = fmu.u
 
     @classmethod
-    def from_scenario(cls, scenario, fmu_path=None):
+    def from_scenario(cls, scenario, fmu_path=None, instance_name="plant"):
         return cls(scenario.masses, scenario.inertias, scenario.S0, scenario.gravity,
-                   scenario.internal_step, fmu_path, terms=scenario.plant_terms)
+                   scenario.internal_step, fmu_path, instance_name,
+                   terms=scenario.plant_terms)
+
+    @property
+    def steps(self) -> int:
+        """Communication steps advanced since t = 0 (the plant's clock)."""
+        return int(self._clock[0])
 
     def advance(self, h: float) -> None:
-        k = self._k
+        clock = self._clock
+        k = int(clock[0])
         self._do_step(k * h, h)
-        self._k = k + 1
+        clock[0] = k + 1
+
+    def compiled_plant(self) -> CompiledPlant | None:
+        """The FMU's raw calls and this plant's clock, for the compiled loop (None once
+        closed). A call it reports failed is raised by `raise_fmi_status`."""
+        fmu = self._fmu
+        if fmu is None or type(self).advance is not FmuPlant.advance:
+            return None  # closed, or a subclass with its own step: only Python knows it
+        return CompiledPlant(fmu.fmi_calls(), self._clock)
+
+    def raise_fmi_status(self, function: str, status: int) -> None:
+        """The FMUError of an FMI call the compiled loop saw fail, with what the FMU logged."""
+        self._fmu.raise_status(function, status)
 
     def reset(self, S0) -> None:
         """fmi2Reset, the same parameters with the initial state S0, initialise at t = 0."""
@@ -100,7 +138,7 @@ class FmuPlant:
         fmu.reset()
         fmu.set_initial_state(np.asarray(S0, float), **self._fixed)
         fmu.initialize(0.0)
-        self._k = 0
+        self._clock[0] = 0
 
     def model_description(self) -> str | None:
         return _md_text(self._fmu.fmu_path)
@@ -153,6 +191,11 @@ class PerBodyFmuPlant:
         return cls(scenario.masses, scenario.inertias, scenario.S0, scenario.gravity,
                    scenario.internal_step, fmu_path, terms=scenario.plant_terms)
 
+    @property
+    def steps(self) -> int:
+        """Communication steps advanced since t = 0 (the plant's clock)."""
+        return self._k
+
     def read(self) -> np.ndarray:
         copyto = np.copyto
         for row, get in zip(self._rows, self._get):
@@ -183,6 +226,7 @@ class PerBodyFmuPlant:
             f.close()
 
 
-def make_plant(kind: str, scenario, fmu_path=None):
-    """The plant registered as ``kind`` (`cosim.registry.PLANTS`), built from the scenario."""
-    return resolve(PLANTS, kind, "plant").from_scenario(scenario, fmu_path)
+def make_plant(kind: str, scenario, **options):
+    """The plant registered as ``kind`` (`cosim.registry.PLANTS`), built from the scenario;
+    ``options`` go to its ``from_scenario`` (e.g. ``fmu_path`` for the FMU plants)."""
+    return resolve(PLANTS, kind, "plant").from_scenario(scenario, **options)

@@ -2,8 +2,6 @@
 point that `se3sync run`, `se3sync connect` and other packages call."""
 from __future__ import annotations
 
-import dataclasses
-import math
 import time
 
 from . import signals
@@ -15,30 +13,9 @@ from .log.mcap import McapLogger
 from .master import Master
 from .network import networked
 from .plants import make_plant
-from .scenario import MAX_DEFAULT_INTERNAL_STEP, Scenario, ScenarioError, load_scenario
+from .scenario import Scenario, load_scenario, with_timing
 
 __all__ = ["run_scenario", "with_timing", "finish_summary", "write_json_atomic"]
-
-
-def with_timing(scenario, duration=None, step=None):
-    """A copy of the scenario with another duration and/or communication step (the internal
-    step follows h unless the scenario sets plant.internal_step)."""
-    if duration is None and step is None:
-        return scenario
-    changes = {}
-    if duration is not None:
-        duration = float(duration)
-        if not (math.isfinite(duration) and duration > 0):
-            raise ScenarioError("simulation.duration", f"must be > 0, got {duration}", scenario.path)
-        changes["duration"] = duration
-    if step is not None:
-        step = float(step)
-        if not (math.isfinite(step) and step > 0):
-            raise ScenarioError("simulation.step", f"must be > 0, got {step}", scenario.path)
-        changes["step"] = step
-        if "internal_step" not in scenario.values.get("plant", {}):
-            changes["internal_step"] = min(step, MAX_DEFAULT_INTERNAL_STEP)
-    return dataclasses.replace(scenario, **changes)
 
 
 def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
@@ -47,10 +24,12 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                  log_encoding="json", stage=None, live=None) -> dict:
     """Runs a scenario (a Scenario or a path to a TOML file) and returns the summary dict.
 
-    plant: "fleet" | "per-body" | a Plant instance (closed by the caller);
-    controller: "hybrid" | "gradient" | a controller instance. log_path: MCAP written
-    (streamed) there, its per-record channels in log_encoding ("json" or "cdr"); summary_path: summary JSON written atomically. live: (host, port, rate) of a
-    live view (cosim/log/live.py) or None. log_metadata adds to (or
+    plant: a registered plant name (`cosim.registry.PLANTS`) or a Plant instance (closed by
+    the caller); fmu_path: the FMU an FMU plant loads; controller: a registered law name
+    (`cosim.registry.LAWS`) or a controller instance. log_path: MCAP written (streamed) there,
+    its per-record channels in log_encoding ("json" or "cdr"); summary_path: summary JSON
+    written atomically. live: (host, port, rate) of a live view (cosim/log/live.py) or None.
+    log_metadata adds to (or
     overrides) the MCAP metadata record, summary_extra to the summary. On Ctrl-C or SIGTERM the
     run stops cleanly, the log is finished and the summary has "interrupted": true, also
     before the first step (building the controller, the plant FMU, the log: `"steps": 0` and
@@ -87,7 +66,8 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
             ctrl_kind = law_name(ctrl)
             if own_plant:
                 at("loading the plant FMU")
-                p = make_plant(plant, scenario, fmu_path)
+                options = {} if fmu_path is None else {"fmu_path": fmu_path}   # an FMU plant's
+                p = make_plant(plant, scenario, **options)
             at("opening the log" if log_path is not None else "setting up the master")
             # A signal while the log and the master are set up stops the run at its first
             # step (with a finished log and a summary), rather than somewhere inside the set-up.

@@ -29,7 +29,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as _toml
 
 __all__ = ["ScenarioError", "design_summary", "Scenario", "load_scenario", "parse_scenario", "apply_overrides",
-           "parse_override", "restrict", "SCHEMA", "DEFAULT_LOG_RATE",
+           "parse_override", "restrict", "with_timing", "SCHEMA", "DEFAULT_LOG_RATE",
            "MAX_DEFAULT_INTERNAL_STEP"]
 
 DEFAULT_LOG_RATE = 100.0
@@ -252,6 +252,49 @@ class Scenario:
         return max(0, int(math.ceil(d / h - 1e-9)))
 
 
+def _timing(duration: float, step: float, N: int, internal_step=None) -> float:
+    """The plant's internal step, once duration and step h have passed every limit: h ≤ duration,
+    at most MAX_STEPS steps, at most MAX_BODY_SUBSTEPS body-substeps per step (the internal step
+    given, ``plant.internal_step``, or h capped at MAX_DEFAULT_INTERNAL_STEP). The one place h is
+    validated: the loader and `with_timing` both come here."""
+    if step > duration:
+        raise ScenarioError("simulation.step", f"must be <= simulation.duration = {duration:g}, got {step:g}")
+    n_steps = math.ceil(duration / step - 1e-9)
+    if n_steps > MAX_STEPS:
+        raise ScenarioError("simulation.step", f"h = {step:g} s gives {n_steps:.3g} steps for "
+                                               f"{duration:g} s (at most {MAX_STEPS:.0e})")
+    internal = min(step, MAX_DEFAULT_INTERNAL_STEP)
+    key = "simulation.step"
+    if internal_step is not None:
+        key = "plant.internal_step"
+        internal = _num("plant.internal_step", internal_step, positive=True)
+        if internal < MIN_INTERNAL_STEP:
+            raise ScenarioError(key, f"must be >= {MIN_INTERNAL_STEP:g} s, got {internal:g}")
+    sub = math.ceil(step / internal - 1e-9)
+    if N * sub > MAX_BODY_SUBSTEPS:
+        raise ScenarioError(key, f"h = {step:g} s with internal step {internal:g} s gives {N} × "
+                                 f"{sub:.3g} body-substeps per step, above the plant's "
+                                 f"{MAX_BODY_SUBSTEPS:.0e}")
+    return internal
+
+
+def with_timing(scenario: Scenario, duration=None, step=None) -> Scenario:
+    """A copy of the scenario with another duration and/or communication step, checked against
+    every limit the loader applies (`_timing`); the internal step follows h unless the scenario
+    sets plant.internal_step."""
+    if duration is None and step is None:
+        return scenario
+    try:
+        d = scenario.duration if duration is None else _num("simulation.duration", duration,
+                                                               positive=True)
+        h = scenario.step if step is None else _num("simulation.step", step, positive=True)
+        internal = _timing(d, h, scenario.graph.n,
+                           scenario.values.get("plant", {}).get("internal_step"))
+    except ScenarioError as exc:
+        raise exc.with_file(scenario.path) from None
+    return dataclasses.replace(scenario, duration=d, step=h, internal_step=internal)
+
+
 def restrict(scenario: Scenario, agents) -> tuple:
     """The part of a scenario that a set of agents spans: ``(sub, edges)`` where ``sub`` is a
     Scenario of those agents (numbered 1.. in the order given) with every edge joining two of
@@ -464,29 +507,12 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
     sim = data["simulation"]
     duration = _num("simulation.duration", _require("simulation", sim, "duration"), positive=True)
     step = _num("simulation.step", _require("simulation", sim, "step"), positive=True)
-    if step > duration:
-        raise ScenarioError("simulation.step", f"must be <= simulation.duration = {duration:g}, got {step:g}")
     log_rate = _num("simulation.log_rate", sim.get("log_rate", DEFAULT_LOG_RATE), positive=True)
-    n_steps = math.ceil(duration / step - 1e-9)
-    if n_steps > MAX_STEPS:
-        raise ScenarioError("simulation.step", f"h = {step:g} s gives {n_steps:.3g} steps for "
-                                               f"{duration:g} s (at most {MAX_STEPS:.0e})")
 
     # [plant]
     pl = data.get("plant", {})
     gravity = _array("plant.gravity", pl.get("gravity", [0.0, 0.0, 0.0]), (3,))
-    internal = min(step, MAX_DEFAULT_INTERNAL_STEP)
-    key = "simulation.step"
-    if "internal_step" in pl:
-        key = "plant.internal_step"
-        internal = _num("plant.internal_step", pl["internal_step"], positive=True)
-        if internal < MIN_INTERNAL_STEP:
-            raise ScenarioError(key, f"must be >= {MIN_INTERNAL_STEP:g} s, got {internal:g}")
-    sub = math.ceil(step / internal - 1e-9)
-    if N * sub > MAX_BODY_SUBSTEPS:
-        raise ScenarioError(key, f"h = {step:g} s with internal step {internal:g} s gives {N} × "
-                                 f"{sub:.3g} body-substeps per step, above the plant's "
-                                 f"{MAX_BODY_SUBSTEPS:.0e}")
+    internal = _timing(duration, step, N, pl.get("internal_step"))
     mode = pl.get("mode", "fleet")
     if not isinstance(mode, str) or mode not in PLANTS:
         raise ScenarioError("plant.mode", "must be " + " or ".join(f'"{k}"' for k in PLANTS)

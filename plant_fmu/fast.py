@@ -13,6 +13,7 @@ import threading
 import zipfile
 from ctypes import c_double, c_int, c_size_t, c_void_p
 from pathlib import Path
+from typing import NamedTuple
 from xml.etree import ElementTree
 
 import numpy as np
@@ -100,6 +101,24 @@ def _identity(fmu_path: Path, n: int) -> tuple[str, str]:
     if md.coSimulation is None:
         raise Se3SyncError(f"{fmu_path} has no Co-Simulation interface")
     return md.guid, md.coSimulation.modelIdentifier
+
+
+class FmiCalls(NamedTuple):
+    """What compiled code needs to drive one FleetFMU instance without Python (a numba-friendly
+    record: `FleetFMU.fmi_calls`): ``calls`` the addresses of fmi2GetReal, fmi2SetReal and
+    fmi2DoStep (int64 (3,), in `CALL_NAMES` order), ``component`` the fmi2Component, the value
+    references of the state rows and of the inputs (uint32), and the instance's state (n, 18)
+    and input (n, 6) buffers. The addresses are valid while the instance is open."""
+
+    calls: np.ndarray
+    component: int
+    vr_state: np.ndarray
+    vr_input: np.ndarray
+    state: np.ndarray
+    inputs: np.ndarray
+
+
+CALL_NAMES = ("fmi2GetReal", "fmi2SetReal", "fmi2DoStep")
 
 
 def _as_array(x, shape, name) -> np.ndarray:
@@ -201,6 +220,11 @@ class FleetFMU:
         self._p_u = c_void_p(self._u.ctypes.data)
 
     # ------------------------------------------------------------------ helpers
+    def raise_status(self, function: str, status: int):
+        """Raises the FMUError of a call that returned ``status`` (≥ fmi2Error) outside this
+        object (compiled code driving `fmi_calls`), with what the FMU logged since."""
+        self._fail(function, int(status))
+
     def _fail(self, function: str, status: int):
         msgs = [m[2] for m in self.messages[self._mark:] if m[1] >= fmi2Warning] or [m[2] for m in self.messages[-3:]]
         self._mark = len(self.messages)
@@ -301,7 +325,6 @@ class FleetFMU:
         self._call("fmi2SetupExperiment", s.setupExperiment, None, float(t0))
         self._call("fmi2EnterInitializationMode", s.enterInitializationMode)
         self._call("fmi2ExitInitializationMode", s.exitInitializationMode)
-        self.time = float(t0)
 
     # ------------------------------------------------------------------ fast path
     @property
@@ -322,7 +345,6 @@ class FleetFMU:
         st = self._DoStep(self._c, t, h, 1)
         if st >= fmi2Error:
             self._fail("fmi2DoStep", st)
-        self.time = t + h
 
     def get_state(self) -> np.ndarray:
         """(n, 18) [p, R row-major, xi] -- a view of a buffer that the next call overwrites."""
@@ -334,6 +356,13 @@ class FleetFMU:
     def get_contact(self) -> np.ndarray:
         """(n,) bool: which bodies rest on the ground (always False without a ground)."""
         return self.get_real(self._vr_contact) != 0.0
+    def fmi_calls(self) -> FmiCalls:
+        """The raw interface of this open instance for compiled code (`FmiCalls`)."""
+        self._check_open()
+        calls = np.array([ctypes.cast(getattr(self._slave.dll, name), c_void_p).value
+                          for name in CALL_NAMES], dtype=np.int64)
+        return FmiCalls(calls, int(self._c.value), self._vr_state, self._vr_input, self._state,
+                        self._u)
 
     def get_quat(self) -> np.ndarray:
         """(n, 4) unit quaternions (w first, w >= 0) -- a view of a reused buffer."""

@@ -244,7 +244,7 @@ def test_a_failed_run_leaves_no_log(tmp_path):
 
     class Failing(FmuPlant):
         def advance(self, h):
-            if self._k == 200:
+            if self.steps == 200:
                 raise Se3SyncError("plant failed")
             super().advance(h)
 

@@ -130,3 +130,23 @@ def test_link_stats_are_logged_and_summarised(tmp_path):
     msgs = read_log(tmp_path / "l.mcap")["messages"]["/link/stats"]
     assert [t for t, _ in msgs] == [0, 1_000_000_000]
     assert msgs[1][1]["sent"] == 2
+
+
+def test_with_timing_checks_h_against_every_limit_of_the_loader():
+    """One validation of h (cosim.scenario._timing): a library override of the step or the
+    duration meets the same limits as the file, on one line naming the key."""
+    from cosim.scenario import MAX_STEPS, with_timing
+
+    sc = load_scenario(PAPER)
+    for kw, needle in (({"step": 0.0}, "must be > 0"), ({"step": float("nan")}, "finite"),
+                       ({"duration": 1e6}, f"at most {MAX_STEPS:.0e}"),
+                       ({"step": 2 * sc.duration}, "must be <= simulation.duration")):
+        with pytest.raises(ScenarioError) as e:
+            with_timing(sc, **kw)
+        msg = str(e.value)
+        assert "simulation." in msg and needle in msg and "\n" not in msg, msg
+    big = load_scenario(PAPER, ["plant.internal_step=1e-9"], duration=1e-3, step=1e-4)
+    with pytest.raises(ScenarioError, match="plant.internal_step: .*body-substeps"):
+        with_timing(big, step=1e-3)
+    fine = with_timing(sc, duration=2.0, step=2e-4)
+    assert (fine.duration, fine.step, fine.internal_step) == (2.0, 2e-4, 2e-4)

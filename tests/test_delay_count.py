@@ -145,8 +145,8 @@ def test_count_equals_the_sweep_without_theta_and_with_unequal_vehicles(hybrid, 
     m = np.random.default_rng(5).uniform(1.5, 4.0, 20) if masses else None
     sc = parse_scenario(tree_scenario_text(20, "random", 2, m), "t", "t.toml")
     lin = Linearisation(sc, hybrid, force_sparse=True)
-    a = dm.delay_margin(sc, hybrid=hybrid, lin=lin, count=True)
-    b = dm.delay_margin(sc, hybrid=hybrid, lin=lin, count=False)
+    a = dm.delay_margin(sc, law=hybrid, lin=lin, count=True)
+    b = dm.delay_margin(sc, law=hybrid, lin=lin, count=False)
     assert a["delay_margin_steps"] == b["delay_margin_steps"] > 0
     assert b["rho_at_margin"] < 1.0 <= b["rho_beyond"] and a["outside_beyond"] > 0
     if masses:

@@ -65,7 +65,7 @@ def run_both(sc, tmp_path, controller="hybrid", log=True, steps=None, fast_json=
         try:
             m = Master(sc, plant, controller, logger)
             m.use_compiled = compiled
-            assert (fastloop.compiled_fleet(plant, m.controller) is not None)
+            assert (fastloop.compiled_pair(plant, m.controller) is not None)
             s = m.run(sc.n_steps() if steps is None else steps)
             S = plant.read().copy()
         finally:
@@ -149,13 +149,17 @@ def test_steps_not_multiple_of_ticks(tmp_path, monkeypatch):
     """Also: a logged compiled run shortens the GIL switch interval while it steps (its blocks
     would wait for the encoder thread) and gives the caller's back."""
     seen = []
-    real = fastloop.run_block
+    real = fastloop._block_loop
 
-    def spy(*args):
-        seen.append(sys.getswitchinterval())
-        return real(*args)
+    def loop_for(law):
+        block = real(law)
 
-    monkeypatch.setattr(fastloop, "run_block", spy)
+        def spy(*args):
+            seen.append(sys.getswitchinterval())
+            return block(*args)
+        return spy
+
+    monkeypatch.setattr(fastloop, "_block_loop", loop_for)
     before = sys.getswitchinterval()
     sc = load_scenario(PAPER, ["simulation.duration=1", "simulation.log_rate=30"])
     ref, fast = run_both(sc, tmp_path, steps=4321)
@@ -171,14 +175,13 @@ def test_record_buffers_are_reused_once_encoded(tmp_path, monkeypatch):
     writer encoding each block as it is handed over (so that reuse does not depend on timing),
     one set of buffers serves every 40-step block of 4 records."""
     made = []
-    real = fastloop._RecordBuffers
+    real = fastloop.LogRecords.empty.__func__
 
-    class Counted(real):
-        def __init__(self, *a):
-            made.append(a[0])
-            super().__init__(*a)
+    def counted(cls, cap, N, M):
+        made.append(cap)
+        return real(cls, cap, N, M)
 
-    monkeypatch.setattr(fastloop, "_RecordBuffers", Counted)
+    monkeypatch.setattr(fastloop.LogRecords, "empty", classmethod(counted))
     monkeypatch.setattr(fastloop, "FIRST_LOGGED_BLOCK", 40)
     monkeypatch.setattr(fastloop, "MAX_BLOCK", 40)
     monkeypatch.setattr(fastloop, "TARGET_LOGGED_BLOCK_S", 10.0)   # never cut shorter
@@ -211,7 +214,7 @@ def test_fmu_failure_is_the_same_divergence(tmp_path):
         m.use_compiled = compiled
         s = m.run(sc.n_steps())
         logger.close()
-        res.append((s["diverged"], s["steps"], plant._k, m.jumps, messages(path)))
+        res.append((s["diverged"], s["steps"], plant.steps, m.jumps, messages(path)))
         plant.close()
     assert res[0] == res[1]
     assert "fmi2DoStep" in res[0][0]["reason"] and res[0][1] == res[0][0]["step"] == res[0][2]
@@ -235,21 +238,28 @@ def test_a_failure_that_is_not_a_divergence_raises_in_both_loops(tmp_path):
 
 
 def test_only_fleet_fmu_with_network_controller_is_compiled():
+    """The compiled loop asks for capabilities: the plant's `compiled_plant()` (the fleet FMU
+    plant has it, the per-body one not), the law's `compiled_step()` whose wrench buffer is the
+    plant's input buffer (which the master arranges), not a type."""
     sc = load_scenario(PAPER, ["simulation.duration=0.01"])
     from cosim.master import make_controller
 
     ctrl = make_controller("hybrid", sc)
     p = PerBodyFmuPlant.from_scenario(sc)
     try:
-        assert fastloop.compiled_fleet(p, ctrl) is None
+        assert fastloop.compiled_pair(p, ctrl) is None
     finally:
         p.close()
     p = FmuPlant.from_scenario(sc)
     try:
-        assert fastloop.compiled_fleet(p, ctrl) is p._fmu
-        assert fastloop.compiled_fleet(p, object()) is None
+        assert fastloop.compiled_pair(p, ctrl) is None   # the law writes its own buffer
+        Master(sc, p, ctrl)                             # ... until the master hands it the plant's
+        cp, law = fastloop.compiled_pair(p, ctrl)
+        assert law.u is cp.fmi.inputs is p.input_buffer and cp.clock[0] == p.steps == 0
+        assert fastloop.compiled_pair(p, object()) is None
     finally:
         p.close()
+    assert p.compiled_plant() is None
 
 
 def test_record_fast_equals_record(tmp_path):
@@ -346,7 +356,7 @@ def test_budget_and_request_stop_between_blocks(tmp_path):
         s = m.run(sc.n_steps(), budget=0.0)
         assert s.get("timed_out") is True and s["interrupted"] is False
         n1 = s["steps"]
-        assert 0 < n1 <= 2000 and plant._k == n1
+        assert 0 < n1 <= 2000 and plant.steps == n1
         S_mid = plant.read().copy()
         m2 = Master(sc, plant, "hybrid")
         m2.request_stop()
@@ -365,21 +375,27 @@ def test_budget_and_request_stop_between_blocks(tmp_path):
 
 def test_second_run_on_the_same_plant(tmp_path):
     # a Master run on a plant that has already stepped: doStep times continue from the
-    # plant's own step counter, as FmuPlant.advance does
+    # plant's own clock, which either loop advances in place (nothing copies it back)
     sc = load_scenario(PAPER, ["simulation.duration=0.1"])
     finals = []
     for compiled in (False, True):
         plant = FmuPlant.from_scenario(sc)
+        times = []
+        real = plant._do_step if not compiled else None
+        if real is not None:   # the Python loop's doStep times
+            plant._do_step = lambda t, h: (times.append(t), real(t, h))
         try:
             for _ in range(2):
                 m = Master(sc, plant, "hybrid")
                 m.use_compiled = compiled
                 m.run(sc.n_steps())
-            finals.append((plant.read().copy(), plant._k, plant._fmu.time))
+            finals.append((plant.read().copy(), plant.steps))
         finally:
             plant.close()
+        if times:
+            assert times == [k * sc.step for k in range(2 * sc.n_steps())]
     assert np.array_equal(finals[0][0], finals[1][0])
-    assert finals[0][1:] == finals[1][1:] == (2 * sc.n_steps(), finals[0][2])
+    assert finals[0][1] == finals[1][1] == 2 * sc.n_steps()
 
 
 def test_record_block_equals_record_per_row(tmp_path):
@@ -408,3 +424,30 @@ def test_record_block_equals_record_per_row(tmp_path):
     assert sum(m[0] == "/lyapunov" for m in a) == R
     assert messages(paths[2]) == a
     assert messages(paths[1], decoded=True) == messages(paths[0], decoded=True)
+
+
+def test_each_law_gets_its_own_loop_cache_renewed_when_its_module_changes(tmp_path, monkeypatch):
+    """numba checks a cached function against its own file only: the compiled loop of a law is
+    cached under a name carrying the stamp of the law's module, so that an edited law is
+    compiled again rather than run from the old machine code; and two laws never share an index
+    (loading one would import the other)."""
+    import importlib
+    import os
+
+    mod = tmp_path / "law_stamp_probe.py"
+    mod.write_text("from typing import NamedTuple\nclass Rec(NamedTuple):\n    x: int\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    m = importlib.import_module("law_stamp_probe")
+    monkeypatch.setattr(fastloop, "_BLOCKS", {})
+    a = fastloop._block_loop(m.Rec(1)).py_func.__qualname__
+    assert a.startswith("run_block_law_stamp_probe_Rec_")
+    st = mod.stat()
+    os.utime(mod, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))
+    monkeypatch.setattr(fastloop, "_BLOCKS", {})
+    b = fastloop._block_loop(m.Rec(1)).py_func.__qualname__
+    assert b != a and b.startswith("run_block_law_stamp_probe_Rec_")
+    from cosim.controllers import PaperStep
+    from cosim.laws.decoupled import DecoupledStep
+    names = {fastloop._block_loop(cls.__new__(cls, *[None] * len(cls._fields))).py_func.__qualname__
+             for cls in (PaperStep, DecoupledStep)}
+    assert len(names) == 2

@@ -4,6 +4,7 @@ import pytest
 
 from cosim.analysis import stability as dense
 from cosim.analysis import stability_sparse as F
+from cosim.analysis.linear import edge_jacobian
 from cosim.scenario import load_scenario, parse_scenario
 from cosim.analysis.stability_cases import tree_edges, tree_scenario_text
 
@@ -76,11 +77,47 @@ def test_laplacian_eigenvalues_by_inertia_counts(kind):
 
 def test_edge_jacobian_has_the_incidence_structure_on_the_paper_design():
     sc = load_scenario("scenarios/paper_6uav.toml")
-    J = F.edge_jacobian(F.params_of(sc), sc.gains.k_xi, True)
+    J, k_xi, has_state = edge_jacobian(sc, "hybrid")
+    assert has_state and k_xi == sc.gains.k_xi
     assert F.modal_blocks(J) is not None
     # and K_δ is symmetric positive semidefinite-ish: −k_X times the Hessian of U at consensus
     Kd = F.modal_blocks(J)[0]
     assert np.abs(Kd - Kd.T).max() < 1e-6 * np.abs(Kd).max()
+
+
+@pytest.mark.parametrize("hybrid", [True, False])
+def test_the_law_linearised_from_its_own_step_is_the_kernels(hybrid):
+    """`check` linearises a law through its `step_state` (cosim/analysis/linear.py); for the
+    paper's two laws that is `network_step` on two agents with no jump possible (δ = ∞), as the
+    analysis computed it before laws declared capabilities: the same arithmetic, the same bits."""
+    from controller import LawParameters, se3
+    from controller.kernels import network_step
+    from controller.layout import pack_state
+
+    sc = load_scenario("scenarios/hil_6uav.toml")
+    P = LawParameters.of(sc.weighting, sc.design if hybrid else None, sc.gains, delta=np.inf).P
+    edges = np.array([[0, 1]], dtype=np.int64)
+    u, mu, tp, tj = np.zeros((2, 6)), np.zeros(1), np.zeros(1), np.zeros(1)
+    jumped = np.zeros(1, dtype=np.bool_)
+
+    def f(x):
+        S = pack_state(se3.exp_se3(x[:12].reshape(2, 6)), x[12:24].reshape(2, 6))
+        th = np.array([x[24]])
+        network_step(S, th, edges, P, 1.0, hybrid, u, mu, jumped, tp, tj)
+        return np.concatenate([u.ravel(), th - x[24:25]])
+
+    ref = np.zeros((13, 25))
+    for c in range(25 if hybrid else 24):
+        e = np.zeros(25)
+        e[c] = 1e-6
+        ref[:, c] = (f(e) - f(-e)) / 2e-6
+    ref[0:6, 12:18] += sc.gains.k_xi * np.eye(6)
+    ref[6:12, 18:24] += sc.gains.k_xi * np.eye(6)
+    if not hybrid:
+        ref[12] = 0.0
+    J, k_xi, has_state = edge_jacobian(sc, "hybrid" if hybrid else "gradient")
+    assert has_state is hybrid and k_xi == sc.gains.k_xi
+    assert np.array_equal(J, ref)
 
 
 def test_thousand_agent_chain_is_analysed_without_dense_matrices():

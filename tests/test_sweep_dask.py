@@ -19,6 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "scenarios" / "sweep_small.toml"
 N_RANDOM = 8
 N_ADV = 12  # 3 edges × 3 eigenvectors + 3
+LAWS2 = ("hybrid", "gradient")   # the paper's two laws (tests/test_law_decoupled.py sweeps all)
 N_RUNS = 2 * (N_ADV + N_RANDOM)
 
 
@@ -45,7 +46,7 @@ def spec():
 def reference(tmp_path_factory, spec):
     """The in-process (no Dask) result."""
     out = tmp_path_factory.mktemp("ref") / "ref.parquet"
-    st = run_sweep(spec, out, workers=0)
+    st = run_sweep(spec, out, workers=0, controllers=LAWS2)
     assert st["ran"] == N_RUNS and st["skipped"] == 0 and st["executor"] == "in-process"
     return read_results(out)[0]
 
@@ -66,7 +67,7 @@ def _same(a, b):
 
 def test_cluster_sweep_results(client, spec, reference, tmp_path):
     out = tmp_path / "r.parquet"
-    st = run_sweep(spec, out, client=client)
+    st = run_sweep(spec, out, client=client, controllers=LAWS2)
     assert st["ran"] == N_RUNS and st["counts"] == {"ok": N_RUNS}
     rows, meta = read_results(out)
     assert meta["key"] == spec.key() and meta["n_adversarial"] == N_ADV
@@ -90,7 +91,7 @@ def test_cluster_sweep_results(client, spec, reference, tmp_path):
 
 def test_same_rows_with_one_worker(spec, reference, tmp_path):
     out = tmp_path / "one.csv"  # and through the CSV format
-    st = run_sweep(spec, out, workers=1, chunk=3)
+    st = run_sweep(spec, out, workers=1, chunk=3, controllers=LAWS2)
     assert st["executor"].startswith("local cluster of 1")
     _same(read_results(out)[0], reference)
 
@@ -99,7 +100,7 @@ def test_failures_are_isolated(client, spec, tmp_path):
     bad = with_faults(dataclasses.replace(spec, timeout=0.5),
                       [(3, "hybrid", "raise"), (14, "*", "hang")])
     out = tmp_path / "f.parquet"
-    st = run_sweep(bad, out, client=client, chunk=4)
+    st = run_sweep(bad, out, client=client, chunk=4, controllers=LAWS2)
     assert st["counts"] == {"ok": N_RUNS - 3, "error": 1, "timeout": 2}
     rows = {(r["sample"], r["controller"]): r for r in read_results(out)[0]}
     assert rows[(3, "hybrid")]["status"] == "error"
@@ -110,7 +111,7 @@ def test_failures_are_isolated(client, spec, tmp_path):
     assert rows[(3, "gradient")]["status"] == "ok" and rows[(2, "hybrid")]["converged"]
     # --retry-failed reruns exactly the failed ones (here without the faults: they succeed)
     st = run_sweep(dataclasses.replace(spec, timeout=0.5), out, client=client,
-                   retry_failed=True)
+                   retry_failed=True, controllers=LAWS2)
     assert st["ran"] == 3 and st["skipped"] == N_RUNS - 3 and st["counts"] == {"ok": N_RUNS}
 
 
@@ -122,7 +123,7 @@ def test_killed_worker_is_recorded(spec, tmp_path):
     out = tmp_path / "k.parquet"
     small = dataclasses.replace(bad, n_random=2)
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
-        st = run_sweep(small, out, workers=2, chunk=4)
+        st = run_sweep(small, out, workers=2, chunk=4, controllers=LAWS2)
     rows = {(r["sample"], r["controller"]): r for r in read_results(out)[0]}
     assert len(rows) == 2 * (N_ADV + 2)
     r = rows[(13, "gradient")]
@@ -132,11 +133,12 @@ def test_killed_worker_is_recorded(spec, tmp_path):
 
 def test_interrupt_and_resume(client, spec, reference, tmp_path):
     out = tmp_path / "res.parquet"
-    st = run_sweep(spec, out, client=client, chunk=2, stop_after=10, flush_every=0)
+    st = run_sweep(spec, out, client=client, chunk=2, stop_after=10, flush_every=0,
+                   controllers=LAWS2)
     assert st["interrupted"]
     first, _ = read_results(out)
     assert 10 <= len(first) < N_RUNS
-    st = run_sweep(spec, out, client=client, chunk=2)
+    st = run_sweep(spec, out, client=client, chunk=2, controllers=LAWS2)
     assert not st["interrupted"]
     assert st["skipped"] == len(first) and st["ran"] == N_RUNS - len(first)
     final, _ = read_results(out)
@@ -147,14 +149,14 @@ def test_interrupt_and_resume(client, spec, reference, tmp_path):
         if (r["sample"], r["controller"]) in old:
             assert r["wall_time"] == old[(r["sample"], r["controller"])]
     # a rerun with nothing left
-    st = run_sweep(spec, out, client=client)
+    st = run_sweep(spec, out, client=client, controllers=LAWS2)
     assert st["ran"] == 0 and st["skipped"] == N_RUNS
     # extending K keeps the old samples and adds the new ones only
     more = dataclasses.replace(spec, n_random=N_RANDOM + 2)
-    st = run_sweep(more, out, workers=0)
+    st = run_sweep(more, out, workers=0, controllers=LAWS2)
     assert st["ran"] == 4 and st["skipped"] == N_RUNS
     # other settings: refused, file untouched
     before = out.read_bytes()
     with pytest.raises(SweepError, match="--out: .*seed 5 != 6"):
-        run_sweep(dataclasses.replace(spec, seed=6), out, workers=0)
+        run_sweep(dataclasses.replace(spec, seed=6), out, workers=0, controllers=LAWS2)
     assert out.read_bytes() == before

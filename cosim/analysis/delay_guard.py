@@ -12,10 +12,10 @@ from .delay_margin import delay_margin
 __all__ = ["delay_guard"]
 
 
-def delay_guard(scenario, hybrid: bool, max_agents: int = RUN_DELAY_MAX_AGENTS, progress=None,
+def delay_guard(scenario, law="hybrid", max_agents: int = RUN_DELAY_MAX_AGENTS, progress=None,
                 sweep=None) -> dict | None:
     """The worst-case inter-agent delay of the scenario's ``[network]`` table against the delay
-    margin of its loop linearised at consensus (`cosim.analysis.delay_margin`, what `check`
+    margin of the loop of ``law`` (a registered law name) linearised at consensus (`cosim.analysis.delay_margin`, what `check`
     prints), or None without the table. Raises ConfigError (one line naming the key that sets
     the longest transit and the margin) when the delay is beyond the margin.
 
@@ -42,9 +42,9 @@ def delay_guard(scenario, hybrid: bool, max_agents: int = RUN_DELAY_MAX_AGENTS, 
         return out
     if 12 * scenario.graph.n + scenario.graph.M <= ONE_BLAS_THREAD_STATES:
         with threadpool_limits(limits=1, user_api="blas"):
-            dm = delay_margin(scenario, hybrid=hybrid, progress=progress, sweep=sweep)
+            dm = delay_margin(scenario, law=law, progress=progress, sweep=sweep)
     else:
-        dm = delay_margin(scenario, hybrid=hybrid, progress=progress, sweep=sweep)
+        dm = delay_margin(scenario, law=law, progress=progress, sweep=sweep)
     m = dm["delay_margin_steps"]
     out.update(delay_margin_steps=m, delay_margin_s=dm["delay_margin_s"])
     if m is None:

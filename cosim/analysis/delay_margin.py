@@ -453,10 +453,11 @@ def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = NARROW_DEPTH,
     return best if math.isfinite(best[0]) else None
 
 
-def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: int = 1024,
+def delay_margin(scenario, h: float | None = None, law="hybrid", d_cap: int = 1024,
                  lin: Linearisation | None = None, secant: bool = True, guess: bool = True,
                  progress=None, sweep=None, count: bool | None = None) -> dict:
-    """The largest d with ρ(d) < 1 and ρ(d + 1) ≥ 1, found by growing d from 0 until the loop
+    """The largest d with ρ(d) < 1 and ρ(d + 1) ≥ 1 for the loop of ``law`` (a registered law
+    name; True / False: hybrid / gradient), found by growing d from 0 until the loop
     is unstable and then narrowing the last bracket (`_probe`: by the secant, or by bisection
     with ``secant=False``). With ``guess=True`` the search starts from `crossing_delay`'s τ:
     ⌊τ⌋ and ⌊τ⌋ + 1 first, then on from the bracket they leave. This assumes that ρ(d) crosses
@@ -475,7 +476,7 @@ def delay_margin(scenario, h: float | None = None, hybrid: bool = True, d_cap: i
     if scenario.graph.M == 0:
         return {"delay_margin_steps": None, "delay_margin_s": None, "rho_at_margin": None,
                 "rho_beyond": None, "delay_method": "no edges: no neighbour data to delay"}
-    lin = lin or Linearisation(scenario, hybrid, force_sparse=True)
+    lin = lin or Linearisation(scenario, law, force_sparse=True)
     loop = delayed_parts(lin, h)
     rho = {}
 

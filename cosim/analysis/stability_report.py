@@ -5,7 +5,6 @@ import math
 
 from controller.errors import Se3SyncError
 
-from ..controllers import make_controller
 from . import DELAY_MAX_AGENTS
 from .convergence_rate import convergence
 from .delay_margin import delay_margin
@@ -21,22 +20,21 @@ def check_options(from_error=None, delay_agents: int = DELAY_MAX_AGENTS) -> None
 
 def check_extras(sc, st: dict, law, from_error=None, delay_agents: int = DELAY_MAX_AGENTS,
                  progress=None, sweep=None) -> dict:
-    """law: a registered law name (decides whether θ is a state of the loop) or a bool.
-    delay_agents: compute the delay margin only up to this many agents (0: never);
-    progress(d, ρ, seconds) is called after each of its eigenproblems, sweep(k, g, n) after
-    each eigenproblem of its frequency sweep (`delay_margin.crossing_delay`)."""
-    hybrid = make_controller(law, sc).hybrid if isinstance(law, str) else bool(law)
+    """law: a registered law name (True / False: hybrid / gradient), linearised from its own
+    step (`linear`). delay_agents: compute the delay margin only up to this many agents (0:
+    never); progress(d, ρ, seconds) is called after each of its eigenproblems, sweep(k, g, n)
+    after each eigenproblem of its frequency sweep (`delay_margin.crossing_delay`)."""
     check_options(from_error, delay_agents)
     out = {"method": st.get("method")}
     if sc.graph.n <= delay_agents and st["stable"]:
-        out["delay_margin"] = delay_margin(sc, hybrid=hybrid, progress=progress, sweep=sweep)
+        out["delay_margin"] = delay_margin(sc, law=law, progress=progress, sweep=sweep)
     else:
         why = ("not computed: unstable without delay" if not st["stable"]
                else "not computed: --delay-agents 0" if delay_agents == 0
                else f"not computed: {sc.graph.n} agents > {delay_agents} (--delay-agents)")
         out["delay_margin"] = {"delay_margin_steps": None, "delay_margin_s": None,
                                "delay_method": why}
-    out["convergence"] = convergence(sc, hybrid=hybrid, e0=from_error)
+    out["convergence"] = convergence(sc, law=law, e0=from_error)
     return out
 
 

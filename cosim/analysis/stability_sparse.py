@@ -6,8 +6,8 @@ assembled without ever forming a dense (12N + M)² matrix:
 * Controller: at first order each edge k = (i, j) contributes a function of
   (δ_i, δ_j, ξ_i, ξ_j, θ_k) only, and at consensus every edge sits at the same point
   (X̄_k = I, θ_k = 0) with the same parameters. So one 13 × 25 edge Jacobian, from central
-  finite differences of `controller.kernels.network_step` on a two-agent graph, gives every
-  block of K and G; the −k_ξ ξ_i term is linear and exact.
+  finite differences of the law's own step on a two-agent graph (`cosim.analysis.linear`),
+  gives every block of K and G; the −k_ξ ξ_i term is linear and exact.
 * Plant: δ̇_i = ξ_i, 𝕀_i ξ̇_i = u_i is nilpotent, so its zero-order hold is closed form per agent:
   A_d = [[I, hI], [0, I]], B_d = [[h²/2 𝕀_i⁻¹], [h 𝕀_i⁻¹]].
 
@@ -30,55 +30,16 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from controller import LawParameters
-from controller import se3
 from controller.errors import Se3SyncError
-from controller.layout import pack_state
-from controller.kernels import network_step
 
 from ..signals import interruptible
+from .linear import edge_jacobian, law_of
 
-__all__ = ["edge_jacobian", "modal_blocks", "laplacian_eigenvalues", "sparse_loop",
-           "spectral_radius_fast", "analyse_fast", "params_of", "DENSE_MAX"]
+__all__ = ["modal_blocks", "laplacian_eigenvalues", "sparse_loop", "spectral_radius_fast",
+           "analyse_fast", "Linearisation", "DENSE_MAX"]
 
 DENSE_MAX = 3000          # below this many states a dense eigvals is faster than ARPACK
 STRUCT_TOL = 1e-7         # relative tolerance of the incidence-structure check
-
-
-def params_of(scenario, gains=None):
-    """P of the law with δ = ∞ (no jump may fire while linearising), as `stability.linearise`."""
-    sc = scenario
-    return LawParameters.of(sc.weighting, sc.design, sc.gains if gains is None else gains,
-                            delta=np.inf).P
-
-
-def edge_jacobian(P, k_xi: float, hybrid: bool = True, eps: float = 1e-6) -> np.ndarray:
-    """J (13 × 25): rows u_pos (6), u_neg (6), θ̇ = −k_θ∇_θU (1); columns δ_pos, δ_neg, ξ_pos,
-    ξ_neg (6 each), θ. The edge's part only: the agents' own −k_ξ ξ is not in it."""
-    edges = np.array([[0, 1]], dtype=np.int64)
-    u = np.zeros((2, 6))
-    mu = np.zeros(1)
-    jumped = np.zeros(1, dtype=np.bool_)
-    tp = np.zeros(1)
-    tj = np.zeros(1)
-
-    def f(x):
-        X = se3.exp_se3(x[:12].reshape(2, 6))
-        S = pack_state(X, x[12:24].reshape(2, 6))
-        th = np.array([x[24]])
-        network_step(S, th, edges, P, 1.0, hybrid, u, mu, jumped, tp, tj)
-        return np.concatenate([u.ravel(), th - x[24:25]])
-
-    J = np.zeros((13, 25))
-    for c in range(25 if hybrid else 24):
-        e = np.zeros(25)
-        e[c] = eps
-        J[:, c] = (f(e) - f(-e)) / (2 * eps)
-    J[0:6, 12:18] += k_xi * np.eye(6)
-    J[6:12, 18:24] += k_xi * np.eye(6)
-    if not hybrid:
-        J[12, :] = 0.0
-    return J
 
 
 def modal_blocks(J):
@@ -259,17 +220,18 @@ def common_mode_eigenvalues(h, I6inv, k_xi):
 
 
 class Linearisation:
-    """Everything h-independent: the edge Jacobian, and the Laplacian spectrum if modal."""
+    """Everything h-independent: the edge Jacobian of the law (a registered name; True / False:
+    hybrid / gradient), its own-velocity gain k_xi, whether θ is a state of the loop
+    (``hybrid``), and the Laplacian spectrum if modal. ``gains`` replaces the scenario's."""
 
-    def __init__(self, scenario, hybrid=True, gains=None, force_sparse=False, laplacian=None):
+    def __init__(self, scenario, law="hybrid", gains=None, force_sparse=False, laplacian=None):
         sc = scenario
         self.scenario = sc
-        self.hybrid = bool(hybrid)
+        self.law = law_of(law)
+        self.gains = gains
         self.N, self.M = sc.graph.n, sc.graph.M
         self.edges = np.ascontiguousarray(sc.graph.edges, dtype=np.int64)
-        self.P = params_of(sc, gains)
-        self.k_xi = float((sc.gains if gains is None else gains).k_xi)
-        self.J = edge_jacobian(self.P, self.k_xi, hybrid)
+        self.J, self.k_xi, self.hybrid = edge_jacobian(sc, self.law, gains)
         I6 = sc.inertia6
         self.I6inv = np.linalg.inv(I6)
         same = bool(np.all(np.abs(I6 - I6[0]) <= 1e-12 * np.abs(I6[0]).max()))
@@ -419,15 +381,15 @@ def max_stable_step(lin, h_start, rel_tol=0.01):
     return largest_stable_step(lambda h: lin.spectral_radius(h) < 1.0, h_start, rel_tol)
 
 
-def spectral_radius_fast(scenario, h=None, hybrid=True):
-    lin = Linearisation(scenario, hybrid)
+def spectral_radius_fast(scenario, h=None, law="hybrid"):
+    lin = Linearisation(scenario, law)
     return lin.spectral_radius(float(scenario.step if h is None else h))
 
 
-def analyse_fast(scenario, h=None, hybrid=True, bisect=True, lin=None) -> dict:
+def analyse_fast(scenario, h=None, law="hybrid", bisect=True, lin=None) -> dict:
     """`stability.analyse` without dense matrices; adds "method"."""
     h = float(scenario.step if h is None else h)
-    lin = lin or Linearisation(scenario, hybrid)
+    lin = lin or Linearisation(scenario, law)
     rho = lin.spectral_radius(h)
     out = {"step": h, "spectral_radius": rho, "stable": bool(rho < 1.0), "method": lin.method}
     if bisect:

@@ -237,7 +237,6 @@ def _guards(args, sc, at) -> dict:
     delay against the delay margin (`cosim.guards.delay_guard`); what they found, for the
     summary."""
     from ..analysis.stability import analyse
-    from ..controllers import make_controller
     from ..scenario import ScenarioError
 
     net = sc.tables.get("network")
@@ -268,8 +267,7 @@ def _guards(args, sc, at) -> dict:
                     else f"{outside} roots outside the unit circle")
             print(f"se3sync run: delay margin: d = {d} steps, {what} ({seconds:.1f} s)",
                   file=sys.stderr, flush=True)
-    hybrid = make_controller(args.controller, sc).hybrid
-    return {"delay_check": delay_guard(sc, hybrid, args.delay_agents, progress)}
+    return {"delay_check": delay_guard(sc, args.controller, args.delay_agents, progress)}
 
 
 def _cmd_check(args) -> int:

@@ -25,8 +25,9 @@ def register(sub) -> None:
         description="Run the scenario from the 3M+3 adversarial initial conditions (every "
                     "edge, then all edges, on the undesired critical points of each eigenvector "
                     "of W) and K seeded random ones (Haar rotations, positions in a box, body "
-                    "velocities in a ball, θ(0) = 0), with the hybrid law and the gradient-only "
-                    "baseline, for the scenario's duration each. Rows are written to --out "
+                    "velocities in a ball, θ(0) = 0), with every registered law (the hybrid law, "
+                    "the gradient-only baseline and the others in cosim/registry.py), for the "
+                    "scenario's duration each. Rows are written to --out "
                     "incrementally; a rerun skips the samples already there. Exit codes: 0 ok, "
                     "2 bad input, 130 interrupted (finished rows kept).")
     p.add_argument("scenario", help="scenario TOML file (its [initial] table is ignored)")
@@ -48,7 +49,8 @@ def register(sub) -> None:
                    help="wall-clock limit per run in seconds, counted after its first 0.1 s "
                         "of simulated time (recorded as status timeout)")
     p.add_argument("--no-baseline", action="store_true",
-                   help="run the hybrid law only (no gradient-only baseline)")
+                   help="run the hybrid law only (default: every registered law: "
+                        + ", ".join(LAWS) + ")")
     p.add_argument("--position-box", type=float, default=1.0, metavar="L",
                    help="random positions uniform in [-L, L]^3 m (default 1)")
     p.add_argument("--velocity-ball", type=float, default=0.5, metavar="R",

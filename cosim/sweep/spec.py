@@ -17,9 +17,11 @@ options. Samples are numbered 0, 1, 2, …:
   does not depend on the executor, the chunking or the number of samples.
 
 One sample is one run of `cosim.master.Master` (the only step loop), with its wall-clock budget
-as the timeout and one loaded FMU per process reused across samples through ``Master.restart``
-(fmi2Reset + parameters + initialise instead of a new instance: ≈ 5 ms saved per sample); this
-module keeps only the sample generator and the row a run records.
+as the timeout and one plant per process reused across samples through ``Master.restart``
+(for the FMU plant: fmi2Reset + parameters + initialise instead of a new instance, ≈ 5 ms saved
+per sample). The plant is the registered one named by ``SweepSpec.plant`` (default "fleet"),
+and it must be able to ``reset(S0)``; this module keeps only the sample generator and the row a
+run records.
 """
 from __future__ import annotations
 
@@ -34,12 +36,14 @@ import numpy as np
 
 from controller import layout
 
+from controller.errors import Se3SyncError
+
 from ..controllers import make_controller
 from ..registry import LAWS
 from ..initial import critical_pose as _critical_pose
 from ..initial import poses_from_relative, random_state
 from ..master import Master
-from ..plants import FmuPlant
+from ..plants import make_plant
 from ..scenario import parse_scenario
 
 __all__ = ["SweepSpec", "COLUMNS", "KINDS", "n_adversarial", "describe_sample",
@@ -95,6 +99,7 @@ class SweepSpec:
     pos_tol: float = 1e-2
     sample_dt: float = 0.1       # error samples for t_converge, in simulated seconds
     timeout: float | None = None  # wall-clock seconds per sample (cooperative), None: none
+    plant: str = "fleet"         # the registered plant (cosim.registry.PLANTS) every sample runs on
     # Test-only fault injection: ((sample, controller or "*", "raise" | "hang" | "exit"), ...)
     faults: tuple = field(default=(), compare=False)
 
@@ -110,6 +115,8 @@ class SweepSpec:
             "rot_tol": float(self.rot_tol),
             "pos_tol": float(self.pos_tol),
             "sample_dt": float(self.sample_dt),
+            # the FMU plants give the same trajectories; another plant may not
+            **({} if self.plant == "fleet" else {"plant": self.plant}),
         }
 
     def key(self) -> str:
@@ -176,9 +183,9 @@ _MASTERS: dict = {}
 
 
 def _master(spec: SweepSpec, scenario, controller: str, S0) -> Master:
-    """A Master over a reusable FMU plant, one per process, scenario and law, restarted at S0
-    with θ(0) = 0; not cached while in use, so a failure leaves no broken instance behind."""
-    key = (id(scenario), controller, spec.sample_dt)
+    """A Master over a reusable plant, one per process, scenario, plant and law, restarted at
+    S0 with θ(0) = 0; not cached while in use, so a failure leaves no broken instance behind."""
+    key = (id(scenario), spec.plant, controller, spec.sample_dt)
     m = _MASTERS.pop(key, None)
     if m is not None:
         try:
@@ -191,9 +198,11 @@ def _master(spec: SweepSpec, scenario, controller: str, S0) -> Master:
         for old in _MASTERS.values():
             old.plant.close()
         _MASTERS.clear()
-    plant = FmuPlant(scenario.masses, scenario.inertias, S0, scenario.gravity,
-                     scenario.internal_step, instance_name="sweep", terms=scenario.plant_terms)
+    plant = make_plant(spec.plant, dataclasses.replace(scenario, S0=S0))
     try:
+        if not callable(getattr(plant, "reset", None)):
+            raise Se3SyncError(f"sweep: the plant {spec.plant!r} cannot reset(S0), which a "
+                               f"sweep needs to run many samples on one plant")
         ctrl = make_controller(controller, scenario)
         ctrl.reset(None)
         return Master(scenario, plant, ctrl, sample_dt=spec.sample_dt, S0=S0)
@@ -274,7 +283,7 @@ def _run(spec: SweepSpec, sc, index: int, controller: str, t_wall: float) -> dic
     finally:
         m.plant = plant
         if ok:
-            _MASTERS[(id(sc), controller, spec.sample_dt)] = m
+            _MASTERS[(id(sc), spec.plant, controller, spec.sample_dt)] = m
         else:
             plant.close()
     if summary["interrupted"]:
@@ -305,7 +314,7 @@ def _run(spec: SweepSpec, sc, index: int, controller: str, t_wall: float) -> dic
                 t_conv = smp["t"]
             else:
                 break
-    theta_end = m.controller.theta
+    theta_end = m.edge_state.theta
     M = sc.graph.M
     return {
         "sample": int(index), "controller": controller, "kind": kind, "edge": int(edge),
