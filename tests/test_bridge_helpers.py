@@ -22,6 +22,15 @@ from bridge.link import free_base_port  # noqa: E402,F401  (re-exported for the 
 HIL = str(ROOT / "scenarios" / "hil_6uav.toml")
 
 
+def bound_udp():
+    """A UDP socket bound to 127.0.0.1 at a port the OS chose (port 0), and that port: for a
+    test that is itself the listening end, nothing can take the port between choice and use.
+    (Blocks of ports that processes under test bind themselves: `free_base_port`.)"""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    return s, s.getsockname()[1]
+
+
 def load(overrides=(), path=HIL, **kw):
     from cosim.scenario import load_scenario
 
