@@ -245,9 +245,11 @@ class AgentNode:
         self.sample_every = int(sample_every)
         if self.lockstep:
             return
-        if start is None:
+        if start is None:   # step 0 half a second from now (join_step would call that late)
             start = time.time() + 0.5
-        self.first_step = join_step(start, time.time(), self.h, self.sample_every)
+            self.first_step = 0
+        else:
+            self.first_step = join_step(start, time.time(), self.h, self.sample_every)
         if self.first_step > 0:
             # heard by the neighbours meanwhile (its pose now and its θ(0)), so that agents that
             # are all late wait for each other only once

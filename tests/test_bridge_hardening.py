@@ -23,6 +23,7 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 
 from bridge.link import DRAIN_BUDGET, Counters, Peer, mavlink2  # noqa: E402
+from _machine import CpuShare, skip_if_deadline_missed  # noqa: E402
 from test_bridge_helpers import (ROOT, VehicleProcess, VehicleThread, bound_udp,  # noqa: E402
                                  free_base_port, load)
 
@@ -293,8 +294,8 @@ def test_flood_keeps_failsafe_deadline(tmp_path):
     junk = [bytes([0xFD]) + rng.randbytes(rng.randrange(1, 40)) for _ in range(64)]  # truncated frames
     flood = [hb if i % 2 else junk[i // 2 % 64] for i in range(128)]
     sent = 0
-    with VehicleProcess(["--count", "1", "--base-port", port, "--rate", 250, "--step", h, "--aux-rate", 0],
-                        tmp_path) as vp:
+    with CpuShare() as cpu, VehicleProcess(["--count", "1", "--base-port", port, "--rate", 250,
+                                            "--step", h, "--aux-rate", 0], tmp_path) as vp:
         sock, addr = _listen(lis)
         gcs = Peer(255, 191, Counters())
         t_start = time.monotonic()
@@ -328,12 +329,15 @@ def test_flood_keeps_failsafe_deadline(tmp_path):
     # small under the flood (25 periods at the median before it): the median guards that, the
     # benchmark (benchmarks/bench_bridge_flood.py) measures it
     assert max(st["failsafe_tick_delays"]) <= 3 * h + 1e-6, st["failsafe_tick_delays"]
-    assert np.median(delays) <= 10.0, delays
     assert st["drain_max"] <= DRAIN_BUDGET and st["drain_capped"] > 0
     # every datagram read is accounted once: a command, or refused as malformed / not_commander
     rj = st["rejected_by_reason"]
     assert st["datagrams"] == st["commands"] + st["malformed"] + rj.get("not_commander", 0) \
         + rj.get("out_of_order", 0), st
+    # the wall-clock delay needs the vehicle's ticks on time (tests/_machine.py)
+    skip_if_deadline_missed(cpu, {"the vehicle": (st["late_ticks"], st["ticks"])},
+                            "fail-safe under a flood")
+    assert np.median(delays) <= 10.0, delays
 
 
 # ---------------------------------------------------------------------------------------- 19
