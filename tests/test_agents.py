@@ -321,20 +321,18 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
             assert time.monotonic() < t_end and all(p.poll() is None for p in procs.values())
             time.sleep(0.05)
         start = time.time() + 1.0
-        start_file.write_text(repr(start))
-        time.sleep(start + 3.0 - time.time())                  # t = 3 s
+        (tmp_path / "start.tmp").write_text(repr(start))
+        os.replace(tmp_path / "start.tmp", start_file)   # whole, never half-written
+        time.sleep(max(0.0, start + 3.0 - time.time()))        # t = 3 s
         procs[3].send_signal(signal.SIGKILL)
         procs[3].wait()
         time.sleep(1.0)                                        # t ≈ 4 s
         procs["3b"] = agent(3, "b", ["--start", repr(start)])
-        for k, p in procs.items():
-            if k != 3:
-                name = f"a{k}" if isinstance(k, int) else "a3b"
-                assert p.wait(timeout=120) == 0, (tmp_path / f"{name}.err").read_text()
+        rc = {k: p.wait(timeout=120) for k, p in procs.items() if k != 3}
         vst = veh.stop()
+    for i in (1, 2, 4, 5, 6):
+        assert rc[i] == 0, (tmp_path / f"a{i}.err").read_text()
     s = {i: json.loads((tmp_path / f"a{i}.json").read_text()) for i in (1, 2, 4, 5, 6)}
-    s3 = json.loads((tmp_path / "a3b.json").read_text())
-    assert s3["first_step"] > 0   # it joined the running swarm
     ma, ho = s[2]["network"]["max_age_steps"], s[2]["network"]["hold_steps"]
     assert (ma, ho) == (5, 25)
     for j in (2, 4):   # agent 3's neighbours
@@ -350,8 +348,6 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
         assert fs["step"] - hold["step"] == ho, tr
         last_sample = hold["step"] - ma - 1
         assert fs["step"] - last_sample <= ma + ho + 3
-        back_at = next(t["step"] for t in tr[i_fs + 1:] if t["state"] == "fresh")
-        assert back_at > fs["step"]
         assert s[j]["failsafe"]["entries"] >= 1
         # in fail-safe the agent's own wrench is zero (its log's /agents record)
         from cosim.log.mcap import read_log
@@ -364,11 +360,21 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
             if t in nb and nb[t]["failsafe"]:
                 own = next(a for a in m["agents"] if a["agent"] == j)
                 assert own["torque"] == [0.0, 0.0, 0.0] and own["force"] == [0.0, 0.0, 0.0]
-    # the swarm converged after the restart: needs the 250 Hz deadline kept (tests/_machine.py)
+    # the restarted agent rejoins while the run goes on, and the swarm converges: that needs
+    # the 250 Hz deadline kept (tests/_machine.py; a busy machine took 23 s to restart agent 3,
+    # after the 24 s run had ended)
     skip_if_deadline_missed(cpu, {**{f"agent {i}": (x["link"]["late_steps"], x["steps"])
-                                     for i, x in {**s, "3 (restarted)": s3}.items()},
+                                     for i, x in s.items()},
                                   "the vehicles": (vst["late_ticks"], vst["ticks"])},
                             "real-time swarm with an agent killed and restarted")
+    assert rc["3b"] == 0, (tmp_path / "a3b.err").read_text()
+    s3 = json.loads((tmp_path / "a3b.json").read_text())
+    assert s3["first_step"] > 0   # it joined the running swarm
+    for j in (2, 4):   # its neighbours hear it again after their fail-safe
+        tr = [t for t in s[j]["failsafe"]["transitions"] if t["neighbour"] == 3]
+        i_fs = next(i for i, t in enumerate(tr) if t["state"] == "failsafe" and t["step"] > 2.8 / H)
+        back_at = next(t["step"] for t in tr[i_fs + 1:] if t["state"] == "fresh")
+        assert back_at > tr[i_fs]["step"]
     from bridge.swarm import merge_summaries
 
     merged = merge_summaries(load(sets, duration=dur), {**s, 3: s3})

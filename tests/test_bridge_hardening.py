@@ -43,8 +43,9 @@ def _wait(pred, timeout=15.0):
 
 def _listen(s):
     """Our end of a udpout vehicle: ``s`` is bound to its target port (`bound_udp`, before the
-    vehicle starts); returns (socket, vehicle address) once the vehicle has talked."""
-    s.settimeout(5.0)
+    vehicle starts); returns (socket, vehicle address) once the vehicle has talked (60 s: a
+    guard against a vehicle that never does, not a deadline for a slow start)."""
+    s.settimeout(60.0)
     _, addr = s.recvfrom(65535)
     s.setblocking(False)
     return s, addr
@@ -296,6 +297,7 @@ def test_flood_keeps_failsafe_deadline(tmp_path):
     sent = 0
     with CpuShare() as cpu, VehicleProcess(["--count", "1", "--base-port", port, "--rate", 250,
                                             "--step", h, "--aux-rate", 0], tmp_path) as vp:
+        vp.wait_ready()
         sock, addr = _listen(lis)
         gcs = Peer(255, 191, Counters())
         t_start = time.monotonic()

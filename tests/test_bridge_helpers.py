@@ -48,7 +48,7 @@ class VehicleThread:
 
     def __enter__(self):
         self.thread.start()
-        self.server.ready.wait(5)
+        self.server.ready.wait(60)   # returns when ready: a guard, not a deadline
         return self.server
 
     def __exit__(self, *exc):

@@ -31,8 +31,9 @@ def _wait(pred, timeout=10.0):
 
 
 def _listen(s):
-    """``s``: bound to the vehicle's target port (`bound_udp`) before the vehicle started."""
-    s.settimeout(5.0)
+    """``s``: bound to the vehicle's target port (`bound_udp`) before the vehicle started
+    (60 s: a guard against a vehicle that never talks, not a deadline for a slow start)."""
+    s.settimeout(60.0)
     _, addr = s.recvfrom(65535)  # the vehicle talks first (udpout to our port)
     return s, addr
 
