@@ -249,12 +249,16 @@ class AgentNode:
         self.sample_every = int(sample_every)
         if self.lockstep:
             return
-        if start is None:
+        start_given = start is not None
+        if not start_given:   # step 0 half a second from now (join_step would call that late)
             start = time.time() + 0.5
         # the receiver's step follows the wall clock from now on: a neighbour's sample stamped
         # beyond it (+ the link's tolerance) is refused as `future`
         self.link.set_timeline(start)
-        self.first_step = join_step(start, time.time(), self.h, self.sample_every)
+        if start_given:
+            self.first_step = join_step(start, time.time(), self.h, self.sample_every)
+        else:
+            self.first_step = 0
         if self.first_step > 0:
             # heard by the neighbours meanwhile (its pose now and its θ(0)), so that agents that
             # are all late wait for each other only once

@@ -515,21 +515,106 @@ class UdpSocket:
             pass
 
 
-def free_base_port(n: int, lo: int = 20000, hi: int = 60000) -> int:
-    """A base port p with p .. p+n-1 all free for UDP on 127.0.0.1 right now."""
+_PORT_SLOT = 16          # ports are reserved in aligned slots of 16 (one lock file each)
+_PORT_KEEP = 32          # reservations of the last 32 calls are held (the older are released)
+_port_reservations: list = []
+
+
+def _ephemeral_ports() -> tuple[int, int]:
+    """The range the OS draws ports for sockets bound to port 0 from (Linux: from procfs;
+    elsewhere Linux's default 32768..60999 and the IANA range 49152..65535, whichever is
+    wider)."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            a, b = (int(x) for x in f.read().split())
+        return a, b
+    except (OSError, ValueError):
+        return 32768, 65535
+
+
+def _lock_slot(slot: int):
+    """An exclusive, non-blocking lock on slot's file (an open fd), or None if another holder
+    (another process, or an earlier call of this one) has it. Without fcntl: no locking."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        return -1
+    import tempfile
+    d = os.path.join(tempfile.gettempdir(), f"se3sync-ports-{os.getuid()}")
+    os.makedirs(d, exist_ok=True)
+    fd = os.open(os.path.join(d, f"{slot * _PORT_SLOT}.lock"), os.O_RDWR | os.O_CREAT, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return fd
+    except OSError:
+        os.close(fd)
+        return None
+
+
+def free_base_port(n: int, lo: int = 20000, hi: int | None = None) -> int:
+    """A base port p with p .. p+n-1 all free on 127.0.0.1 (UDP and TCP), for tests and
+    benchmarks whose processes must be told their ports before they bind them (a scenario's
+    ``bridge.base_port`` or ``network.base_port``: one port per vehicle or agent). Where the
+    code under test can bind port 0 itself and report the port, use that instead.
+
+    Safe against the races "bind to 0, close, reuse the number" has:
+    - the block lies between ``lo`` and the OS's ephemeral range (`_ephemeral_ports`), so no
+      socket bound to port 0 anywhere on the machine (a client, a udpout endpoint, a resolver)
+      can be given one of its ports between this call and their use: ``hi`` defaults to the
+      range's start (on a machine whose range starts below lo + 1000, to 65536, and this
+      point does not hold there);
+    - its ports are reserved for this process, by exclusive locks on files in the temporary
+      directory (``se3sync-ports-UID/``, one per aligned slot of 16 ports) held until 32 more
+      blocks have been handed out: no other caller of this function (a second test run, an
+      earlier test of this one still starting its processes) is given them meanwhile;
+    - every port of the block is checked bindable right now (UDP and TCP).
+    What remains: a program that binds a fixed port in that range without asking."""
+    n = max(1, int(n))
+    eph_lo, _ = _ephemeral_ports()
+    if hi is None:
+        hi = eph_lo if eph_lo >= lo + 1000 else 65536
+    slots = -(-n // _PORT_SLOT)
+    first, last = -(-lo // _PORT_SLOT), hi // _PORT_SLOT - slots   # candidate start slots
+    if last < first:
+        raise RuntimeError(f"no room for {n} ports in {lo}..{hi - 1}")
     rng = random.Random(os.getpid() ^ time.monotonic_ns())
-    for _ in range(200):
-        p = rng.randrange(lo, hi - n)
-        socks = []
+    for _ in range(400):
+        s0 = rng.randint(first, last)
+        p = s0 * _PORT_SLOT
+        fds = []
         try:
-            for i in range(n):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            for s in range(s0, s0 + slots):
+                fd = _lock_slot(s)
+                if fd is None:
+                    break
+                fds.append(fd)
+            else:
+                if _all_bindable(p, n):
+                    _port_reservations.append(fds)
+                    fds = []
+                    while len(_port_reservations) > _PORT_KEEP:
+                        for fd in _port_reservations.pop(0):
+                            if fd >= 0:
+                                os.close(fd)
+                    return p
+        finally:
+            for fd in fds:
+                if fd >= 0:
+                    os.close(fd)
+    raise RuntimeError(f"no {n} free ports in {lo}..{hi - 1}")
+
+
+def _all_bindable(p: int, n: int) -> bool:
+    socks = []
+    try:
+        for i in range(n):
+            for kind in (socket.SOCK_DGRAM, socket.SOCK_STREAM):
+                s = socket.socket(socket.AF_INET, kind)
                 socks.append(s)
                 s.bind(("127.0.0.1", p + i))
-            return p
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError("no free port range")
+        return True
+    except OSError:
+        return False
+    finally:
+        for s in socks:
+            s.close()

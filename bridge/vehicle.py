@@ -491,6 +491,8 @@ class VehicleServer:
         self.encode_errors = 0
         self.repeats = 0
         self.drain_deadline_hits = 0      # receive passes cut short by the tick deadline
+        self.ticks = 0                    # real time: physics ticks since the first command
+        self.late_ticks = 0               # ... of them more than one tick after they were due
         self.failsafe_delays: list = []   # command timeout detected: seconds since the last command
         self.failsafe_tick_delays: list = []  # the same, from the time the detecting tick was due
         self.started_commands: dict = {}
@@ -564,6 +566,7 @@ class VehicleServer:
                  commands=sum(v.commands for v in self.vehicles), steps=[v.k for v in self.vehicles],
                  repeats=self.repeats, encode_errors=self.encode_errors,
                  drain_deadline_hits=self.drain_deadline_hits, commander=list(self.commander),
+                 ticks=self.ticks, late_ticks=self.late_ticks,
                  failsafe_delay_max=max(self.failsafe_delays) if self.failsafe_delays else None,
                  failsafe_delays=[round(x, 6) for x in self.failsafe_delays[:200]],
                  failsafe_tick_delays=[round(x, 6) for x in self.failsafe_tick_delays[:200]],
@@ -657,6 +660,10 @@ class VehicleServer:
                 if now < next_tick:
                     continue
                 if not self.lockstep:
+                    if self.ticks or any(v.last_cmd is not None for v in self.vehicles):
+                        self.ticks += 1
+                        if now - next_tick > tick:   # the machine could not keep the rate
+                            self.late_ticks += 1
                     for v in self.vehicles:
                         v.check_timeout(now, next_tick)
                         v.step(tick)

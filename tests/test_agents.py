@@ -21,6 +21,7 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 
+from _machine import CpuShare, skip_if_deadline_missed  # noqa: E402
 from test_bridge_helpers import HIL, ROOT, VehicleProcess, free_base_port, load  # noqa: E402
 
 from bridge.link import Counters, Peer, mavlink2, split_datagram  # noqa: E402
@@ -214,8 +215,10 @@ def test_an_agent_sends_only_to_its_neighbours_and_only_pose_velocity_and_its_th
     with VehicleProcess(["--scenario", HIL, *[x for v in sets for x in ("--set", v)],
                          "--aux-rate", "0"], tmp_path) as veh:
         veh.wait_ready()
+        # no --start: the agent starts 0.5 s after it is ready (a start time guessed ahead
+        # passes before a busy machine has started it, and a late agent joins a running swarm)
         argv = [sys.executable, "-m", "cosim.cli", "agent", HIL, "--id", "3", "--duration", "1.0",
-                "--start", repr(time.time() + 4.0), "--summary", str(tmp_path / "a3.json")]
+                "--summary", str(tmp_path / "a3.json")]
         for v in sets:
             argv += ["--set", v]
         agent = subprocess.Popen(argv, cwd=str(ROOT), stderr=subprocess.PIPE, text=True)
@@ -281,21 +284,29 @@ def test_real_time_swarm_converges_and_still_does_over_lossy_delayed_links(tmp_p
                        "network.hold=0.1"]):
         sets, _, _ = _ports(extra)
         (tmp_path / "work").mkdir(exist_ok=True)
-        p, merged = _swarm(tmp_path, sets, "--duration", "8")
+        with CpuShare() as cpu:
+            p, merged = _swarm(tmp_path, sets, "--duration", "8")
         assert p.returncode == 0, p.stderr
         f = merged["final"]
-        # the co-simulation has rot_err 0.17, pos_err 0.007 at 8 s (from 2.83, 0.19)
         assert merged["samples"][0]["rot_err"] > 2.5
-        assert f["rot_err"] < 0.5 and f["pos_err"] < 0.05, f
-        assert f["rot_err"] < merged["samples"][4]["rot_err"] / 2   # still falling
+        assert merged["agents_missing"] == []
         tot = merged["link_total"]
-        if not extra:
-            first = merged
-            assert tot["loss"] < 0.02 and merged["agents_missing"] == []
-        else:
+        if extra:
             # the emulated links: ~10 % of the samples lost, and the data used ≥ 5 steps old
             assert 0.05 < tot["loss"] < 0.2, tot
             assert all(ln["age_p50_steps"] >= 5 for ln in merged["links"]), merged["links"]
+        # what follows needs the 250 Hz deadline kept (tests/_machine.py)
+        vst = json.loads((tmp_path / "work" / "vehicle.json").read_text())
+        skip_if_deadline_missed(cpu, {**{f"agent {a['agent']}": (a["late_steps"], a["steps"])
+                                         for a in merged["agents"]},
+                                      "the vehicles": (vst["late_ticks"], vst["ticks"])},
+                                "real-time swarm" + (" over emulated links" if extra else ""))
+        # the co-simulation has rot_err 0.17, pos_err 0.007 at 8 s (from 2.83, 0.19)
+        assert f["rot_err"] < 0.5 and f["pos_err"] < 0.05, f
+        assert f["rot_err"] < merged["samples"][4]["rot_err"] / 2   # still falling
+        if not extra:
+            first = merged
+            assert tot["loss"] < 0.02
     assert first is not None
 
 
@@ -319,8 +330,8 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
         return subprocess.Popen(argv, cwd=str(ROOT), stdout=subprocess.DEVNULL,
                                 stderr=open(tmp_path / f"a{i}{tag}.err", "w"))
 
-    with VehicleProcess(["--scenario", *common[:1 + 2 * len(sets)], "--aux-rate", "0",
-                         "--key", str(key)], tmp_path) as veh:
+    with CpuShare() as cpu, VehicleProcess(["--scenario", *common[:1 + 2 * len(sets)],
+                                            "--aux-rate", "0", "--key", str(key)], tmp_path) as veh:
         veh.wait_ready()
         for i in range(1, 7):
             procs[i] = agent(i, "", ["--start-file", str(start_file)])
@@ -329,20 +340,18 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
             assert time.monotonic() < t_end and all(p.poll() is None for p in procs.values())
             time.sleep(0.05)
         start = time.time() + 1.0
-        start_file.write_text(repr(start))
-        time.sleep(start + 3.0 - time.time())                  # t = 3 s
+        (tmp_path / "start.tmp").write_text(repr(start))
+        os.replace(tmp_path / "start.tmp", start_file)   # whole, never half-written
+        time.sleep(max(0.0, start + 3.0 - time.time()))        # t = 3 s
         procs[3].send_signal(signal.SIGKILL)
         procs[3].wait()
         time.sleep(1.0)                                        # t ≈ 4 s
         procs["3b"] = agent(3, "b", ["--start", repr(start)])
-        for k, p in procs.items():
-            if k != 3:
-                name = f"a{k}" if isinstance(k, int) else "a3b"
-                assert p.wait(timeout=120) == 0, (tmp_path / f"{name}.err").read_text()
-        veh.stop()
+        rc = {k: p.wait(timeout=120) for k, p in procs.items() if k != 3}
+        vst = veh.stop()
+    for i in (1, 2, 4, 5, 6):
+        assert rc[i] == 0, (tmp_path / f"a{i}.err").read_text()
     s = {i: json.loads((tmp_path / f"a{i}.json").read_text()) for i in (1, 2, 4, 5, 6)}
-    s3 = json.loads((tmp_path / "a3b.json").read_text())
-    assert s3["first_step"] > 0   # it joined the running swarm
     ma, ho = s[2]["network"]["max_age_steps"], s[2]["network"]["hold_steps"]
     assert (ma, ho) == (5, 25)
     for j in (2, 4):   # agent 3's neighbours
@@ -358,8 +367,6 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
         assert fs["step"] - hold["step"] == ho, tr
         last_sample = hold["step"] - ma - 1
         assert fs["step"] - last_sample <= ma + ho + 3
-        back_at = next(t["step"] for t in tr[i_fs + 1:] if t["state"] == "fresh")
-        assert back_at > fs["step"]
         assert s[j]["failsafe"]["entries"] >= 1
         # in fail-safe the agent's own wrench is zero (its log's /agents record)
         from cosim.log.mcap import read_log
@@ -372,7 +379,21 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
             if t in nb and nb[t]["failsafe"]:
                 own = next(a for a in m["agents"] if a["agent"] == j)
                 assert own["torque"] == [0.0, 0.0, 0.0] and own["force"] == [0.0, 0.0, 0.0]
-    # the swarm converged after the restart
+    # the restarted agent rejoins while the run goes on, and the swarm converges: that needs
+    # the 250 Hz deadline kept (tests/_machine.py; a busy machine took 23 s to restart agent 3,
+    # after the 24 s run had ended)
+    skip_if_deadline_missed(cpu, {**{f"agent {i}": (x["link"]["late_steps"], x["steps"])
+                                     for i, x in s.items()},
+                                  "the vehicles": (vst["late_ticks"], vst["ticks"])},
+                            "real-time swarm with an agent killed and restarted")
+    assert rc["3b"] == 0, (tmp_path / "a3b.err").read_text()
+    s3 = json.loads((tmp_path / "a3b.json").read_text())
+    assert s3["first_step"] > 0   # it joined the running swarm
+    for j in (2, 4):   # its neighbours hear it again after their fail-safe
+        tr = [t for t in s[j]["failsafe"]["transitions"] if t["neighbour"] == 3]
+        i_fs = next(i for i, t in enumerate(tr) if t["state"] == "failsafe" and t["step"] > 2.8 / H)
+        back_at = next(t["step"] for t in tr[i_fs + 1:] if t["state"] == "fresh")
+        assert back_at > tr[i_fs]["step"]
     from bridge.swarm import merge_summaries
 
     merged = merge_summaries(load(sets, duration=dur), {**s, 3: s3})

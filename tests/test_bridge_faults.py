@@ -8,11 +8,15 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 
+from _machine import CpuShare, skip_if_deadline_missed  # noqa: E402
 from test_bridge_helpers import HIL, Relay, VehicleProcess, free_base_port, load  # noqa: E402
 
 
 def _run(tmp_path, duration, loss=0.0, jitter=0.0, cut=None):
-    """6 vehicles (a process) <-> relay (a thread) <-> bridge (this thread, cosim's Master)."""
+    """6 vehicles (a process) <-> relay (a thread) <-> bridge (this thread, cosim's Master).
+    Also returns `skip_if_busy()`, which skips the test when the machine, busy with other
+    work, could not keep the 250 Hz deadline (tests/_machine.py: the bridge's late steps, the
+    vehicles' late ticks): called before the assertions that need the deadline kept."""
     import threading
 
     from bridge.hil import run_hil
@@ -24,7 +28,7 @@ def _run(tmp_path, duration, loss=0.0, jitter=0.0, cut=None):
 
     warm_up(sc)
     events = []
-    with Relay([port + i for i in range(6)], loss=loss, jitter=jitter) as relay:
+    with CpuShare() as cpu, Relay([port + i for i in range(6)], loss=loss, jitter=jitter) as relay:
         eps = [a for p in relay.ports for a in ("--endpoint", f"udpout:127.0.0.1:{p}")]
         with VehicleProcess(["--scenario", HIL, "--aux-rate", "0", *eps], tmp_path) as veh:
             plant = MavlinkPlant(sc, connect_timeout=20, on_event=events.append)
@@ -43,36 +47,45 @@ def _run(tmp_path, duration, loss=0.0, jitter=0.0, cut=None):
             finally:
                 plant.close()
             vst = veh.stop()
-    return summary, vst, events, relay
+
+    def skip_if_busy():
+        skip_if_deadline_missed(cpu, {"the bridge": (summary["link"]["late_steps"],
+                                                     summary["steps"]),
+                                      "the vehicles": (vst["late_ticks"], vst["ticks"])},
+                                "real-time HIL through the relay")
+
+    return summary, vst, events, relay, skip_if_busy
 
 
 @pytest.mark.timeout(120)
 def test_loss_jitter_reordering_still_converges(tmp_path):
-    s, vst, events, relay = _run(tmp_path, 8.0, loss=0.10, jitter=0.005)
+    s, vst, events, relay, skip_if_busy = _run(tmp_path, 8.0, loss=0.10, jitter=0.005)
     ln = s["link"]
     assert relay.dropped > 0.05 * (relay.forwarded + relay.dropped)
     assert ln["dropped"] > 0                       # seen as sequence gaps
     first, final = s["samples"][0], s["final"]
     assert first["rot_err"] > 2.5
+    assert vst["received"] > 0 and vst["malformed"] == 0
+    skip_if_busy()   # the rate of convergence needs the 250 Hz deadline kept
     # the co-simulation has rot_err 0.17, pos_err 0.007 at 8 s (0.75, 0.036 at 4 s)
     assert final["rot_err"] < 0.4 and final["pos_err"] < 0.03, final
     assert final["rot_err"] < s["samples"][4]["rot_err"] / 2   # still falling at the nominal rate
-    assert vst["received"] > 0 and vst["malformed"] == 0
 
 
 @pytest.mark.timeout(120)
 def test_link_cut_fails_safe_reports_and_recovers(tmp_path):
-    s, vst, events, relay = _run(tmp_path, 8.0, cut=(2.0, 3.0))
+    s, vst, events, relay, skip_if_busy = _run(tmp_path, 8.0, cut=(2.0, 3.0))
     h = 0.004
     ln = s["link"]
     # the vehicles failed safe, each within 3 control periods of its last command: the command
     # timeout is 2 h, checked every physics tick h. Counted from the time the detecting tick was
     # due this holds exactly; the wall-clock delay adds the tick's lateness, which is the
     # scheduler's (a loaded 2-core machine can deschedule a process for ms): it is measured by
-    # benchmarks/bench_bridge_flood.py, and here only required not to come early.
+    # benchmarks/bench_bridge_flood.py, and here only required not to come early. (A machine
+    # that cannot keep the rate adds fail-safes outside the cut: the vehicle lists 200.)
     assert vst["failsafe"] >= 6
     d_tick, d_wall = vst["failsafe_tick_delays"], vst["failsafe_delays"]
-    assert len(d_tick) == len(d_wall) == vst["failsafe"]
+    assert len(d_tick) == len(d_wall) == min(vst["failsafe"], 200)
     assert max(d_tick) <= 3 * h + 1e-6, d_tick
     assert min(d_wall) > 2 * h, d_wall
     # the bridge reported the loss and the recovery of every link
@@ -80,6 +93,7 @@ def test_link_cut_fails_safe_reports_and_recovers(tmp_path):
     assert sum("link lost" in e for e in events) >= 6 and sum("link recovered" in e for e in events) >= 6
     # (the vehicles' "failsafe" STATUSTEXTs are lost in the cut; "commands resumed" comes through)
     assert sum("commands resumed" in e for e in events) >= 6
+    skip_if_busy()   # the rate of convergence needs the 250 Hz deadline kept
     # ... and the loop recovered
     assert s["final"]["rot_err"] < 0.5 and s["final"]["pos_err"] < 0.05, s["final"]
     assert s["final"]["rot_err"] < s["samples"][2]["rot_err"] / 2

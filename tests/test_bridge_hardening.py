@@ -23,7 +23,9 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 
 from bridge.link import DRAIN_BUDGET, Counters, Peer, mavlink2  # noqa: E402
-from test_bridge_helpers import ROOT, VehicleProcess, VehicleThread, free_base_port, load  # noqa: E402
+from _machine import CpuShare, skip_if_deadline_missed  # noqa: E402
+from test_bridge_helpers import (ROOT, VehicleProcess, VehicleThread, bound_udp,  # noqa: E402
+                                 free_base_port, load)
 
 M = mavlink2
 KEY = bytes(range(7, 39))
@@ -39,11 +41,11 @@ def _wait(pred, timeout=15.0):
     return pred()
 
 
-def _listen(port):
-    """Our end of a udpout vehicle: bound to its target port; returns (socket, vehicle address)."""
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", port))
-    s.settimeout(5.0)
+def _listen(s):
+    """Our end of a udpout vehicle: ``s`` is bound to its target port (`bound_udp`, before the
+    vehicle starts); returns (socket, vehicle address) once the vehicle has talked (60 s: a
+    guard against a vehicle that never does, not a deadline for a slow start)."""
+    s.settimeout(60.0)
     _, addr = s.recvfrom(65535)
     s.setblocking(False)
     return s, addr
@@ -70,11 +72,12 @@ def _command(peer, t_us, value=0.1, target=1):
 
 
 # ---------------------------------------------------------------------------------------- 14
-def _session(port, state, n):
+def _session(state, n):
     """n signed commands into a fresh vehicle; returns the packets as sent."""
+    lis, port = bound_udp()
     with VehicleThread(count=1, base_port=port, key=KEY, signing_state=state, rate=100, aux_rate=0,
                        command_timeout=100.0) as srv:
-        sock, addr = _listen(port)
+        sock, addr = _listen(lis)
         gcs = Peer(255, 191, Counters(), key=KEY, link_id=3)
         t0 = int(time.time() * 1e6)
         pkts = [_command(gcs, t0 + i, 0.1 + 1e-4 * (i % 100)) for i in range(n)]
@@ -87,10 +90,11 @@ def _session(port, state, n):
     return pkts
 
 
-def _replay(port, state, pkts):
+def _replay(state, pkts):
+    lis, port = bound_udp()
     with VehicleThread(count=1, base_port=port, key=KEY, signing_state=state, rate=100, aux_rate=0,
                        command_timeout=100.0) as srv:
-        sock, addr = _listen(port)
+        sock, addr = _listen(lis)
         for i in range(0, len(pkts), 100):
             done = sum(srv.counters.rejected.values()) + srv.vehicles[0].commands
             for p in pkts[i:i + 100]:
@@ -108,17 +112,16 @@ def _replay(port, state, pkts):
 
 def test_signed_replay_into_restarted_vehicle_is_rejected(tmp_path):
     n = 6000
-    port = free_base_port(1)
     state = tmp_path / "key.signing.json"
-    pkts = _session(port, state, n)
+    pkts = _session(state, n)
     # what was persisted at exit: the stream's last timestamp, read from the packets themselves
     saved = json.loads(state.read_text())
     assert [3, 255, 191, _sig_timestamp(pkts[-1])] in saved["streams"]
-    rejected, commands, dropped = _replay(port, state, pkts)
+    rejected, commands, dropped = _replay(state, pkts)
     assert commands == 0 and rejected == {"replay": n} and dropped == 0
 
     # the fault as reported: without the persisted state the same replay drives the vehicle
-    rejected, commands, _ = _replay(port, None, pkts[:500])
+    rejected, commands, _ = _replay(None, pkts[:500])
     assert commands == 500 and rejected == {}
 
 
@@ -228,9 +231,9 @@ def test_spoofed_nan_odometry_diverts_no_command(tmp_path):
 
 def test_vehicle_address_does_not_follow_refused_packets():
     """udpin vehicle: a refused command from another address must not redirect its replies."""
-    port = free_base_port(1)
-    with VehicleThread(count=1, endpoints=[f"udpin:127.0.0.1:{port}"], rate=200, aux_rate=0,
+    with VehicleThread(count=1, endpoints=["udpin:127.0.0.1:0"], rate=200, aux_rate=0,
                        command_timeout=100.0) as srv:
+        port = srv.vehicles[0].sock.local[1]   # the vehicle's port, chosen by the OS
         gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         gcs.bind(("127.0.0.1", 0))
         evil = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -254,9 +257,9 @@ def test_vehicle_address_does_not_follow_refused_packets():
 
 # ---------------------------------------------------------------------------------------- 17
 def _future_stamped(attacker):
-    port = free_base_port(1)
+    lis, port = bound_udp()
     with VehicleThread(count=1, base_port=port, rate=200, aux_rate=0, command_timeout=100.0) as srv:
-        sock, addr = _listen(port)
+        sock, addr = _listen(lis)
         gcs = Peer(255, 191, Counters())
         t0 = int(time.time() * 1e6)
         n = 200
@@ -288,7 +291,7 @@ def test_flood_keeps_failsafe_deadline(tmp_path):
     is bounded (drain_max <= DRAIN_BUDGET, passes capped), every fail-safe is detected at the first
     tick due after the 2-period command timeout, and the median wall-clock delay stays within 10
     periods (the rest is the tick's lateness: scheduling noise on a shared machine)."""
-    port = free_base_port(1)
+    lis, port = bound_udp()
     h = 0.004
     rng = random.Random(3)
     stranger = Peer(77, 1, Counters())
@@ -296,9 +299,10 @@ def test_flood_keeps_failsafe_deadline(tmp_path):
     junk = [bytes([0xFD]) + rng.randbytes(rng.randrange(1, 40)) for _ in range(64)]  # truncated frames
     flood = [hb if i % 2 else junk[i // 2 % 64] for i in range(128)]
     sent = 0
-    with VehicleProcess(["--count", "1", "--base-port", port, "--rate", 250, "--step", h, "--aux-rate", 0],
-                        tmp_path) as vp:
-        sock, addr = _listen(port)
+    with CpuShare() as cpu, VehicleProcess(["--count", "1", "--base-port", port, "--rate", 250,
+                                            "--step", h, "--aux-rate", 0], tmp_path) as vp:
+        vp.wait_ready()
+        sock, addr = _listen(lis)
         gcs = Peer(255, 191, Counters())
         t_start = time.monotonic()
         for cycle in range(6):
@@ -331,12 +335,15 @@ def test_flood_keeps_failsafe_deadline(tmp_path):
     # small under the flood (25 periods at the median before it): the median guards that, the
     # benchmark (benchmarks/bench_bridge_flood.py) measures it
     assert max(st["failsafe_tick_delays"]) <= 3 * h + 1e-6, st["failsafe_tick_delays"]
-    assert np.median(delays) <= 10.0, delays
     assert st["drain_max"] <= DRAIN_BUDGET and st["drain_capped"] > 0
     # every datagram read is accounted once: a command, or refused as malformed / not_commander
     rj = st["rejected_by_reason"]
     assert st["datagrams"] == st["commands"] + st["malformed"] + rj.get("not_commander", 0) \
         + rj.get("out_of_order", 0), st
+    # the wall-clock delay needs the vehicle's ticks on time (tests/_machine.py)
+    skip_if_deadline_missed(cpu, {"the vehicle": (st["late_ticks"], st["ticks"])},
+                            "fail-safe under a flood")
+    assert np.median(delays) <= 10.0, delays
 
 
 # ---------------------------------------------------------------------------------------- 19
@@ -366,9 +373,9 @@ def test_bad_crc_from_unknown_system_is_malformed_at_the_bridge():
 
 
 def test_vehicle_counters_bad_crc_and_nan_command_long():
-    port = free_base_port(1)
+    lis, port = bound_udp()
     with VehicleThread(count=1, base_port=port, rate=200, aux_rate=0, command_timeout=100.0) as srv:
-        sock, addr = _listen(port)
+        sock, addr = _listen(lis)
         stranger, gcs = Peer(99, 1, Counters()), Peer(255, 191, Counters())
         sock.sendto(_corrupt_crc(stranger.pack(stranger.mav.heartbeat_encode(0, 0, 0, 0, 4))), addr)
         sock.sendto(gcs.pack(gcs.mav.command_long_encode(1, 1, M.MAV_CMD_DO_SET_ACTUATOR, 0,
@@ -387,16 +394,17 @@ def _cli(*args, timeout=60):
 
 
 def test_insecure_needed_for_non_loopback_without_key(tmp_path):
-    port = free_base_port(1)
-    r = _cli("vehicle", "--endpoint", f"udpin:0.0.0.0:{port}", "--duration", "0.2")
+    # the vehicles bind a port the OS chooses (0); connect refuses before it binds anything
+    r = _cli("vehicle", "--endpoint", "udpin:0.0.0.0:0", "--duration", "0.2")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "--insecure" in r.stderr, r.stderr
-    r = _cli("vehicle", "--endpoint", f"udpin:0.0.0.0:{port}", "--duration", "0.2", "--insecure")
+    r = _cli("vehicle", "--endpoint", "udpin:0.0.0.0:0", "--duration", "0.2", "--insecure")
     assert r.returncode == 0, r.stderr
     key = tmp_path / "k.hex"
     key.write_text(KEY.hex())
-    r = _cli("vehicle", "--endpoint", f"udpin:0.0.0.0:{port}", "--duration", "0.2", "--key", key)
+    r = _cli("vehicle", "--endpoint", "udpin:0.0.0.0:0", "--duration", "0.2", "--key", key)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "k.hex.vehicle.signing.json").exists()   # the signing state is kept with the key
+    port = free_base_port(6)
     eps = [a for i in range(6) for a in ("--vehicle", f"udpin:0.0.0.0:{port + i}")]
     r = _cli("connect", ROOT / "scenarios" / "hil_6uav.toml", *eps)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "--insecure" in r.stderr, r.stderr

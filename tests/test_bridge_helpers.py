@@ -22,6 +22,15 @@ from bridge.link import free_base_port  # noqa: E402,F401  (re-exported for the 
 HIL = str(ROOT / "scenarios" / "hil_6uav.toml")
 
 
+def bound_udp():
+    """A UDP socket bound to 127.0.0.1 at a port the OS chose (port 0), and that port: for a
+    test that is itself the listening end, nothing can take the port between choice and use.
+    (Blocks of ports that processes under test bind themselves: `free_base_port`.)"""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    return s, s.getsockname()[1]
+
+
 def load(overrides=(), path=HIL, **kw):
     from cosim.scenario import load_scenario
 
@@ -39,7 +48,7 @@ class VehicleThread:
 
     def __enter__(self):
         self.thread.start()
-        self.server.ready.wait(5)
+        self.server.ready.wait(60)   # returns when ready: a guard, not a deadline
         return self.server
 
     def __exit__(self, *exc):

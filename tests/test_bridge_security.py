@@ -15,7 +15,7 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 
 from bridge.link import Counters, Peer, mavlink2  # noqa: E402
-from test_bridge_helpers import VehicleThread, free_base_port, load  # noqa: E402
+from test_bridge_helpers import VehicleThread, bound_udp, free_base_port, load  # noqa: E402
 
 KEY = bytes(range(100, 132))
 WRONG = bytes(32)
@@ -30,10 +30,10 @@ def _wait(pred, timeout=10.0):
     return pred()
 
 
-def _listen(port):
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    s.bind(("127.0.0.1", port))
-    s.settimeout(5.0)
+def _listen(s):
+    """``s``: bound to the vehicle's target port (`bound_udp`) before the vehicle started
+    (60 s: a guard against a vehicle that never talks, not a deadline for a slow start)."""
+    s.settimeout(60.0)
     _, addr = s.recvfrom(65535)  # the vehicle talks first (udpout to our port)
     return s, addr
 
@@ -58,10 +58,10 @@ def test_signing_rejects_unsigned_wrong_key_replayed_tampered(tmp_path):
     key_file.write_text(KEY.hex() + "\n")
     from bridge.config import read_key_file
 
-    port = free_base_port(1)
+    lis, port = bound_udp()
     with VehicleThread(count=1, base_port=port, key=read_key_file(key_file), rate=100, aux_rate=0,
                        command_timeout=10.0) as srv:
-        sock, addr = _listen(port)
+        sock, addr = _listen(lis)
         good = Peer(255, 191, Counters(), key=KEY, link_id=7)
         t = int(time.time() * 1e6)
         legit = _command(good, t)
@@ -141,9 +141,9 @@ def test_10000_random_and_truncated_datagrams(tmp_path):
     tx = Peer(255, 191, Counters())
     valid = [_command(tx, 10 + i) for i in range(20)] + \
             [tx.pack(tx.mav.command_long_encode(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0))]
-    port = free_base_port(1)
+    lis, port = bound_udp()
     with VehicleThread(count=1, base_port=port, rate=100, aux_rate=0) as srv:
-        sock, addr = _listen(port)
+        sock, addr = _listen(lis)
         data = _fuzz_datagrams(10_000, rng, valid)
         for i in range(0, len(data), 100):
             for d in data[i:i + 100]:

@@ -11,7 +11,8 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 
 from bridge.link import Counters, Peer, mavlink2 as M, split_datagram  # noqa: E402
-from test_bridge_helpers import HIL, VehicleProcess, VehicleThread, free_base_port, load  # noqa: E402
+from test_bridge_helpers import (HIL, VehicleProcess, VehicleThread, bound_udp,  # noqa: E402
+                                 free_base_port, load)
 
 
 def _collect(sock, peer, seconds):
@@ -32,11 +33,9 @@ def _collect(sock, peer, seconds):
 
 
 def test_commands_acks_and_streams():
-    port = free_base_port(1)
+    sock, port = bound_udp()
     with VehicleThread(count=1, base_port=port, rate=100, aux_rate=10, require_arm=True) as srv:
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(("127.0.0.1", port))
-        sock.settimeout(5)
+        sock.settimeout(60)   # its first datagram: a guard, not a deadline
         _, addr = sock.recvfrom(65535)
         gcs = Peer(255, 191, Counters())
         cl = lambda cmd, *p: gcs.pack(gcs.mav.command_long_encode(1, 1, cmd, 0, *p))  # noqa: E731
@@ -60,11 +59,9 @@ def _collect_acks(msgs):
 
 
 def test_acks_are_sent():
-    port = free_base_port(1)
+    sock, port = bound_udp()
     with VehicleThread(count=1, base_port=port, rate=50, aux_rate=0):
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        sock.bind(("127.0.0.1", port))
-        sock.settimeout(5)
+        sock.settimeout(60)   # its first datagram: a guard, not a deadline
         _, addr = sock.recvfrom(65535)
         gcs = Peer(255, 191, Counters())
         for cmd, p1 in ((M.MAV_CMD_COMPONENT_ARM_DISARM, 1), (M.MAV_CMD_REQUEST_MESSAGE, M.MAVLINK_MSG_ID_ODOMETRY),

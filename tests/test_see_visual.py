@@ -253,7 +253,8 @@ def test_animate_mp4_without_ffmpeg_names_it(runs, tmp_path, monkeypatch, capsys
 
 def test_scene_and_trails_carry_the_exact_values_and_zero_for_non_finite():
     """SceneBuilder's two encoders (templates when every value is finite, per value otherwise):
-    the decoded lines and poses are the input floats exactly, the colours `error_color`'s, and
+    the decoded lines and poses are the input floats exactly, the colours `error_colors`' (of
+    the same error vector: the one computation the CDR scene encodes too), and
     a non-finite coordinate is written as 0.0 (JSON has no NaN) without touching the others."""
     rng = np.random.default_rng(5)
     N = 30
@@ -278,7 +279,7 @@ def test_scene_and_trails_carry_the_exact_values_and_zero_for_non_finite():
             ln = lines[f"edge_{kk + 1}"]
             pts = [[p["x"], p["y"], p["z"]] for p in ln["points"]]
             assert pts == [P[i - 1].tolist(), P[j - 1].tolist()]
-            rgb = (1.0, 1.0, 1.0) if jump[kk] else fg.error_color(err[kk])
+            rgb = (1.0, 1.0, 1.0) if jump[kk] else tuple(fg.error_colors(err)[kk].tolist())
             assert (ln["color"]["r"], ln["color"]["g"], ln["color"]["b"]) == rgb
         trails = [json.loads(t) for t in b.trails(ts, S, q)]
         for i, tr in enumerate(trails):

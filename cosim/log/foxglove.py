@@ -25,7 +25,7 @@ import numpy as np
 
 from . import cdr
 
-__all__ = ["SCENE", "TRAIL_PREFIX", "schema_bytes", "box_size", "error_color", "error_colors",
+__all__ = ["SCENE", "TRAIL_PREFIX", "schema_bytes", "box_size", "error_colors", "error_color",
            "SceneBuilder", "CdrScene",
            "layout", "ERR_LO", "ERR_HI"]
 
@@ -37,6 +37,7 @@ _SCHEMA_DIR = Path(__file__).with_name("foxglove_schemas")
 # largest value (R̄ a rotation by π), red. Log, because the errors fall exponentially.
 ERR_LO = 1e-4
 ERR_HI = 2.0 * math.sqrt(2.0)
+_LOG_SPAN = math.log10(ERR_HI / ERR_LO)
 
 
 @lru_cache(maxsize=None)
@@ -55,14 +56,28 @@ def box_size(J, m) -> np.ndarray:
     return np.sqrt(np.maximum(sq, 1e-4))
 
 
+def error_colors(err) -> np.ndarray:
+    """(M, 3) array of (r, g, b) per edge error: x = log10(err/ERR_LO)/log10(ERR_HI/ERR_LO)
+    clipped to [0, 1]; r = x, g = 1 − x, b = 0.2 (green at consensus, red at a rotation by π;
+    NaN is red).
+
+    The one computation of an edge's colour: the JSON scene (`SceneBuilder`) and the CDR scene
+    (`CdrScene`) both encode what this returns, so the two logs carry the same bits. Two
+    computations would not: numpy's vectorised log10 (SIMD, chosen by the CPU at run time)
+    and the C library's `math.log10` differ by an ulp on some values on some CPUs
+    (docs/testing.md)."""
+    e = np.array(err, dtype=np.float64, ndmin=1)   # a fresh contiguous copy: one numpy loop
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = np.minimum(1.0, np.log10(e / ERR_LO) / _LOG_SPAN)
+    x = np.where(e > ERR_LO, x, np.where(np.isnan(e), 1.0, 0.0))
+    return np.stack((x, 1.0 - x, np.full_like(x, 0.2)), axis=1)
+
+
 def error_color(err: float) -> tuple[float, float, float]:
-    """(r, g, b) of an edge error: x = log10(err/ERR_LO)/log10(ERR_HI/ERR_LO) clipped to [0, 1];
-    r = x, g = 1 − x, b = 0.2 (green at consensus, red at a rotation by π)."""
-    if not err > ERR_LO:  # also NaN
-        x = 0.0 if err == err else 1.0
-    else:
-        x = min(1.0, math.log10(err / ERR_LO) / math.log10(ERR_HI / ERR_LO))
-    return x, 1.0 - x, 0.2
+    """`error_colors` of one value, as a tuple (for drawing one edge; the logs use
+    `error_colors` of all edges at once)."""
+    r, g, b = error_colors(float(err))[0].tolist()
+    return r, g, b
 
 
 def _f(x: float) -> str:
@@ -130,9 +145,10 @@ class SceneBuilder:
         self._scale = 0.1 * max(float(max(box_size(inertias[i], masses[i]))) for i in range(N))
         self._trail = [[] for _ in range(N)]
 
-    def edge_line(self, k: int, p_i, p_j, err: float, jumping: bool) -> str:
-        """The LINE_LIST primitive of edge k (0-based) from p_i to p_j."""
-        r, g, b = (1.0, 1.0, 1.0) if jumping else error_color(err)
+    def edge_line(self, k: int, p_i, p_j, color, jumping: bool) -> str:
+        """The LINE_LIST primitive of edge k (0-based) from p_i to p_j, in ``color`` (r, g, b:
+        a row of `error_colors`), white when jumping."""
+        r, g, b = (1.0, 1.0, 1.0) if jumping else color
         th = 3 * self._scale if jumping else self._scale
         return (f'{{"type":2,"pose":{{"position":{{"x":0,"y":0,"z":0}},{_IDQ}}},'
                 f'"thickness":{_f(th)},"scale_invariant":false,'
@@ -158,7 +174,7 @@ class SceneBuilder:
         Pa = np.asarray(S)[:, :3]
         P = Pa.tolist()
         ents = [pre + ts + post for pre, post in self._agents]
-        errs = rot_err.tolist() if hasattr(rot_err, "tolist") else list(rot_err)
+        cols = error_colors(rot_err).tolist()   # as CdrScene: the same function, the same bits
         # every value finite: templates with %r (float.__repr__, the bytes of _f); else _f's
         # replacement of a non-finite value by 0.0 on the path below
         fast = bool(np.isfinite(Pa).all())
@@ -169,11 +185,11 @@ class SceneBuilder:
             pi, pj = P[a - 1], P[b - 1]
             if fast and not jumping[k]:
                 pre, mid, post = etpl[k]
-                x = error_color(errs[k])
+                x = cols[k]
                 ents.append(pre + ts + mid + ltpl % (pi[0], pi[1], pi[2], pj[0], pj[1], pj[2],
                                                      x[0], x[1], x[2]) + post)
                 continue
-            parts = {"lines": [self.edge_line(k, pi, pj, errs[k], bool(jumping[k]))]}
+            parts = {"lines": [self.edge_line(k, pi, pj, cols[k], bool(jumping[k]))]}
             if jumping[k]:
                 mid = [(x + y) / 2 for x, y in zip(pi, pj)]
                 parts["texts"] = [f'{{"pose":{{"position":{{"x":{_f(mid[0])},"y":{_f(mid[1])},'
@@ -210,15 +226,6 @@ class SceneBuilder:
                 joined[k] = ",".join(tr)
             return [pre + j + "]}" for j in joined]
         return [pre + (j + "," + cur if j else cur) + "]}" for j, cur in zip(joined, curs)]
-
-
-def error_colors(err) -> np.ndarray:
-    """`error_color` of each value of ``err``, as an (M, 3) array."""
-    e = np.asarray(err, np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = np.minimum(1.0, np.log10(e / ERR_LO) / math.log10(ERR_HI / ERR_LO))
-    x = np.where(e > ERR_LO, x, np.where(np.isnan(e), 1.0, 0.0))
-    return np.stack((x, 1.0 - x, np.full_like(x, 0.2)), axis=1)
 
 
 _ID_POSE = {"position": {"x": 0.0, "y": 0.0, "z": 0.0},
