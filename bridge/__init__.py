@@ -1,4 +1,4 @@
-"""MAVLink 2 hardware-in-the-loop bridge and the loopback test vehicle (see bridge/README.md).
+"""MAVLink 2 hardware-in-the-loop bridge and the loopback test vehicle (see docs/guide/hardware.md).
 
 Public API (imported lazily by the command line; import the submodules directly):
 

@@ -2,7 +2,7 @@
 
 Every problem raises ``controller.errors.ConfigError("bridge.<key path>", reason)``; the scenario
 loader prefixes the file name. The table is registered with the scenario loader as the entry point
-``se3sync.tables: bridge`` (pyproject.toml). See bridge/README.md for the table with every key.
+``se3sync.tables: bridge`` (pyproject.toml). Every key: docs/reference/scenario.md (``[bridge]``).
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from controller.errors import Se3SyncError
 OUTPUTS = PROFILES
 ROUTINGS = ("per_vehicle", "shared")
 
-# key -> default (documented in README.md)
+# key -> default (documented in docs/reference/scenario.md)
 DEFAULTS = {
     "world_frame": "ned",
     "output": "actuator_control_target",

@@ -3,7 +3,7 @@
 the scenario's mapping, sensors (specific force, rates, magnetic field, pressure, geodetic
 position) plus optional white noise (`Noise`).
 
-The ground. With ``[plant] ground = true`` the plant FMU has a ground plane (plant_fmu/README.md,
+The ground. With ``[plant] ground = true`` the plant FMU has a ground plane (docs/reference/plant-fmu.md,
 "Ground and drag"): the body rests on it until the thrust lifts it, touches down without bouncing,
 and its accelerometer reads the support force −Rᵀg while it rests (``landed``). Without a ground
 plane (the paper's gravity-free scenarios, or gravity with ``ground = false``) the body is *held*

@@ -1,6 +1,7 @@
 """The weighting matrix 𝔸 (`AA_def`) and the synergy parameters P_𝔸 of Lemma 2 (`eqn:P_A`).
 
-Defaults, used for whatever the caller leaves out (documented in the README):
+Defaults, used for whatever the caller leaves out (documented in docs/reference/scenario.md
+``[synergy]`` and docs/theory.md):
 - γ = ½ · 4Δ*/π², half its bound;
 - Θ = (θ*, −θ*), θ* ∈ (0, π] maximising 2 sin²(θ/2)Δ* − γθ²/2, i.e. the exact gap for one
   magnitude; the two signs let the jump pick the better side;

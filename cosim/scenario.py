@@ -2,7 +2,7 @@
 
 Every problem is reported as ONE line naming the file, the key path and the reason, e.g.
 ``scenarios/x.toml: gains.k_X: must be > 0, got -1``. Validation happens completely before any
-output is written. See README.md ("Scenario format") for every key and its default.
+output is written. Every key and its default: docs/reference/scenario.md.
 """
 from __future__ import annotations
 
@@ -542,7 +542,7 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
 
 def _plant_terms(pl: dict, gravity, S0, masses, inertias, internal: float) -> dict:
     """[plant] ground (bool), ground_height (m along −g), drag_linear (N·s/m), drag_angular
-    (N·m·s/rad): the plant FMU's optional terms (plant_fmu/README.md "Ground and drag"), checked
+    (N·m·s/rad): the plant FMU's optional terms (docs/reference/plant-fmu.md "Ground and drag"), checked
     here as the plant checks them. Only the terms that are on are returned."""
     terms = {}
     ground = pl.get("ground", False)

@@ -5,5 +5,5 @@
 * ``plant_fmu.fast``   -- ``FleetFMU``: load it with fmpy and step it with little overhead;
 * ``plant_fmu.cli``    -- ``se3sync fmu build``.
 
-See plant_fmu/README.md.
+See docs/reference/plant-fmu.md.
 """

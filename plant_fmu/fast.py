@@ -274,7 +274,7 @@ class FleetFMU:
         """Sets the parameters (before ``initialize``); None leaves the FMU's default
         (m = 1, J = I, p0 = 0, q0 = identity, xi0 = 0, g = 0, h_internal = 1e-4; no ground, no drag).
         ``ground`` (bool), ``ground_height`` (m along −g), ``drag_linear`` (N·s/m) and ``drag_angular``
-        (N·m·s/rad) are the optional plant terms (README "Ground and drag")."""
+        (N·m·s/rad) are the optional plant terms (docs/reference/plant-fmu.md "Ground and drag")."""
         n = self.n
         vrs, vals = [], []
         if mass is not None:

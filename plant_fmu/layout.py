@@ -44,9 +44,10 @@ VR_GRAVITY = np.array([1, 2, 3], dtype=np.uint32)
 VR_GRAVITY.flags.writeable = False
 VR_H_INTERNAL = 4
 VR_GROUND, VR_GROUND_HEIGHT, VR_DRAG_LINEAR, VR_DRAG_ANGULAR = 5, 6, 7, 8
-# (name, value reference, unit, description) of the optional plant terms (README "Ground and drag")
+# (name, value reference, unit, description) of the optional plant terms (docs/reference/plant-fmu.md
+# "Ground and drag")
 TERMS = (
-    ("ground", VR_GROUND, "", "1: a ground plane perpendicular to g (contact model in README.md), 0: none"),
+    ("ground", VR_GROUND, "", "1: a ground plane perpendicular to g (sticking contact, no bounce), 0: none"),
     ("ground_height", VR_GROUND_HEIGHT, "m", "height of the ground plane along up = -g/|g|"),
     ("drag_linear", VR_DRAG_LINEAR, "N.s/m", "linear drag on the body velocity: f = -drag_linear v"),
     ("drag_angular", VR_DRAG_ANGULAR, "N.m.s/rad", "linear drag on the angular rate: tau = -drag_angular omega"),

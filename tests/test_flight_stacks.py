@@ -397,7 +397,7 @@ def test_ardupilot_divergence_resets_one_vehicle_and_the_others_go_on():
 
 # ---------------------------------------------------------------------------------- the command
 def test_sim_protocol_sigterm_exits_143_with_stats(tmp_path):
-    """`vehicle --sim-protocol ardupilot`: SIGTERM stops it with status 143 (as the README says) and
+    """`vehicle --sim-protocol ardupilot`: SIGTERM stops it with status 143 (as docs/flight-stacks.md says) and
     the --stats file written."""
     stats = tmp_path / "st.json"
     p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "vehicle", "--scenario", SITL, "--sim-protocol",

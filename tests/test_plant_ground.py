@@ -1,6 +1,6 @@
 """The plant's optional terms (issue 30): the ground plane and linear drag, in the C model that every
 vehicle mode and the co-simulation use. Checked against closed-form motion (free fall, constant
-net force, exponential decay) and the contact rules of plant_fmu/README.md "Ground and drag"."""
+net force, exponential decay) and the contact rules of docs/reference/plant-fmu.md "Ground and drag"."""
 from __future__ import annotations
 
 import math

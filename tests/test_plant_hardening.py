@@ -19,9 +19,9 @@ import pytest
 from plant_fmu import build, layout
 from plant_fmu.fast import FleetFMU, FMUError
 
-HEADER = 40          # bytes of the serialized-state header (see plant_fmu/README.md)
+HEADER = 40          # bytes of the serialized-state header (see docs/reference/plant-fmu.md)
 CHECKSUM = slice(32, 40)
-LIMIT = 1_000_000    # body-substeps per doStep (README: "Limits")
+LIMIT = 1_000_000    # body-substeps per doStep (docs/reference/plant-fmu.md "Limits")
 TIMEOUT = 120        # s for a child process: generous under load; a regression takes ~1 hour
 
 

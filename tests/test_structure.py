@@ -1,4 +1,4 @@
-"""The package structure (README "Layout"): read every module's imports with ast and check the
+"""The package structure (docs/internals/layout.md): read every module's imports with ast and check the
 rules that keep the data flow readable."""
 from __future__ import annotations
 
@@ -93,13 +93,13 @@ def test_no_import_cycle_between_modules():
 
 
 def is_cli(module: str) -> bool:
-    """The command-line modules (README "Layout"), which import the job they run in its handler."""
+    """The command-line modules (docs/internals/layout.md), which import the job they run in its handler."""
     last = module.split(".")
     return "cli" in last[1:] or last[-1].endswith("_cli")
 
 
 def test_project_modules_are_imported_at_the_top():
-    """README "Layout": modules import the project's modules at the top; only the command-line
+    """docs/internals/layout.md: modules import the project's modules at the top; only the command-line
     modules import the job they run inside its handler (start-up of `se3sync --help`)."""
     bad = sorted({f"{m} imports {d} inside a function" for m, deps in GRAPH.items()
                   if not is_cli(m) for d, top in deps if not top})

@@ -43,7 +43,7 @@ def check_lines(out: dict) -> list:
     dm = out["delay_margin"]
     c = out["convergence"]
     lines = [f"1 - rho         {1.0 - out['spectral_radius']:.3e}",
-             f"method          {out['method']} (see README: check)"]
+             f"method          {out['method']} (see docs/guide/analysis.md)"]
     if dm.get("delay_margin_steps") is None or dm["delay_margin_steps"] < 0:
         lines.append(f"delay_margin    {dm['delay_method']}")
     else:

@@ -4,7 +4,7 @@
 3M + 3 adversarial initial conditions (the undesired critical points) PLUS K seeded random ones,
 with the hybrid law and (unless --no-baseline) the gradient-only baseline, on a Dask local
 cluster (default), a remote scheduler (--scheduler) or in-process (--workers 0). See
-cosim/sweep/SWEEP.md. Dask and pyarrow are imported where they are used (optional extra `sweep`).
+docs/guide/sweeps.md. Dask and pyarrow are imported where they are used (optional extra `sweep`).
 
 Output format. Parquet is the default and the recommended one: typed columns (int64, float64
 with NaN, bool, string) that read back exactly, schema metadata that records what the rows

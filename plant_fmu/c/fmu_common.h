@@ -81,7 +81,7 @@ struct FmuInstance {
 /* Instance markers.  A call with an instance whose magic is not FMU_MAGIC_LIVE returns an error
  * without touching it; FMU_MAGIC_FREED (a freed instance whose memory has not been reused yet)
  * is also logged.  This is a best-effort guard: reading a freed or garbage pointer is undefined
- * behaviour in C (see plant_fmu/README.md, "Limits"). */
+ * behaviour in C (see docs/reference/plant-fmu.md, "Limits"). */
 #define FMU_MAGIC_LIVE  0x5345335359e1c0deULL
 #define FMU_MAGIC_FREED 0x5345335346524545ULL
 

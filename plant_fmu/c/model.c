@@ -663,7 +663,7 @@ typedef struct {
 #undef EXPC
 
 /*
- * n substeps of length hs of body B with drag and/or the ground (see README.md, "Ground and drag"):
+ * n substeps of length hs of body B with drag and/or the ground (see docs/reference/plant-fmu.md, "Ground and drag"):
  * - resting (contact = 1): the support balances gravity, thrust and torque (sticking contact: no
  *   sliding, no rotation) while the net force along up, e . R f - m |g|, is <= 0; nothing moves;
  * - otherwise an RKMK4 substep; if it ends below the plane, the body is put back on the plane

@@ -8,7 +8,7 @@
  *     m dv/dt = m v x w + f + m R^T g
  *
  * Integrator: Runge-Kutta-Munthe-Kaas of order 4 (classical RK4 tableau) on the group
- * SE(3) x R^6, with dexp^{-1} truncated after the second commutator.  See README.md.
+ * SE(3) x R^6, with dexp^{-1} truncated after the second commutator.  See docs/reference/plant-fmu.md.
  */
 #ifndef SE3SYNC_MODEL_H
 #define SE3SYNC_MODEL_H
@@ -55,7 +55,7 @@
 #define PAR_Q0   13
 #define PAR_XI0  17
 
-/* ---- accepted ranges (see plant_fmu/README.md, "Limits") ---- */
+/* ---- accepted ranges (see docs/reference/plant-fmu.md, "Limits") ---- */
 /* h_internal below this is refused (at exitInitializationMode and in a deserialized state) */
 #define H_INTERNAL_MIN 1e-9
 /* work budget of one doStep: N_BODIES x substeps <= this, else the call is refused before any
