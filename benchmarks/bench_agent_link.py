@@ -1,4 +1,4 @@
-"""Cost of the inter-agent link (bridge.agent_link) per control step, against the control period.
+"""Cost of the inter-agent link (bridge.swarm.agent_link) per control step, against the control period.
 
     python benchmarks/bench_agent_link.py [STEPS]
 
@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 
 import _markdown
-from bridge.agent_link import AgentLink
-from bridge.link import free_base_port
+from bridge.swarm.agent_link import AgentLink
+from bridge.mavlink.link import free_base_port
 from cosim.scenario import parse_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

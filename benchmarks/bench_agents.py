@@ -26,7 +26,7 @@ HIL = ROOT / "scenarios" / "hil_6uav.toml"
 
 
 def scenario_for(n: int, rate: float, tmp: Path) -> tuple[Path, list]:
-    from bridge.link import free_base_port
+    from bridge.mavlink.link import free_base_port
 
     sets = [f"simulation.step={1.0 / rate!r}", f"bridge.base_port={free_base_port(n)}"]
     nb = free_base_port(n)
@@ -38,7 +38,7 @@ def scenario_for(n: int, rate: float, tmp: Path) -> tuple[Path, list]:
 
 
 def run_case(n: int, rate: float, duration: float) -> dict:
-    from bridge.swarm import run_swarm
+    from bridge.swarm.launcher import run_swarm
 
     with tempfile.TemporaryDirectory() as d:
         path, sets = scenario_for(n, rate, Path(d))

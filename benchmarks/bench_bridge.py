@@ -22,7 +22,7 @@ import sys
 import tempfile
 import time
 
-from bridge.link import free_base_port
+from bridge.mavlink.link import free_base_port
 from pathlib import Path
 
 import _markdown
@@ -70,8 +70,8 @@ def proc_cpu(pid) -> float:
 
 
 def run_case(n, rate, duration, tmp):
-    from bridge.hil import run_hil
-    from bridge.plant import MavlinkPlant
+    from bridge.mavlink.hil import run_hil
+    from bridge.mavlink.plant import MavlinkPlant
     from cosim.scenario import load_scenario
 
     port = free_base_port(n)

@@ -27,7 +27,7 @@ os.environ.setdefault("MAVLINK20", "1")
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bridge.link import Counters, Peer, free_base_port  # noqa: E402
+from bridge.mavlink.link import Counters, Peer, free_base_port  # noqa: E402
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import _markdown  # noqa: E402
 

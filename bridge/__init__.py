@@ -2,11 +2,11 @@
 
 Public API (imported lazily by the command line; import the submodules directly):
 
-* ``bridge.config.parse_bridge(table, n_agents) -> BridgeConfig`` -- the scenario's [bridge] table;
-* ``bridge.plant.MavlinkPlant(scenario, config=None, ...)`` -- the cosim Plant over MAVLink
+* ``bridge.mavlink.config.parse_bridge(table, n_agents) -> BridgeConfig`` -- the scenario's [bridge] table;
+* ``bridge.mavlink.plant.MavlinkPlant(scenario, config=None, ...)`` -- the cosim Plant over MAVLink
   (``connect()`` first; ``ConnectError``, ``LinkError``);
-* ``bridge.transport.QuantizedPlant(scenario)`` -- the bit-faithful reference for lockstep HIL;
-* ``bridge.mapping.FleetMapping`` -- wrench <-> actuator controls (direct, allocation);
-* ``bridge.vehicle.VehicleServer`` -- the loopback vehicles;
-* ``bridge.hil.run_hil(scenario, plant, ...)`` -- cosim's Master over a connected MavlinkPlant.
+* ``bridge.mavlink.transport.QuantizedPlant(scenario)`` -- the bit-faithful reference for lockstep HIL;
+* ``bridge.mavlink.mapping.FleetMapping`` -- wrench <-> actuator controls (direct, allocation);
+* ``bridge.vehicles.loopback.VehicleServer`` -- the loopback vehicles;
+* ``bridge.mavlink.hil.run_hil(scenario, plant, ...)`` -- cosim's Master over a connected MavlinkPlant.
 """

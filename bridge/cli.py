@@ -207,8 +207,8 @@ def register(sub) -> None:
 def _cmd_agent(args) -> int:
     from cosim.scenario import load_scenario
 
-    from .agent import run_agent
-    from .plant import ConnectError, LinkError
+    from bridge.swarm.agent import run_agent
+    from bridge.mavlink.plant import ConnectError, LinkError
 
     _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None),
              ("--tlog", args.tlog, None))
@@ -257,7 +257,7 @@ def _cmd_agent(args) -> int:
 
 
 def _cmd_swarm(args) -> int:
-    from .swarm import run_swarm_cli
+    from bridge.swarm.launcher import run_swarm_cli
 
     _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None))
     args.live_target = live_target(args)
@@ -314,10 +314,10 @@ def _cmd_vehicle(args) -> int:
     if args.live_target is not None and getattr(args, "sim_protocol", None):
         raise Se3SyncError("--live: not with --sim-protocol")
     if getattr(args, "sim_protocol", None):
-        from .sim_cli import run_sim_cli
+        from bridge.vehicles.sim_cli import run_sim_cli
 
         return run_sim_cli(args)
-    from .vehicle import run_vehicle_cli
+    from bridge.vehicles.loopback import run_vehicle_cli
 
     return run_vehicle_cli(args)
 
@@ -325,8 +325,8 @@ def _cmd_vehicle(args) -> int:
 def _cmd_connect(args) -> int:
     from cosim.scenario import ScenarioError, load_scenario
 
-    from .config import default_config
-    from .plant import ConnectError, LinkError, MavlinkPlant
+    from bridge.mavlink.config import default_config
+    from bridge.mavlink.plant import ConnectError, LinkError, MavlinkPlant
 
     _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None),
              ("--tlog", args.tlog, None))
@@ -336,7 +336,7 @@ def _cmd_connect(args) -> int:
     cfg = sc.bridge or default_config(sc.n_agents)
     if args.vehicle:
         cfg = cfg.with_endpoints(args.vehicle)
-    from .link import require_key_or_insecure  # before the slow stability check and warm-up
+    from bridge.mavlink.link import require_key_or_insecure  # before the slow stability check and warm-up
 
     require_key_or_insecure([v.endpoint for v in cfg.vehicles], args.key or cfg.key_file, args.insecure)
     if not args.force:
@@ -394,12 +394,12 @@ def _ms(x):
 
 
 def warm_up(scenario) -> None:
-    from .hil import warm_up as _warm_up
+    from bridge.mavlink.hil import warm_up as _warm_up
 
     _warm_up(scenario)
 
 
 def run_hil(scenario, plant, **kw) -> dict:
-    from .hil import run_hil as _run_hil
+    from bridge.mavlink.hil import run_hil as _run_hil
 
     return _run_hil(scenario, plant, **kw)

@@ -230,7 +230,7 @@ class Scenario:
 
     @property
     def bridge(self):
-        """The parsed [bridge] table (bridge.config.BridgeConfig) or None."""
+        """The parsed [bridge] table (bridge.mavlink.config.BridgeConfig) or None."""
         return self.tables.get("bridge")
 
     @property

@@ -19,7 +19,7 @@ import numpy as np
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from bridge.link import mavlink2 as M  # noqa: E402
+from bridge.mavlink.link import mavlink2 as M  # noqa: E402
 
 G = 9.80665
 ARMED = M.MAV_MODE_FLAG_SAFETY_ARMED | M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED

@@ -1,8 +1,8 @@
-"""The inter-agent link (bridge/agent_link.py): what reaches whom, exactly which numbers, the
+"""The inter-agent link (bridge/swarm/agent_link.py): what reaches whom, exactly which numbers, the
 newest-sample rule, signing and untrusted input. In-process, over loopback UDP.
 
 Expectations are computed here from the definitions: the scenario → NED/FRD conversion with the
-matrices P_W, P_B written out below, float32 rounding, and `bridge.transport.wire_to_state` (what
+matrices P_W, P_B written out below, float32 rounding, and `bridge.mavlink.transport.wire_to_state` (what
 the bridge makes of a vehicle's ODOMETRY).
 """
 import math
@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bridge import frames
-from bridge.agent_link import AGENT_COMPONENT, AgentLink
-from bridge.link import Counters, Peer, free_base_port, mavlink2
-from bridge.transport import wire_to_state
+from bridge.mavlink import frames
+from bridge.swarm.agent_link import AGENT_COMPONENT, AgentLink
+from bridge.mavlink.link import Counters, Peer, free_base_port, mavlink2
+from bridge.mavlink.transport import wire_to_state
 from controller import Se3SyncError, layout
 from cosim.scenario import parse_scenario
 

@@ -1,5 +1,5 @@
-"""Issue 9: the law distributed, one `se3sync agent` process per vehicle (bridge/agent.py) and
-`se3sync swarm` (bridge/swarm.py): lockstep equals the co-simulation on the float32 reference
+"""Issue 9: the law distributed, one `se3sync agent` process per vehicle (bridge/swarm/agent.py) and
+`se3sync swarm` (bridge/swarm/launcher.py): lockstep equals the co-simulation on the float32 reference
 plant, the wire holds only what the paper allows and goes only to neighbours, the real-time swarm
 converges (also over lossy, delayed links), a killed agent makes its neighbours fail safe and
 rejoins when restarted, and forged neighbour messages change nothing."""
@@ -24,7 +24,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from _machine import CpuShare, skip_if_deadline_missed  # noqa: E402
 from test_bridge_helpers import HIL, ROOT, VehicleProcess, free_base_port, load  # noqa: E402
 
-from bridge.link import Counters, Peer, mavlink2, split_datagram  # noqa: E402
+from bridge.mavlink.link import Counters, Peer, mavlink2, split_datagram  # noqa: E402
 from controller import layout  # noqa: E402
 
 H = 0.004
@@ -52,7 +52,7 @@ def _swarm(tmp_path, sets, *extra, scenario=HIL, timeout=240):
 
 def _reference(scenario, sets, duration, log=None):
     """`run` of the same scenario on the float32 reference plant (what MAVLink carries)."""
-    from bridge.transport import QuantizedPlant
+    from bridge.mavlink.transport import QuantizedPlant
     from cosim.run import run_scenario
 
     sc = load(sets, path=scenario, duration=duration)
@@ -126,7 +126,7 @@ class _Forger(threading.Thread):
         self.sent = 0
 
     def run(self):
-        from bridge.agent_link import encode_sample
+        from bridge.swarm.agent_link import encode_sample
 
         wrong = Peer(1, 191, Counters(), key=bytes(range(1, 33)))
         plain = Peer(1, 191, Counters())
@@ -394,7 +394,7 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
         i_fs = next(i for i, t in enumerate(tr) if t["state"] == "failsafe" and t["step"] > 2.8 / H)
         back_at = next(t["step"] for t in tr[i_fs + 1:] if t["state"] == "fresh")
         assert back_at > tr[i_fs]["step"]
-    from bridge.swarm import merge_summaries
+    from bridge.swarm.launcher import merge_summaries
 
     merged = merge_summaries(load(sets, duration=dur), {**s, 3: s3})
     f = merged["final"]

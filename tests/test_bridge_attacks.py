@@ -26,7 +26,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from _attack import can_spoof, os_ports, spoofed_sendto, swarm_scenario  # noqa: E402
 from test_bridge_helpers import ROOT, VehicleThread, load  # noqa: E402
 
-from bridge.link import Counters, Peer, mavlink2  # noqa: E402
+from bridge.mavlink.link import Counters, Peer, mavlink2  # noqa: E402
 from controller import layout  # noqa: E402
 
 H_US = 4000
@@ -37,7 +37,7 @@ needs_spoofing = pytest.mark.skipif(not can_spoof(), reason="forging a neighbour
 
 def _forged_sample(step: int, x: float = 5.0) -> bytes:
     """Agent 1's sample (it owns edge 1) at ``step``, unsigned, 5 m away from anything real."""
-    from bridge.agent_link import encode_sample
+    from bridge.swarm.agent_link import encode_sample
 
     peer = Peer(1, 191, Counters())
     S = np.zeros(layout.S_WIDTH)
@@ -114,7 +114,7 @@ def test_one_forged_future_sample_takes_over_no_real_time_agent(tmp_path):
 def test_one_forged_sample_10e9_steps_ahead_leaves_a_lockstep_swarm_exact(tmp_path):
     """Issue 29, 2: the same packet stamped 10⁹ steps ahead made a lockstep swarm exit 5 with no
     merged log. Now it is refused (`future`) and the run equals the float32 reference run."""
-    from bridge.transport import QuantizedPlant
+    from bridge.mavlink.transport import QuantizedPlant
     from cosim.run import run_scenario
     from test_agents import _assert_equal_to_float32
 
@@ -221,7 +221,7 @@ def test_cross_vehicle_replay_under_signing_drops_no_genuine_command(tmp_path):
     255, component 191), so agent 1's commands replayed into vehicle 2 passed the signature,
     moved vehicle 2's replay window and got genuine commands dropped as `replay`. Now each link
     signs on its own stream and a window moves only for a packet accepted in full."""
-    from bridge.agent import AgentNode
+    from bridge.swarm.agent import AgentNode
 
     key_file = tmp_path / "k.key"
     key_file.write_bytes(KEY)
@@ -356,7 +356,7 @@ def test_a_stale_process_on_the_swarms_ports_is_refused_exit_2(tmp_path, stale):
 def test_connect_refuses_a_vehicle_claimed_by_two_processes():
     """The same at the bridge (`connect`, each agent): two processes sending as vehicle 1 to one
     port while it connects is an error naming the endpoint (exit 2), not a mixed state."""
-    from bridge.plant import OTHER_SOURCE_PACKETS, MavlinkPlant
+    from bridge.mavlink.plant import OTHER_SOURCE_PACKETS, MavlinkPlant
     from controller.errors import Se3SyncError
 
     port = os_ports(1)[0]
@@ -472,7 +472,7 @@ def test_connect_counts_no_phantom_losses_from_fallback_messages():
     and LOCAL_POSITION_NED, authentic but unused while ODOMETRY comes, were left out of the
     sequence count, so each made a gap. Now `dropped` is what was lost on the way: here nothing
     (or what the kernel dropped)."""
-    from bridge.plant import MavlinkPlant
+    from bridge.mavlink.plant import MavlinkPlant
 
     port = os_ports(1)[0]
     sc = load(["bridge.routing=shared", f"bridge.base_port={port}"])
@@ -493,7 +493,7 @@ def test_connect_counts_no_phantom_losses_from_fallback_messages():
 def test_vehicle_fail_safe_reports_are_quiet_before_the_first_command_then_rate_limited():
     """`agent` printed "failsafe: commands timed out" / "commands resumed" over and over: now
     nothing before the first command, then one line per 5 s per vehicle (all counted)."""
-    from bridge.plant import MavlinkPlant
+    from bridge.mavlink.plant import MavlinkPlant
 
     port = os_ports(1)[0]
     sc = load(["bridge.routing=shared", f"bridge.base_port={port}"])

@@ -19,8 +19,8 @@ def _run(tmp_path, duration, loss=0.0, jitter=0.0, cut=None):
     vehicles' late ticks): called before the assertions that need the deadline kept."""
     import threading
 
-    from bridge.hil import run_hil
-    from bridge.plant import MavlinkPlant
+    from bridge.mavlink.hil import run_hil
+    from bridge.mavlink.plant import MavlinkPlant
 
     port = free_base_port(6)
     sc = load([f"bridge.base_port={port}", f"simulation.duration={duration}"])
@@ -105,8 +105,8 @@ def test_lockstep_over_lossy_reordering_link_stays_bit_faithful():
     stale duplicates are dropped, and the run still equals the quantised co-simulation exactly."""
     import numpy as np
 
-    from bridge.plant import MavlinkPlant
-    from bridge.transport import QuantizedPlant
+    from bridge.mavlink.plant import MavlinkPlant
+    from bridge.mavlink.transport import QuantizedPlant
     from cosim.master import make_controller
     from test_bridge_helpers import VehicleThread
 

@@ -22,7 +22,7 @@ import numpy as np
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from bridge.link import DRAIN_BUDGET, Counters, Peer, mavlink2  # noqa: E402
+from bridge.mavlink.link import DRAIN_BUDGET, Counters, Peer, mavlink2  # noqa: E402
 from _machine import CpuShare, skip_if_deadline_missed  # noqa: E402
 from test_bridge_helpers import (ROOT, VehicleProcess, VehicleThread, bound_udp,  # noqa: E402
                                  free_base_port, load)
@@ -128,7 +128,7 @@ def test_signed_replay_into_restarted_vehicle_is_rejected(tmp_path):
 def test_own_timestamp_never_reused_after_a_crash(tmp_path):
     """Packets signed after the last periodic write (then a crash: no close) must not have their
     timestamps reused after a restart: the restored own timestamp jumps by the margin."""
-    from bridge.signing_state import SigningState, wall_timestamp
+    from bridge.mavlink.signing_state import SigningState, wall_timestamp
 
     path = tmp_path / "s.json"
     st = SigningState(path, period=0.0)
@@ -145,7 +145,7 @@ def test_own_timestamp_never_reused_after_a_crash(tmp_path):
 def test_corrupt_signing_state_is_one_line_error(tmp_path):
     import pytest
 
-    from bridge.signing_state import SigningState
+    from bridge.mavlink.signing_state import SigningState
     from controller.errors import Se3SyncError
 
     p = tmp_path / "s.json"
@@ -158,7 +158,7 @@ def test_corrupt_signing_state_is_one_line_error(tmp_path):
 def _hil_with_spoofer(tmp_path, overrides, key, spoof, steps=200, per_step=15):
     """A lockstep HIL run of the 6-vehicle scenario while a spoofer sends `spoof(sysid)` packets
     to the bridge's ports; returns (bridge stats, server, packets the spoofer received)."""
-    from bridge.plant import MavlinkPlant
+    from bridge.mavlink.plant import MavlinkPlant
     from cosim.master import make_controller
 
     port = free_base_port(6)
@@ -354,7 +354,7 @@ def _corrupt_crc(pkt: bytes) -> bytes:
 
 
 def test_bad_crc_from_unknown_system_is_malformed_at_the_bridge():
-    from bridge.plant import MavlinkPlant
+    from bridge.mavlink.plant import MavlinkPlant
 
     port = free_base_port(6)
     sc = load([f"bridge.base_port={port}"])
@@ -413,8 +413,8 @@ def test_insecure_needed_for_non_loopback_without_key(tmp_path):
 def test_bridge_keeps_signing_state_beside_the_key(tmp_path):
     """The bridge side: state written at close beside the key file (or at bridge.signing_state),
     and a restarted bridge signs above the stored own timestamp by the margin."""
-    from bridge.plant import MavlinkPlant
-    from bridge.signing_state import wall_timestamp
+    from bridge.mavlink.plant import MavlinkPlant
+    from bridge.mavlink.signing_state import wall_timestamp
 
     key = tmp_path / "k.hex"
     key.write_text(KEY.hex())

@@ -17,7 +17,7 @@ from pathlib import Path
 os.environ.setdefault("MAVLINK20", "1")
 
 ROOT = Path(__file__).resolve().parents[1]
-from bridge.link import free_base_port  # noqa: E402,F401  (re-exported for the tests)
+from bridge.mavlink.link import free_base_port  # noqa: E402,F401  (re-exported for the tests)
 
 HIL = str(ROOT / "scenarios" / "hil_6uav.toml")
 
@@ -41,7 +41,7 @@ class VehicleThread:
     """VehicleServer in a thread of this process (context manager)."""
 
     def __init__(self, **kw):
-        from bridge.vehicle import VehicleServer
+        from bridge.vehicles.loopback import VehicleServer
 
         self.server = VehicleServer(**kw)
         self.thread = threading.Thread(target=self.server.run, daemon=True)

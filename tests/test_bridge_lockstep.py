@@ -17,8 +17,8 @@ from test_bridge_helpers import HIL, ROOT, VehicleProcess, VehicleThread, free_b
 def _lockstep_pair(sc, n_steps, key=None, tlog=None):
     """Runs the same controller against MavlinkPlant (lockstep, vehicles in a thread) and against
     QuantizedPlant; returns the max |S_hil − S_ref| over every step and the plant stats."""
-    from bridge.plant import MavlinkPlant
-    from bridge.transport import QuantizedPlant
+    from bridge.mavlink.plant import MavlinkPlant
+    from bridge.mavlink.transport import QuantizedPlant
     from cosim.master import make_controller
 
     with VehicleThread(scenario=sc, lockstep=True, key=key, aux_rate=0):

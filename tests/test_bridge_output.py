@@ -14,8 +14,8 @@ os.environ.setdefault("MAVLINK20", "1")
 
 from test_bridge_helpers import VehicleThread, free_base_port, load  # noqa: E402
 
-from bridge import output as out  # noqa: E402
-from bridge.link import mavlink2  # noqa: E402
+from bridge.mavlink import output as out  # noqa: E402
+from bridge.mavlink.link import mavlink2  # noqa: E402
 
 EDGES = [(0, 1), (1, 2), (2, 3), (1, 4), (4, 5)]   # hil_6uav's graph, 0-based
 J6 = np.diag([0.043, 0.041, 0.082])
@@ -140,7 +140,7 @@ def test_px4_attitude_setpoint_against_the_plant_is_third_order():
 def test_config_errors_name_the_key():
     from cosim.scenario import ScenarioError
 
-    from bridge.config import parse_bridge
+    from bridge.mavlink.config import parse_bridge
 
     with pytest.raises(ScenarioError) as e:
         parse_bridge({"output": "ardusub_manual_control"}, 2)
@@ -162,8 +162,8 @@ def _hil_vs_reference(sc, n_steps):
     """Lockstep HIL (vehicles in a thread) and QuantizedPlant under the same controller: returns
     max |S_hil − S_ref|, the per-step max |vehicle wrench − controller wrench| (N, N·m), the HIL
     sync errors at the start and end, and the plant stats."""
-    from bridge.plant import MavlinkPlant
-    from bridge.transport import QuantizedPlant
+    from bridge.mavlink.plant import MavlinkPlant
+    from bridge.mavlink.transport import QuantizedPlant
     from cosim.master import make_controller
 
     with VehicleThread(scenario=sc, lockstep=True, aux_rate=0) as srv:

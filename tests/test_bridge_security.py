@@ -14,7 +14,7 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from bridge.link import Counters, Peer, mavlink2  # noqa: E402
+from bridge.mavlink.link import Counters, Peer, mavlink2  # noqa: E402
 from test_bridge_helpers import VehicleThread, bound_udp, free_base_port, load  # noqa: E402
 
 KEY = bytes(range(100, 132))
@@ -56,7 +56,7 @@ def _fix_crc(pkt: bytearray) -> bytearray:
 def test_signing_rejects_unsigned_wrong_key_replayed_tampered(tmp_path):
     key_file = tmp_path / "key.hex"
     key_file.write_text(KEY.hex() + "\n")
-    from bridge.config import read_key_file
+    from bridge.mavlink.config import read_key_file
 
     lis, port = bound_udp()
     with VehicleThread(count=1, base_port=port, key=read_key_file(key_file), rate=100, aux_rate=0,
@@ -100,7 +100,7 @@ def test_unsigned_heartbeat_option():
 
 
 def test_signed_lockstep_hil_runs():
-    from bridge.plant import MavlinkPlant
+    from bridge.mavlink.plant import MavlinkPlant
     from cosim.master import make_controller
 
     port = free_base_port(6)
@@ -162,7 +162,7 @@ def test_10000_random_and_truncated_datagrams(tmp_path):
 
 
 def test_bridge_side_survives_garbage():
-    from bridge.plant import MavlinkPlant
+    from bridge.mavlink.plant import MavlinkPlant
 
     port = free_base_port(6)
     sc = load([f"bridge.base_port={port}"])

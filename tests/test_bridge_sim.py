@@ -26,7 +26,7 @@ MASS = 2.4
 J = np.diag([0.043, 0.041, 0.082])
 MW = np.array([50.0, 50.0, 50.0, 20.0, 20.0, 20.0])
 G = np.array([0.0, 0.0, 9.81])          # NED: down
-# our documented Earth model, written out independently of bridge.sim_body
+# our documented Earth model, written out independently of bridge.vehicles.sim_body
 LAT0, LON0, ALT0, RE = 47.397742, 8.545594, 488.0, 6378137.0
 INC, DEC, BG = math.radians(63.5), math.radians(3.0), 0.48
 B_NED = BG * np.array([math.cos(INC) * math.cos(DEC), math.cos(INC) * math.sin(DEC), math.sin(INC)])
@@ -63,7 +63,7 @@ def _gravity_scenario(extra=()):
 def test_px4_simulator_lockstep_1000_steps():
     """A client that starts as PX4 does (lets the HIL_SENSOR stream advance its clock before it sends
     any HIL_ACTUATOR_CONTROLS: Px4Client.start) reaches lockstep; then 1,000 exchanges."""
-    from bridge.sim_px4 import Px4SimServer
+    from bridge.vehicles.sim_px4 import Px4SimServer
     from sim_clients import Px4Client
 
     sc = _gravity_scenario()
@@ -157,7 +157,7 @@ def test_px4_simulator_lockstep_1000_steps():
 
 
 def test_px4_simulator_survives_garbage_and_reconnects():
-    from bridge.sim_px4 import Px4SimServer
+    from bridge.vehicles.sim_px4 import Px4SimServer
     from sim_clients import Px4Client
 
     srv = Px4SimServer(load(), port=0, step=H, noise=False, lockstep_timeout=60.0)
@@ -193,7 +193,7 @@ def _json_reply(sock, timeout=5.0):
 
 
 def test_ardupilot_json_lockstep_1000_frames():
-    from bridge.sim_ardupilot import ArduPilotJsonServer
+    from bridge.vehicles.sim_ardupilot import ArduPilotJsonServer
 
     sc = _gravity_scenario()
     srv = ArduPilotJsonServer(sc, port=0, noise=True, seed=3)
@@ -259,7 +259,7 @@ def test_ardupilot_json_lockstep_1000_frames():
 def test_ardupilot_json_holds_until_motors_spin():
     """Unidirectional rotors (allocation): PWM ≤ 1000 µs = stopped, the body rests on the ground
     and reads −Rᵀg; above, it moves."""
-    from bridge.sim_ardupilot import ArduPilotJsonServer
+    from bridge.vehicles.sim_ardupilot import ArduPilotJsonServer
 
     sc = _gravity_scenario(["bridge.mapping=\"allocation\"", "bridge.allocation={max_thrust = 60.0}"])
     srv = ArduPilotJsonServer(sc, port=0, noise=False)

@@ -8,12 +8,12 @@ import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from bridge import frames  # noqa: E402
-from bridge.config import parse_bridge, read_key_file  # noqa: E402
-from bridge.link import Counters, Peer, split_datagram  # noqa: E402
-from bridge.mapping import AllocationSpec, FleetMapping, MappingSpec, hexarotor_matrix  # noqa: E402
-from bridge.state import StateTracker  # noqa: E402
-from bridge.transport import Transport, f32, state_to_wire, wire_to_state  # noqa: E402
+from bridge.mavlink import frames  # noqa: E402
+from bridge.mavlink.config import parse_bridge, read_key_file  # noqa: E402
+from bridge.mavlink.link import Counters, Peer, split_datagram  # noqa: E402
+from bridge.mavlink.mapping import AllocationSpec, FleetMapping, MappingSpec, hexarotor_matrix  # noqa: E402
+from bridge.mavlink.state import StateTracker  # noqa: E402
+from bridge.mavlink.transport import Transport, f32, state_to_wire, wire_to_state  # noqa: E402
 from controller import se3  # noqa: E402
 from controller.errors import Se3SyncError  # noqa: E402
 from cosim.scenario import ScenarioError  # noqa: E402

@@ -10,7 +10,7 @@ import numpy as np
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from bridge.link import Counters, Peer, mavlink2 as M, split_datagram  # noqa: E402
+from bridge.mavlink.link import Counters, Peer, mavlink2 as M, split_datagram  # noqa: E402
 from test_bridge_helpers import (HIL, VehicleProcess, VehicleThread, bound_udp,  # noqa: E402
                                  free_base_port, load)
 
@@ -78,7 +78,7 @@ def test_acks_are_sent():
 def test_fallback_state_from_attitude_and_local_position():
     """A vehicle that sends no ODOMETRY: the bridge builds the state from ATTITUDE_QUATERNION +
     LOCAL_POSITION_NED (velocity rotated from NED into the body)."""
-    from bridge.state import StateTracker
+    from bridge.mavlink.state import StateTracker
     from controller import se3
 
     tx = Peer(1, 1, Counters())
@@ -97,8 +97,8 @@ def test_fallback_state_from_attitude_and_local_position():
 
 
 def test_shared_port_routing_lockstep():
-    from bridge.plant import MavlinkPlant
-    from bridge.transport import QuantizedPlant
+    from bridge.mavlink.plant import MavlinkPlant
+    from bridge.mavlink.transport import QuantizedPlant
     from cosim.master import make_controller
 
     port = free_base_port(1)

@@ -337,7 +337,7 @@ def test_sigint_during_start_up_is_never_lost(delay, tmp_path):
 @pytest.mark.parametrize("sig, status", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
 def test_vehicle_stopped_by_a_signal_exits_with_its_status_and_stats(sig, status, tmp_path):
     pytest.importorskip("pymavlink")
-    from bridge.link import free_base_port
+    from bridge.mavlink.link import free_base_port
 
     stats = tmp_path / "st.json"
     p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "vehicle", "--count", "1",
@@ -360,7 +360,7 @@ def test_connect_stopped_by_a_signal_leaves_complete_outputs(sig, status, tmp_pa
     pytest.importorskip("pymavlink")
     from mcap.reader import make_reader
 
-    from bridge.link import free_base_port
+    from bridge.mavlink.link import free_base_port
 
     hil = str(ROOT / "scenarios" / "hil_6uav.toml")
     port = free_base_port(6)

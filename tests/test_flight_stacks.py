@@ -83,7 +83,7 @@ def test_preset_geometry_equals_the_stacks_frame_definition(frame, stack):
     """Column k of the allocation (rotor k on output k) against the stack's motor k: a rotor at
     angle φ and arm L lifting T makes roll −L sin φ·T and pitch L cos φ·T, and yaws the body by
     +c·T (FRD z, clockwise seen from above) when it spins CCW, −c·T when CW; thrust straight up."""
-    from bridge.mapping import AllocationSpec, hexarotor_matrix
+    from bridge.mavlink.mapping import AllocationSpec, hexarotor_matrix
 
     L, T, c = 0.3, 12.0, 0.02
     A = hexarotor_matrix(AllocationSpec(frame=frame, tilt_deg=0.0, arm_length=L, max_thrust=T, torque_coeff=c))
@@ -98,8 +98,8 @@ def test_preset_geometry_equals_the_stacks_frame_definition(frame, stack):
 def test_tilted_hexarotor_is_the_existing_default_and_tilt_zero_is_allowed():
     """The paper's hexarotor is unchanged (fully actuated, rank 6); tilt_deg = 0 is a plain hexa +
     geometry (rank 4: no sideways force); a negative tilt tilts the other way."""
-    from bridge.config import parse_bridge
-    from bridge.mapping import AllocationSpec, hexarotor_matrix
+    from bridge.mavlink.config import parse_bridge
+    from bridge.mavlink.mapping import AllocationSpec, hexarotor_matrix
 
     A30 = hexarotor_matrix(AllocationSpec())
     assert np.linalg.matrix_rank(A30) == 6
@@ -120,8 +120,8 @@ def test_parameter_files_round_trip(frame, tilt, stack):
     """The written file, parsed back, drives the same rotors on the same outputs (ArduPilot through
     its frame table and SERVOn_FUNCTION; PX4 through CA_ROTOR* and PWM_MAIN_FUNCn); PX4's matrix from
     CA_ROTOR* is ours; the hover throttle is the weight over the rotors' lift."""
-    from bridge.airframes import allocation_matrix, geometry_from_params, params_text, parse_params, rotors
-    from bridge.mapping import AllocationSpec
+    from bridge.mavlink.airframes import allocation_matrix, geometry_from_params, params_text, parse_params, rotors
+    from bridge.mavlink.mapping import AllocationSpec
 
     spec = AllocationSpec(frame=frame, tilt_deg=float(tilt), arm_length=0.25, max_thrust=15.0, torque_coeff=0.016)
     p = parse_params(params_text(stack, spec, MASS, 9.80665, "header"))
@@ -134,7 +134,7 @@ def test_parameter_files_round_trip(frame, tilt, stack):
         assert abs(_wrapped(a1 - a2)) < 1e-6 and s1 == s2
     c_h = MASS * 9.80665 / -A[5].sum()
     if stack == "px4":
-        from bridge.airframes import px4_matrix_from_params
+        from bridge.mavlink.airframes import px4_matrix_from_params
 
         assert np.allclose(px4_matrix_from_params(p), A, atol=1e-7)
         assert p["CA_R_REV"] == 0 and p["THR_MDL_FAC"] == 0 and abs(p["MPC_THR_HOVER"] - c_h) < 1e-6
@@ -148,8 +148,8 @@ def test_parameter_files_round_trip(frame, tilt, stack):
 def test_ardupilot_params_for_the_tilted_hexarotor():
     """The order SITL.md worked out by hand (SERVO1..6 = 33, 36, 38, 34, 35, 37, HEXA/PLUS) comes out
     of the geometry; the issue's tilt of +30° is refused with the reason, on one line."""
-    from bridge.airframes import params_text, parse_params
-    from bridge.mapping import AllocationSpec
+    from bridge.mavlink.airframes import params_text, parse_params
+    from bridge.mavlink.mapping import AllocationSpec
     from controller.errors import Se3SyncError
 
     p = parse_params(params_text("ardupilot", AllocationSpec(tilt_deg=1.0), MASS, 9.80665))
@@ -163,7 +163,7 @@ def test_ardupilot_params_for_the_tilted_hexarotor():
 def test_write_params_command_line(tmp_path):
     """`vehicle --sim-protocol … --write-params FILE` writes the file of the scenario's airframe (one
     per vehicle with '{i}') and exits 0; the file parses back to the scenario's geometry."""
-    from bridge.airframes import geometry_from_params, parse_params
+    from bridge.mavlink.airframes import geometry_from_params, parse_params
 
     out = tmp_path / "v{i}.parm"
     r = subprocess.run([sys.executable, "-m", "cosim.cli", "vehicle", "--scenario", SITL, "--sim-protocol",
@@ -182,8 +182,8 @@ def test_scripted_flight(stack, frame):
     """Arm, spool up for 2 s, climb to 2 m, hold 3 s, land at 0.5 m/s, detect the touchdown, disarm,
     1 s on the ground — in lockstep through the simulator server, on the plant's ground. The
     autopilot mixes with the stack's published motor table (sim_clients.STACK_FRAMES)."""
-    from bridge.sim_ardupilot import ArduPilotJsonServer
-    from bridge.sim_px4 import Px4SimServer
+    from bridge.vehicles.sim_ardupilot import ArduPilotJsonServer
+    from bridge.vehicles.sim_px4 import Px4SimServer
 
     sc = _load(_frame(frame))
     if stack == "px4":
@@ -224,7 +224,7 @@ def test_px4_first_sensor_is_stamped_h_and_streams_until_the_first_controls():
     """Start-up as PX4 needs it: the first HIL_SENSOR is stamped h (not 0) and the server keeps
     streaming, one step per h of wall time, while the client sends nothing; judged from the stamps
     received (consecutive multiples of h), not from the wall clock."""
-    from bridge.sim_px4 import Px4SimServer
+    from bridge.vehicles.sim_px4 import Px4SimServer
 
     srv = Px4SimServer(_load(), port=0, step=0.004, noise=False, lockstep_timeout=3600.0)
     with _Serve(srv):
@@ -239,7 +239,7 @@ def test_px4_first_sensor_is_stamped_h_and_streams_until_the_first_controls():
 def test_px4_lockstep_timeout_steps_anyway_and_says_so():
     """A client that stops answering: after lockstep_timeout the server steps anyway (counted, one
     message per stall); when the client answers again lockstep resumes."""
-    from bridge.sim_px4 import Px4SimServer
+    from bridge.vehicles.sim_px4 import Px4SimServer
 
     events = []
     srv = Px4SimServer(_load(), port=0, step=0.004, noise=False, lockstep_timeout=0.6, on_event=events.append)
@@ -285,8 +285,8 @@ def test_px4_client_that_never_reads_is_dropped_and_others_keep_stepping():
     """Vehicle 1's client floods HIL_ACTUATOR_CONTROLS and reads nothing: the server does not block
     on it (non-blocking sends, a bounded buffer: the client is dropped and counted) and vehicle 2's
     genuine client gets its 300 lockstep steps."""
-    from bridge.link import mavlink2 as M
-    from bridge.sim_px4 import Px4SimServer
+    from bridge.mavlink.link import mavlink2 as M
+    from bridge.vehicles.sim_px4 import Px4SimServer
 
     srv = Px4SimServer(_scenario_two(), port=0, step=0.004, noise=False, lockstep_timeout=3600.0,
                        send_buffer=32 * 1024)
@@ -322,7 +322,7 @@ def test_px4_idle_client_is_dropped_and_the_vehicle_served_again():
     """A client that connects and never sends a HIL_ACTUATOR_CONTROLS holds its vehicle only until the
     idle timeout; then a genuine client gets the vehicle (from its initial state), and the other
     vehicle was served throughout."""
-    from bridge.sim_px4 import Px4SimServer
+    from bridge.vehicles.sim_px4 import Px4SimServer
 
     srv = Px4SimServer(_scenario_two(), port=0, step=0.004, noise=False, lockstep_timeout=3600.0,
                        idle_timeout=0.3)
@@ -342,7 +342,7 @@ def test_px4_idle_client_is_dropped_and_the_vehicle_served_again():
 def test_px4_out_of_range_fields_are_clamped():
     """A body 30,000 km north, 3,000 km up, at 700 m/s and spinning: every HIL_* message still
     encodes (integer fields clamped to their types, latitude to ±90°), never a struct.error."""
-    from bridge.sim_px4 import Px4SimServer
+    from bridge.vehicles.sim_px4 import Px4SimServer
 
     srv = Px4SimServer(_load(), port=0, step=0.004, noise=False)
     try:
@@ -372,7 +372,7 @@ def test_ardupilot_divergence_resets_one_vehicle_and_the_others_go_on():
     """Vehicle 1 gets full PWM on its six channels (direct mapping: the full wrench) until its body
     leaves any physical range; it is reset to its initial state, counted and reported, the server
     keeps answering both, and vehicle 2 (neutral PWM) steps normally throughout."""
-    from bridge.sim_ardupilot import ArduPilotJsonServer
+    from bridge.vehicles.sim_ardupilot import ArduPilotJsonServer
 
     from cosim.scenario import load_scenario
 

@@ -301,7 +301,7 @@ def test_a_law_with_only_step_state_runs_and_is_checked(monkeypatch, tmp_path):
 def test_lockstep_swarm_equals_its_run_on_the_float32_plant(tmp_path):
     from test_agents import _assert_equal_to_float32, _ports, _swarm
 
-    from bridge.transport import QuantizedPlant
+    from bridge.mavlink.transport import QuantizedPlant
     from cosim.run import run_scenario
 
     sets, _, _ = _ports()

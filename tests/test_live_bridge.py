@@ -243,8 +243,8 @@ def test_connect_live_view_over_mavlink(tmp_path, monkeypatch):
     import threading
 
     os.environ.setdefault("MAVLINK20", "1")
-    from bridge.hil import run_hil
-    from bridge.plant import MavlinkPlant
+    from bridge.mavlink.hil import run_hil
+    from bridge.mavlink.plant import MavlinkPlant
     from cosim.log import live as L
     from test_bridge_helpers import VehicleThread, free_base_port, load
     from test_live import _messages_with_bytes

@@ -208,7 +208,7 @@ def test_ground_flag_is_zero_or_one():
 def test_scenario_keys_reach_every_plant():
     """[plant] ground/ground_height/drag_*: parsed, checked, passed to the co-simulation's plants (both
     modes) and to the vehicles' reference fleet; off by default (no terms at all)."""
-    from bridge.transport import VehicleFleet
+    from bridge.mavlink.transport import VehicleFleet
     from cosim.plants import FmuPlant, PerBodyFmuPlant
     from cosim.scenario import load_scenario
 
@@ -259,7 +259,7 @@ def test_loopback_vehicle_stands_on_the_ground():
     it rests on the plane; 1.2× its weight of thrust lifts it at (T − m g)/m."""
     import socket
 
-    from bridge.vehicle import VehicleServer
+    from bridge.vehicles.loopback import VehicleServer
     from cosim.scenario import load_scenario
 
     sc = load_scenario(str(Path(HIL).with_name("sitl_1uav.toml")), ["plant.drag_linear=0.0"])

@@ -155,7 +155,7 @@ def test_sweep_samples_run_on_it_and_a_plant_without_reset_is_refused(registered
 
 
 def test_the_bridge_warms_up_on_the_scenarios_plant(registered, monkeypatch):
-    from bridge import hil
+    from bridge.mavlink import hil
 
     made = []
     real = RigidBodies.from_scenario.__func__

@@ -121,6 +121,12 @@ def test_controller_errors_do_not_load_the_kernels():
     assert r.returncode == 0, r.stderr
 
 
+# bridge/'s subpackages by job (docs/internals/layout.md): the link and plant stand alone, and
+# the vehicles and the swarm each build on it, never on each other
+BRIDGE_FORBIDDEN = {("mavlink", "vehicles"), ("mavlink", "swarm"), ("vehicles", "swarm"),
+                    ("swarm", "vehicles")}
+
+
 def test_layering():
     bad = []
     for m, deps in GRAPH.items():
@@ -133,6 +139,10 @@ def test_layering():
                 bad.append(f"{m} imports {d} (plant_fmu/ does not import cosim or bridge)")
             if top == "cosim" and dtop == "bridge":
                 bad.append(f"{m} imports {d} (cosim/ finds bridge through entry points only)")
+            sub, dsub = m.split(".")[:2], d.split(".")[:2]
+            if top == dtop == "bridge" and len(sub) == len(dsub) == 2 and sub[1] != dsub[1] \
+                    and (sub[1], dsub[1]) in BRIDGE_FORBIDDEN:
+                bad.append(f"{m} imports {d} (bridge.{sub[1]} does not import bridge.{dsub[1]})")
     assert not bad, "\n".join(bad)
 
 
@@ -160,5 +170,5 @@ def test_the_checks_see_a_cycle_and_a_private_import():
     # the checks see function-local imports: the two cycles that hid in functions before
     hidden = {"cosim.master": {"cosim.fastloop"}, "cosim.fastloop": {"cosim.master"}}
     assert len(find_cycles(hidden)) == 1
-    assert is_cli("cosim.cli.run") and is_cli("bridge.sim_cli") and is_cli("plant_fmu.cli")
+    assert is_cli("cosim.cli.run") and is_cli("bridge.vehicles.sim_cli") and is_cli("plant_fmu.cli")
     assert not is_cli("cosim.master") and not is_cli("controller.kernels")

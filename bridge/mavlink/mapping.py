@@ -2,13 +2,13 @@
 
 Both directions are written as element-wise numpy operations in a fixed order (no BLAS, no
 reductions), so that mapping one vehicle at a time (the loopback vehicle) and the whole fleet at
-once (the reference co-simulation, `bridge.transport`) round identically, bit for bit.
+once (the reference co-simulation, `bridge.mavlink.transport`) round identically, bit for bit.
 
 Wrenches here are in the vehicle's FRD body frame, [τ; f] (N·m, N).
 
 * ``direct``: controls = clip((w + w_ff) ./ max_wrench, −1, 1), order (τx, τy, τz, fx, fy, fz).
 * ``allocation``: a multirotor, w = A c with c the rotor thrusts normalised by the maximum
-  thrust; the rotor geometry is a preset of `bridge.airframes` (``allocation.frame``). The default
+  thrust; the rotor geometry is a preset of `bridge.mavlink.airframes` (``allocation.frame``). The default
   airframe is a hexarotor with alternately tilted arms (rotor k at azimuth 60°·k, its thrust axis,
   nominally −z (up), tilted by ±tilt about the arm, spin and tilt signs alternating): A is 6×6 and
   invertible, so the pseudo-inverse is the inverse and there is no null space: a zero wrench means
@@ -43,7 +43,7 @@ class AllocationSpec:
     max_thrust: float = 15.0      # N per rotor
     torque_coeff: float = 0.016   # m: rotor drag torque = torque_coeff · thrust
     reversible: bool = False      # thrust range [-1, 1] instead of [0, 1]
-    frame: str = "hexa-tilted"    # rotor geometry preset (bridge.airframes.FRAMES)
+    frame: str = "hexa-tilted"    # rotor geometry preset (bridge.mavlink.airframes.FRAMES)
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class MappingSpec:
 
 
 def hexarotor_matrix(spec: AllocationSpec) -> np.ndarray:
-    """6×6 A with w_frd = A c, c the normalised thrusts of the rotors (`bridge.airframes`; columns
+    """6×6 A with w_frd = A c, c the normalised thrusts of the rotors (`bridge.mavlink.airframes`; columns
     past the frame's rotor count are zero)."""
     return allocation_matrix(spec)
 

@@ -1,6 +1,6 @@
 """`se3sync vehicle --sim-protocol px4|ardupilot`: serve the scenario's bodies to a flight stack's
-SITL (bridge.sim_px4, bridge.sim_ardupilot) until Ctrl-C, SIGTERM or --duration; or, with
---write-params, write the stack's parameters for the scenario's airframes (bridge.airframes)."""
+SITL (bridge.vehicles.sim_px4, bridge.vehicles.sim_ardupilot) until Ctrl-C, SIGTERM or --duration; or, with
+--write-params, write the stack's parameters for the scenario's airframes (bridge.mavlink.airframes)."""
 from __future__ import annotations
 
 import json
@@ -25,9 +25,9 @@ def run_sim_cli(args) -> int:
         raise Se3SyncError(f"--sim-idle-timeout: must be > 0, got {args.sim_idle_timeout:g}")
     from cosim.scenario import load_scenario
 
-    from .config import default_config
-    from .mapping import DIRECT
-    from .vehicle import check_count
+    from bridge.mavlink.config import default_config
+    from bridge.mavlink.mapping import DIRECT
+    from .loopback import check_count
 
     sc = load_scenario(args.scenario, args.set or [])
     check_count(args.count, sc)
@@ -82,8 +82,8 @@ def run_sim_cli(args) -> int:
 def write_params(args, sc, cfg) -> int:
     """--write-params FILE: the stack parameters of every vehicle's airframe ('{i}' in FILE: one file
     per vehicle; without, the vehicles must share mass and airframe)."""
-    from .airframes import params_text
-    from .mapping import ALLOCATION
+    from bridge.mavlink.airframes import params_text
+    from bridge.mavlink.mapping import ALLOCATION
 
     g = float(np.linalg.norm(sc.gravity))
     if not g > 0:

@@ -16,7 +16,7 @@ PWM -> controls: unidirectional rotors (allocation, not reversible) c = (pwm −
 Out (text, one JSON object preceded and terminated by "\\n"): ``timestamp`` (s, physics time),
 ``imu.gyro`` (rad/s, FRD), ``imu.accel_body`` (m/s², FRD specific force), ``position`` (m, NED),
 ``velocity`` (m/s, NED), ``quaternion`` (w, x, y, z: FRD -> NED). The IMU has the same white noise
-as the PX4 interface (`bridge.sim_body.Noise`). With ``[plant] ground = true`` the body stands on
+as the PX4 interface (`bridge.vehicles.sim_body.Noise`). With ``[plant] ground = true`` the body stands on
 the ground plane and lifts off when the thrust exceeds its weight; without, until a motor PWM
 exceeds 1000 µs (allocation) — ArduPilot spins armed motors at MOT_SPIN_ARM — it is held at its
 initial pose (`sim_body`). Malformed packets (size, magic, frame_rate 0) are counted and dropped
@@ -40,9 +40,9 @@ import numpy as np
 
 from controller import layout
 
-from .airframes import MAX_ROTORS, rotor_count
-from .config import default_config
-from .mapping import ALLOCATION
+from bridge.mavlink.airframes import MAX_ROTORS, rotor_count
+from bridge.mavlink.config import default_config
+from bridge.mavlink.mapping import ALLOCATION
 from .sim_body import Diverged, Noise, bodies_from_scenario
 
 MAGIC16, MAGIC32 = 18458, 29569

@@ -45,10 +45,10 @@ from cosim.scenario import design_summary
 from cosim.network import parse_network
 from cosim.scenario import ScenarioError, load_scenario
 
-from .live import SwarmLive
-from . import frames
-from .config import default_config, read_key_file
-from .link import parse_endpoint, require_key_or_insecure
+from bridge.live import SwarmLive
+from bridge.mavlink import frames
+from bridge.mavlink.config import default_config, read_key_file
+from bridge.mavlink.link import parse_endpoint, require_key_or_insecure
 
 __all__ = ["merge_summaries", "merge_logs", "run_swarm", "run_swarm_cli", "EXIT_AGENT_FAILED"]
 

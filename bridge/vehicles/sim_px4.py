@@ -37,7 +37,7 @@ server's start, whole seconds, plus simulated time), lat/lon (degE7), alt (mm, M
 HIL_STATE_QUATERNION quaternion w-first (FRD -> NED), body rates (rad/s), lat/lon/alt as HIL_GPS,
 vx/vy/vz (cm/s NED), accelerations in mG (FRD). Every integer field is clamped to its type (a body
 far away or fast gives a saturated field, never an encoding error). Noise:
-`bridge.sim_body.Noise` (white, on HIL_SENSOR only; GPS and ground truth exact).
+`bridge.vehicles.sim_body.Noise` (white, on HIL_SENSOR only; GPS and ground truth exact).
 
 Clients are untrusted: sends are non-blocking into a bounded buffer per connection (a client that
 does not read is dropped once ``send_buffer`` bytes are waiting: ``slow_clients``); a connection
@@ -59,7 +59,7 @@ import numpy as np
 from controller import layout
 from controller.errors import Se3SyncError
 
-from .link import mavlink2
+from bridge.mavlink.link import mavlink2
 from .sim_body import (G0, B_NED, Diverged, Noise, bodies_from_scenario, isa_pressure_hpa, isa_temperature_c,
                        ned_to_geodetic)
 

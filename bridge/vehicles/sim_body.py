@@ -1,5 +1,5 @@
 """One rigid body of the plant FMU as a flight stack's simulator sees it (shared by
-`bridge.sim_px4` and `bridge.sim_ardupilot`): NED world, FRD body, actuator outputs decoded with
+`bridge.vehicles.sim_px4` and `bridge.vehicles.sim_ardupilot`): NED world, FRD body, actuator outputs decoded with
 the scenario's mapping, sensors (specific force, rates, magnetic field, pressure, geodetic
 position) plus optional white noise (`Noise`).
 
@@ -25,9 +25,9 @@ from controller import layout
 from controller.errors import Se3SyncError
 from plant_fmu.fast import FleetFMU, FMUError
 
-from .config import default_config
-from .mapping import FleetMapping
-from .transport import vehicle_setup
+from bridge.mavlink.config import default_config
+from bridge.mavlink.mapping import FleetMapping
+from bridge.mavlink.transport import vehicle_setup
 
 # Home and Earth model. PX4's Gazebo worlds start at this point (Zürich); the magnetic field is an
 # approximation of the World Magnetic Model there (declination ≈ 3°, inclination ≈ 63.5°,

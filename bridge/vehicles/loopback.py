@@ -38,14 +38,14 @@ from cosim.files import write_json_atomic
 from cosim.scenario import load_scenario
 from plant_fmu.fast import FleetFMU
 
-from .live import VehicleLive
-from .link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
+from bridge.live import VehicleLive
+from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
                    parse_endpoint, receive_datagrams, require_key_or_insecure)
-from .signing_state import open_signing_state
-from .mapping import FleetMapping, MappingSpec
-from .config import default_config, read_key_file
-from .output import PX4_ATTITUDE_THRUST
-from .transport import profiles_for, state_to_wire, vehicle_setup
+from bridge.mavlink.signing_state import open_signing_state
+from bridge.mavlink.mapping import FleetMapping, MappingSpec
+from bridge.mavlink.config import default_config, read_key_file
+from bridge.mavlink.output import PX4_ATTITUDE_THRUST
+from bridge.mavlink.transport import profiles_for, state_to_wire, vehicle_setup
 
 M = mavlink2
 ID_HEARTBEAT = M.MAVLINK_MSG_ID_HEARTBEAT

@@ -1,5 +1,5 @@
 """Vehicle state in: ODOMETRY (primary) or ATTITUDE_QUATERNION + LOCAL_POSITION_NED (fallback),
-validated and kept as "wire" rows (see `bridge.transport`), in NED/FRD.
+validated and kept as "wire" rows (see `bridge.mavlink.transport`), in NED/FRD.
 
 A message is rejected and counted when it is
 * ``nan``: any field not finite;

@@ -3,7 +3,7 @@
 A profile turns the bridge's per-vehicle controls c (the ``direct`` mapping's normalised wrench,
 c = clip((w + w_ff) ./ max_wrench, −1, 1), FRD, order τx τy τz fx fy fz; or rotor thrusts for
 ``allocation``) into one MAVLink message, and back. The loopback vehicle decodes with the same
-functions, and `bridge.transport.QuantizedPlant` applies ``quantize`` (encode → the wire's
+functions, and `bridge.mavlink.transport.QuantizedPlant` applies ``quantize`` (encode → the wire's
 rounding → decode) so lockstep HIL and the reference stay bit-identical.
 
 Profiles (``bridge.output``, or per vehicle in ``[[bridge.vehicle]]``):

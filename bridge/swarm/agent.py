@@ -3,7 +3,7 @@ on its own vehicle and on what its graph neighbours send it, driven by cosim's o
 
 Agent i knows what `ex_controller` lets it know: its own state (from its vehicle, over MAVLink as
 `se3sync connect` reads a vehicle), and from each neighbour j the samples j publishes over the
-inter-agent link (`bridge.agent_link`: X_j, ξ_j and θ_k of the edges j owns). `AgentNode` holds the
+inter-agent link (`bridge.swarm.agent_link`: X_j, ξ_j and θ_k of the edges j owns). `AgentNode` holds the
 three parts (a one-vehicle `MavlinkPlant`, an `AgentLink`, a `controller.AgentStepper`) and shows
 them to `cosim.master.Master` as a plant and a controller of agent i's neighbourhood: the
 scenario restricted to i and its neighbours (`cosim.scenario.restrict`), whose row 0 is the
@@ -25,7 +25,7 @@ Per step n (real time):
 Lockstep splits 3 in two rounds, since θ after the jump needs the neighbours' poses of step n:
 the pose goes out and every neighbour's pose of step n is awaited, then the jumps, then θ goes
 out and every neighbour's θ of step n is awaited. That is the network step exactly, so a lockstep
-swarm equals `se3sync run` on the float32 reference plant (`bridge.transport.QuantizedPlant`).
+swarm equals `se3sync run` on the float32 reference plant (`bridge.mavlink.transport.QuantizedPlant`).
 """
 from __future__ import annotations
 
@@ -50,10 +50,10 @@ from cosim.run import finish_summary
 from cosim.scenario import restrict
 
 from .agent_link import AgentLink
-from .config import check_endpoint, default_config, read_key_file
-from .link import require_key_or_insecure
-from .live import feed_logger
-from .plant import LinkError, MavlinkPlant
+from bridge.mavlink.config import check_endpoint, default_config, read_key_file
+from bridge.mavlink.link import require_key_or_insecure
+from bridge.live import feed_logger
+from bridge.mavlink.plant import LinkError, MavlinkPlant
 
 __all__ = ["AgentNode", "DEFAULT_MAX_AGE_STEPS", "LAWS", "join_step"]
 

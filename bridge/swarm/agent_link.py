@@ -9,8 +9,8 @@ neighbour (so they arrive together or not at all):
 * **ODOMETRY (#331)**: time_usec = s · round(h·1e6) (µs of simulated time, the sample stamp),
   frame_id MAV_FRAME_LOCAL_NED, child_frame_id MAV_FRAME_BODY_FRD, x y z, q (w, x, y, z), body
   rates and body velocity, converted from the scenario's world/body frames exactly as the bridge
-  converts vehicle state (`bridge.frames`, ``bridge.world_frame``); the receiver rebuilds the same
-  float32-rounded row S_j as `bridge.transport.wire_to_state`.
+  converts vehicle state (`bridge.mavlink.frames`, ``bridge.world_frame``); the receiver rebuilds the same
+  float32-rounded row S_j as `bridge.mavlink.transport.wire_to_state`.
 * **DEBUG_FLOAT_ARRAY (#350)** carries θ: time_usec = the same stamp, name ``"theta"``,
   array_id = the sender's agent id, data[0..] = θ_k for the sender's owned edges in ascending
   edge order, NaN-padded (the receiver maps them to edges with the graph). Why this message: θ_k
@@ -31,7 +31,7 @@ a neighbour's endpoint is ``wrong_address`` (every agent sends from the socket b
 endpoint); both before any parsing, so a flood of junk costs little (`poll` drains by a time
 budget, not a count). Then a packet whose system id is not a neighbour's (or whose component is
 not `AGENT_COMPONENT`), or not the system of the endpoint it came from, is ``not_neighbour``;
-with a key, unsigned, wrong-key and replayed packets are counted by `bridge.link.Peer`; a decoded
+with a key, unsigned, wrong-key and replayed packets are counted by `bridge.mavlink.link.Peer`; a decoded
 message is counted ``nan``, ``non_unit_quaternion`` (| ‖q‖ − 1 | > 1e-3), ``bad_frame`` (other
 frame ids), ``bad_stamp`` (time_usec not a whole step), ``future`` (stamped more than
 ``future_steps`` ahead of the receiver's own step, `set_step`/`set_timeline`: never used, never
@@ -62,11 +62,11 @@ from controller import layout
 from controller.errors import Se3SyncError
 from controller.kernels import rot_to_quat_rows
 
-from . import frames
-from .link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlink2, packet_ids,
+from bridge.mavlink import frames
+from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlink2, packet_ids,
                    receive_datagrams)
-from .state import QUAT_TOL
-from .transport import f32, wire_to_state
+from bridge.mavlink.state import QUAT_TOL
+from bridge.mavlink.transport import f32, wire_to_state
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -644,7 +644,7 @@ class AgentLink:
         return "hold" if age <= self.max_age_steps + self.hold_steps else "failsafe"
 
     def stats(self) -> dict:
-        """Counters (JSON-friendly): the link counters of `bridge.link.Counters` plus, per
+        """Counters (JSON-friendly): the link counters of `bridge.mavlink.link.Counters` plus, per
         neighbour, datagrams sent, samples published to it (one per step, resends and the
         emulated losses included), packets and complete samples accepted from it, the newest
         step held and the nearest-rank p50/p99 of the recorded ages (steps)."""
