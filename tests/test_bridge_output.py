@@ -17,6 +17,8 @@ from test_bridge_helpers import VehicleThread, free_base_port, load  # noqa: E40
 from bridge.mavlink import output as out  # noqa: E402
 from bridge.mavlink.link import mavlink2  # noqa: E402
 
+M = mavlink2
+
 EDGES = [(0, 1), (1, 2), (2, 3), (1, 4), (4, 5)]   # hil_6uav's graph, 0-based
 J6 = np.diag([0.043, 0.041, 0.082])
 MW = (50.0, 50.0, 50.0, 20.0, 20.0, 20.0)
@@ -48,7 +50,7 @@ def _wire(rng, omega_scale=3.0):
 
 def test_ardusub_manual_control_roundtrip_within_quantisation():
     rng = np.random.default_rng(1)
-    prof = out.OutputProfile(out.ARDUSUB_MANUAL_CONTROL, h=0.004, max_wrench=MW)
+    prof = out.profile(out.ARDUSUB_MANUAL_CONTROL, h=0.004, max_wrench=MW)
     mav = mavlink2.MAVLink(None, srcSystem=255, srcComponent=191)
     for _ in range(300):
         c = rng.uniform(-1, 1, 6)
@@ -69,7 +71,7 @@ def test_ardusub_manual_control_roundtrip_within_quantisation():
 def test_px4_attitude_thrust_roundtrip_and_exact_inverse():
     rng = np.random.default_rng(2)
     h = 0.004
-    prof = out.OutputProfile(out.PX4_ATTITUDE_THRUST, h=h, J=J6, max_wrench=MW)
+    prof = out.profile(out.PX4_ATTITUDE_THRUST, h=h, J=J6, max_wrench=MW)
     mav = mavlink2.MAVLink(None, srcSystem=255, srcComponent=191)
     # float32 rounding of q_d: each component moves by ≤ 2^-24 |q_i|, so the rotation between the
     # sent and received attitudes is ≤ 2·‖δq‖ ≤ 2·2^-24·2 rad; ω̇ = 2(w − ωh)/h² carries it ×2/h².
@@ -95,6 +97,39 @@ def test_px4_attitude_thrust_roundtrip_and_exact_inverse():
         q, om = _quat(rng), rng.normal(size=3) * 3
         back = att.torque(att.attitude_setpoint(tau, q, om), q, om)
         assert np.allclose(back, tau, rtol=0, atol=1e-6 * 50)
+
+
+@pytest.mark.parametrize("name", out.PROFILES)
+def test_every_profile_keeps_the_tables_contract(name):
+    """Every entry of the profile table (the bridge and the loopback vehicle use nothing else):
+    its message, packed and parsed, carries the key it is dispatched on and the target; it
+    decodes to exactly what `quantize` gives the reference; its lockstep stamp says "this step"
+    at k and "a repeat" one step later; invalid contents decode to None, not to a command."""
+    rng = np.random.default_rng(7)
+    cls = out.PROFILE_CLASSES[name]
+    assert out.PROFILE_BY_KEY[cls.key()] is cls and (name in out.WRENCH_PROFILES) == cls.carries_wrench
+    prof = out.profile(name, h=0.004, J=J6, max_wrench=MW, group_mlx=0, actuator_index_offset=0)
+    mav = mavlink2.MAVLink(None, srcSystem=255, srcComponent=191)
+    for k in range(1, 50):
+        c, wire = rng.uniform(-1, 1, 6), _wire(rng)
+        m = _roundtrip(prof.message(mav, c, target=4, k=k, lockstep=True, wire=wire))
+        assert (m.get_msgId(), getattr(m, "command", None) if cls.command is not None else None) == cls.key()
+        assert cls.target(m) == 4
+        assert np.array_equal(prof.decode(m, wire), prof.quantize(c, wire))
+        stamps = prof.stamps(m, k)
+        if stamps is None:
+            assert not cls.resend_ok   # no stamp: lockstep by sequence, never re-sent
+        else:
+            assert stamps == (True, False) and prof.stamps(m, k + 1) == (False, True)
+            assert prof.stamp(k) != prof.stamp(k + 1)
+    # contents no vehicle may act on
+    bad = {out.ACTUATOR_CONTROL_TARGET: lambda: mav.set_actuator_control_target_encode(0, 3, 1, 1, [0.0] * 8),
+           out.DO_SET_ACTUATOR: lambda: mav.command_long_encode(1, 1, M.MAV_CMD_DO_SET_ACTUATOR, 0,
+                                                                0, 0, 0, 0, 0, 0, 7.0),
+           out.ARDUSUB_MANUAL_CONTROL: lambda: mav.manual_control_encode(1, 0, 0, 1500, 0, 0, 0, 3, 0, 0),
+           out.PX4_ATTITUDE_THRUST: lambda: out.AttitudeTargetMessage(0, 1, 1, out.PX4_TYPE_MASK,
+                                                                       [2.0, 0, 0, 0], [0, 0, 0])}
+    assert prof.decode(_roundtrip(bad[name]()), _wire(rng)) is None
 
 
 def _rot(q):

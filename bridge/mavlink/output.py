@@ -67,9 +67,6 @@ ACTUATOR_CONTROL_TARGET = "actuator_control_target"
 DO_SET_ACTUATOR = "do_set_actuator"
 ARDUSUB_MANUAL_CONTROL = "ardusub_manual_control"
 PX4_ATTITUDE_THRUST = "px4_attitude_thrust"
-PROFILES = (ACTUATOR_CONTROL_TARGET, DO_SET_ACTUATOR, ARDUSUB_MANUAL_CONTROL, PX4_ATTITUDE_THRUST)
-# profiles whose flight stack does its own allocation: they carry the normalised wrench
-WRENCH_PROFILES = (ARDUSUB_MANUAL_CONTROL, PX4_ATTITUDE_THRUST)
 
 THRUST_BODY_SET = 32   # ATTITUDE_TARGET_TYPEMASK_THRUST_BODY_SET (common.xml, newer than pymavlink's copy)
 RATES_IGNORE = (M.ATTITUDE_TARGET_TYPEMASK_BODY_ROLL_RATE_IGNORE | M.ATTITUDE_TARGET_TYPEMASK_BODY_PITCH_RATE_IGNORE
@@ -226,81 +223,193 @@ def f32(x: float) -> float:
 
 
 class OutputProfile:
-    """Encoder/decoder of one vehicle's commands for profile ``name``."""
+    """One output profile: how one vehicle's controls c (6,) travel as one MAVLink message, and
+    back. A profile is a subclass in the `PROFILE_CLASSES` table, which the bridge
+    (`MavlinkPlant`, `QuantizedPlant`) and the loopback vehicle share: adding a message is one
+    class here, nothing elsewhere (pymavlink's "messages are data").
 
-    def __init__(self, name: str, *, h: float, J=None, max_wrench=None, group_mlx: int = 0,
+    Class attributes: ``name`` (the scenario's ``bridge.output``), ``msg_id`` and ``command``
+    (the MAVLink message, and the MAV_CMD for a COMMAND_LONG profile), ``carries_wrench`` (the
+    flight stack allocates: c is the normalised wrench), ``resend_ok`` (False when a repeat
+    cannot be told from the next command: lockstep by sequence)."""
+
+    name: str = ""
+    msg_id: int = -1
+    command: int | None = None
+    carries_wrench = False
+    resend_ok = True
+
+    def __init__(self, *, h: float, J=None, max_wrench=None, group_mlx: int = 0,
                  actuator_index_offset: int = 0):
-        if name not in PROFILES:
-            raise ValueError(f"unknown output profile {name!r}")
-        self.name = name
         self.h = float(h)
         self.h_us = int(round(self.h * 1e6))
         self.h_ms = int(round(self.h * 1e3))
         self.group_mlx = group_mlx
         self.actuator_index_offset = actuator_index_offset
-        self.att = None
-        if name == PX4_ATTITUDE_THRUST:
-            self.att = AttitudeThrust(J if J is not None else np.eye(3), h, max_wrench[0:3])
 
-    @property
-    def resend_ok(self) -> bool:
-        """False when a repeated command cannot be told from the next one (lockstep by sequence)."""
-        return self.name != ARDUSUB_MANUAL_CONTROL
+    @classmethod
+    def key(cls) -> tuple:
+        """What a received message is matched on: (message id, command or None)."""
+        return (cls.msg_id, cls.command)
+
+    @staticmethod
+    def target(m) -> int:
+        """The system id a received message of this profile is addressed to."""
+        return m.target_system
+
+    def lockstep_error(self) -> str | None:
+        """Why this profile cannot stamp lockstep steps of h exactly, or None."""
+        return None
 
     def stamp(self, k: int) -> int:
-        """The lockstep stamp of step k carried by the message."""
-        if self.name == ACTUATOR_CONTROL_TARGET:
-            return k * self.h_us
-        if self.name == DO_SET_ACTUATOR:
-            return k & 0xFF
-        if self.name == PX4_ATTITUDE_THRUST:
-            return (k * self.h_ms) & 0xFFFFFFFF
+        """The lockstep stamp of step k carried by the message (0: none, lockstep by sequence)."""
         return 0
+
+    def stamps(self, m, k: int) -> tuple | None:
+        """Lockstep: (m is step k's command, m repeats an earlier step's), or None when the
+        message carries no stamp (one step per command, in order)."""
+        return None
+
+    def time_us(self, m) -> int | None:
+        """Real time: the message's Unix time stamp (µs) that orders commands, or None."""
+        return None
 
     def message(self, mav, c, *, target: int, k: int, lockstep: bool, wire=None):
         """The MAVLink message for controls c (6,) at step k (wire: the state the bridge used)."""
-        if self.name == ACTUATOR_CONTROL_TARGET:
-            t_us = k * self.h_us if lockstep else int(time.time() * 1e6)
-            return mav.set_actuator_control_target_encode(t_us, self.group_mlx, target, 1,
-                                                          [c[0], c[1], c[2], c[3], c[4], c[5], 0.0, 0.0])
-        if self.name == DO_SET_ACTUATOR:
-            return mav.command_long_encode(target, 1, M.MAV_CMD_DO_SET_ACTUATOR, k & 0xFF if lockstep else 0,
-                                           c[0], c[1], c[2], c[3], c[4], c[5], float(self.actuator_index_offset))
-        if self.name == ARDUSUB_MANUAL_CONTROL:
-            x, y, z, r, s, t = manual_control_axes(c)
-            return mav.manual_control_encode(target, x, y, z, r, 0, 0, MANUAL_EXTENSIONS, s, t)
+        raise NotImplementedError
+
+    def decode(self, m, wire=None) -> np.ndarray | None:
+        """A received message of this profile -> controls (6,), NaN entries meaning "no change";
+        None when its contents are not a valid command of this profile."""
+        raise NotImplementedError
+
+    def quantize(self, c, wire=None) -> np.ndarray:
+        """What the vehicle decodes from controls c (6,): encode, the wire's rounding, decode."""
+        return np.array([f32(x) for x in c])
+
+
+class ActuatorControlTarget(OutputProfile):
+    name = ACTUATOR_CONTROL_TARGET
+    msg_id = M.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET
+
+    def stamp(self, k: int) -> int:
+        return k * self.h_us
+
+    def stamps(self, m, k: int) -> tuple:
+        s = self.stamp(k)
+        return m.time_usec == s, m.time_usec < s
+
+    def time_us(self, m) -> int:
+        return m.time_usec
+
+    def message(self, mav, c, *, target, k, lockstep, wire=None):
+        t_us = k * self.h_us if lockstep else int(time.time() * 1e6)
+        return mav.set_actuator_control_target_encode(t_us, self.group_mlx, target, 1,
+                                                      [c[0], c[1], c[2], c[3], c[4], c[5], 0.0, 0.0])
+
+    def decode(self, m, wire=None):
+        if m.group_mlx != self.group_mlx:
+            return None
+        return np.asarray(m.controls[:6], dtype=np.float64)
+
+
+class DoSetActuator(OutputProfile):
+    name = DO_SET_ACTUATOR
+    msg_id = M.MAVLINK_MSG_ID_COMMAND_LONG
+    command = M.MAV_CMD_DO_SET_ACTUATOR
+
+    def stamp(self, k: int) -> int:
+        return k & 0xFF
+
+    def stamps(self, m, k: int) -> tuple:
+        return m.confirmation == self.stamp(k), m.confirmation == self.stamp(k - 1)
+
+    def message(self, mav, c, *, target, k, lockstep, wire=None):
+        return mav.command_long_encode(target, 1, M.MAV_CMD_DO_SET_ACTUATOR, k & 0xFF if lockstep else 0,
+                                       c[0], c[1], c[2], c[3], c[4], c[5], float(self.actuator_index_offset))
+
+    def decode(self, m, wire=None):
+        if int(m.param7) != self.actuator_index_offset:
+            return None
+        return np.array([m.param1, m.param2, m.param3, m.param4, m.param5, m.param6])
+
+
+class ArduSubManualControl(OutputProfile):
+    name = ARDUSUB_MANUAL_CONTROL
+    msg_id = M.MAVLINK_MSG_ID_MANUAL_CONTROL
+    carries_wrench = True
+    resend_ok = False          # no time field: a re-send would be a second step
+
+    @staticmethod
+    def target(m) -> int:
+        return m.target
+
+    def message(self, mav, c, *, target, k, lockstep, wire=None):
+        x, y, z, r, s, t = manual_control_axes(c)
+        return mav.manual_control_encode(target, x, y, z, r, 0, 0, MANUAL_EXTENSIONS, s, t)
+
+    def decode(self, m, wire=None):
+        if not (0 <= m.z <= 1000 and all(-1000 <= v <= 1000 for v in (m.x, m.y, m.r, m.s, m.t))):
+            return None
+        return manual_control_controls(m.x, m.y, m.z, m.r, m.s, m.t, m.enabled_extensions)
+
+    def quantize(self, c, wire=None):
+        return manual_control_controls(*manual_control_axes(c))
+
+
+class Px4AttitudeThrust(OutputProfile):
+    name = PX4_ATTITUDE_THRUST
+    msg_id = M.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET
+    carries_wrench = True
+
+    def __init__(self, *, h, J=None, max_wrench=None, **kw):
+        super().__init__(h=h, **kw)
+        self.att = AttitudeThrust(J if J is not None else np.eye(3), h, max_wrench[0:3])
+
+    def lockstep_error(self):
+        if abs(round(self.h * 1e3) - self.h * 1e3) > 1e-9:
+            return (f"simulation.step: output \"px4_attitude_thrust\" in lockstep stamps steps with "
+                    f"time_boot_ms, so the step must be a whole number of milliseconds, got {self.h:g}")
+        return None
+
+    def stamp(self, k: int) -> int:
+        return (k * self.h_ms) & 0xFFFFFFFF
+
+    def stamps(self, m, k: int) -> tuple:
+        return m.time_boot_ms == self.stamp(k), m.time_boot_ms == self.stamp(k - 1)
+
+    def message(self, mav, c, *, target, k, lockstep, wire=None):
         q_d, tb = self.att.encode(c, wire)
         tb_ms = (k * self.h_ms) & 0xFFFFFFFF if lockstep else \
             int(time.monotonic() * 1000) & 0xFFFFFFFF
         return AttitudeTargetMessage(tb_ms, target, 1, PX4_TYPE_MASK, list(q_d), list(tb))
 
     def decode(self, m, wire=None):
-        """A received command -> controls (6,) (NaN entries of DO_SET_ACTUATOR: "no change", left
-        NaN for the caller), or None if the message is not this profile's."""
-        mid = m.get_msgId()
-        if self.name == ACTUATOR_CONTROL_TARGET and mid == M.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET:
-            return np.asarray(m.controls[:6], dtype=np.float64)
-        if self.name == DO_SET_ACTUATOR and mid == M.MAVLINK_MSG_ID_COMMAND_LONG:
-            return np.array([m.param1, m.param2, m.param3, m.param4, m.param5, m.param6])
-        if self.name == ARDUSUB_MANUAL_CONTROL and mid == M.MAVLINK_MSG_ID_MANUAL_CONTROL:
-            if not (0 <= m.z <= 1000 and all(-1000 <= v <= 1000 for v in (m.x, m.y, m.r, m.s, m.t))):
-                return np.full(6, np.nan)
-            return manual_control_controls(m.x, m.y, m.z, m.r, m.s, m.t, m.enabled_extensions)
-        if self.name == PX4_ATTITUDE_THRUST and mid == M.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET:
-            q = m.q
-            tb = thrust_body_of(m)
-            vals = list(q) + list(tb)
-            if not all(math.isfinite(v) for v in vals) or not (m.type_mask & THRUST_BODY_SET) \
-                    or abs(math.sqrt(sum(v * v for v in q)) - 1.0) > 1e-3:
-                return np.full(6, np.nan)
-            return self.att.decode(q, tb, wire)
-        return None
+        q = m.q
+        tb = thrust_body_of(m)
+        vals = list(q) + list(tb)
+        if not all(math.isfinite(v) for v in vals) or not (m.type_mask & THRUST_BODY_SET) \
+                or abs(math.sqrt(sum(v * v for v in q)) - 1.0) > 1e-3:
+            return None
+        return self.att.decode(q, tb, wire)
 
-    def quantize(self, c, wire=None) -> np.ndarray:
-        """What the vehicle decodes from controls c (6,): encode, the wire's rounding, decode."""
-        if self.name in (ACTUATOR_CONTROL_TARGET, DO_SET_ACTUATOR):
-            return np.array([f32(x) for x in c])
-        if self.name == ARDUSUB_MANUAL_CONTROL:
-            return manual_control_controls(*manual_control_axes(c))
+    def quantize(self, c, wire=None):
         q_d, tb = self.att.encode(c, wire)
         return self.att.decode([f32(x) for x in q_d], [f32(x) for x in tb], wire)
+
+
+# The table: profile name -> class. The loopback vehicle dispatches received commands on
+# `PROFILE_BY_KEY`, and what only the commander may send includes every profile's message.
+PROFILE_CLASSES = {cls.name: cls for cls in (ActuatorControlTarget, DoSetActuator, ArduSubManualControl,
+                                             Px4AttitudeThrust)}
+PROFILE_BY_KEY = {cls.key(): cls for cls in PROFILE_CLASSES.values()}
+
+
+def profile(name: str, **kw) -> OutputProfile:
+    """The profile ``name`` for one vehicle (keyword arguments: `OutputProfile`'s)."""
+    if name not in PROFILE_CLASSES:
+        raise ValueError(f"unknown output profile {name!r}")
+    return PROFILE_CLASSES[name](**kw)
+PROFILES = tuple(PROFILE_CLASSES)
+# profiles whose flight stack does its own allocation: they carry the normalised wrench
+WRENCH_PROFILES = tuple(n for n, cls in PROFILE_CLASSES.items() if cls.carries_wrench)

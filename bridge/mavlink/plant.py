@@ -21,7 +21,6 @@ from .link import (Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2, receive_da
                    require_key_or_insecure)
 from .signing_state import open_signing_state
 from .state import StateTracker
-from .output import PX4_ATTITUDE_THRUST
 from .transport import WIRE, Transport, profiles_for, wire_to_state
 
 M = mavlink2
@@ -74,10 +73,10 @@ def _output_profiles(cfg, scenario, lockstep: bool) -> list:
     """Each vehicle's output profile (bridge.output); lockstep stamps must be exact."""
 
     profiles = profiles_for(cfg, scenario)
-    if lockstep and any(p.name == PX4_ATTITUDE_THRUST for p in profiles) \
-            and abs(round(scenario.step * 1e3) - scenario.step * 1e3) > 1e-9:
-        raise Se3SyncError(f"simulation.step: output \"px4_attitude_thrust\" in lockstep stamps steps with "
-                           f"time_boot_ms, so the step must be a whole number of milliseconds, got {scenario.step:g}")
+    if lockstep:
+        for p in profiles:
+            if p.lockstep_error() is not None:
+                raise Se3SyncError(p.lockstep_error())
     return profiles
 
 

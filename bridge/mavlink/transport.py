@@ -22,7 +22,7 @@ from plant_fmu.fast import FleetFMU
 from . import frames
 from .config import default_config
 from .mapping import FleetMapping
-from .output import WRENCH_PROFILES, OutputProfile
+from .output import profile
 
 WIRE = 13
 
@@ -152,7 +152,7 @@ class QuantizedPlant:
         self._w = np.zeros((self.n, 6))
         # each vehicle's output profile quantises its command its own way (bridge.output)
         self.profiles = profiles_for(cfg, scenario)
-        self._per_profile = any(p.name in WRENCH_PROFILES for p in self.profiles)
+        self._per_profile = any(p.carries_wrench for p in self.profiles)
 
     def read(self) -> np.ndarray:
         return self._S
@@ -179,8 +179,8 @@ class QuantizedPlant:
 
 
 def profiles_for(config, scenario) -> list:
-    """One OutputProfile per vehicle of a BridgeConfig (J in FRD: `transport.vehicle_setup`)."""
+    """One output profile (`output.OutputProfile`) per vehicle of a BridgeConfig (J in FRD: `transport.vehicle_setup`)."""
     _, J, _, _ = vehicle_setup(scenario, config.world_frame)
-    return [OutputProfile(v.output, h=scenario.step, J=J[i], max_wrench=v.mapping.max_wrench,
-                          group_mlx=config.group_mlx, actuator_index_offset=config.actuator_index_offset)
+    return [profile(v.output, h=scenario.step, J=J[i], max_wrench=v.mapping.max_wrench,
+                    group_mlx=config.group_mlx, actuator_index_offset=config.actuator_index_offset)
             for i, v in enumerate(config.vehicles)]

@@ -44,7 +44,7 @@ from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, 
 from bridge.mavlink.signing_state import open_signing_state
 from bridge.mavlink.mapping import FleetMapping, MappingSpec
 from bridge.mavlink.config import default_config, read_key_file
-from bridge.mavlink.output import PX4_ATTITUDE_THRUST
+from bridge.mavlink.output import ACTUATOR_CONTROL_TARGET, DO_SET_ACTUATOR, PROFILE_BY_KEY, profile
 from bridge.mavlink.transport import profiles_for, state_to_wire, vehicle_setup
 
 M = mavlink2
@@ -53,19 +53,20 @@ ID_ODOMETRY = M.MAVLINK_MSG_ID_ODOMETRY
 ID_ATTQ = M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_LPOS = M.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 STREAMABLE = (ID_HEARTBEAT, ID_ODOMETRY, ID_ATTQ, ID_LPOS)
-WRENCH_MSGS = (M.MAVLINK_MSG_ID_MANUAL_CONTROL, M.MAVLINK_MSG_ID_SET_ATTITUDE_TARGET)
 NAN21 = [float("nan")] + [0.0] * 20
 MAX_AHEAD_US = 1_000_000        # a command may be stamped at most 1 s ahead of the vehicle's clock
 DEFAULT_COMMANDER = (255, 191)  # the bridge's default source_system, source_component
 ID_AUTOPILOT_VERSION = M.MAVLINK_MSG_ID_AUTOPILOT_VERSION
 # what only the commander (or a signed sender) may send: the messages that move the vehicle or
 # change its configuration, and the commands among those we implement that do
-ACTUATION_MSGS = frozenset((M.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET, *WRENCH_MSGS,
+# (every output profile's message or command among them: `output.PROFILE_BY_KEY`)
+ACTUATION_MSGS = frozenset((*(mid for mid, cmd in PROFILE_BY_KEY if cmd is None),
                             M.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED,
                             M.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT,
                             M.MAVLINK_MSG_ID_SET_MODE, M.MAVLINK_MSG_ID_PARAM_SET,
                             M.MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE))
-ACTUATION_COMMANDS = frozenset((M.MAV_CMD_DO_SET_ACTUATOR, M.MAV_CMD_COMPONENT_ARM_DISARM,
+ACTUATION_COMMANDS = frozenset((*(cmd for _, cmd in PROFILE_BY_KEY if cmd is not None),
+                                M.MAV_CMD_COMPONENT_ARM_DISARM,
                                 M.MAV_CMD_DO_SET_MODE, M.MAV_CMD_DO_SET_SERVO,
                                 M.MAV_CMD_DO_MOTOR_TEST, M.MAV_CMD_DO_FLIGHTTERMINATION))
 CAPABILITIES = (M.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
@@ -110,7 +111,13 @@ class SimVehicle:
         self.due = {k: now for k in self.interval}
         self.wire = np.zeros(13)
         self.S = np.zeros(layout.S_WIDTH)
-        self.profile = None             # OutputProfile for MANUAL_CONTROL / SET_ATTITUDE_TARGET (scenario)
+        # the output profiles this vehicle decodes, by (message id, command): the two that carry
+        # raw controls always, and the scenario's own (`VehicleServer.__init__`)
+        self.profiles = {}
+        for name in (ACTUATOR_CONTROL_TARGET, DO_SET_ACTUATOR):
+            prof = profile(name, h=server.h, group_mlx=server.group_mlx,
+                           actuator_index_offset=server.actuator_index_offset)
+            self.profiles[prof.key()] = prof
         self._reply = None              # the sender of the packet being handled (its replies)
         self._refresh()
 
@@ -307,28 +314,8 @@ class SimVehicle:
             if name.split("\0", 1)[0] in names:            # the value stays: say so
                 self.send_param(names.index(name.split("\0", 1)[0]), addr)
             return
-        if mid in WRENCH_MSGS:
-            self.wrench_command(m, now)
-            return
-        if mid == M.MAVLINK_MSG_ID_SET_ACTUATOR_CONTROL_TARGET:
-            if m.target_system not in (0, self.sysid):
-                srv.counters.reject("not_for_us")
-                return
-            if m.group_mlx != srv.group_mlx:
-                srv.counters.reject("bad_command")
-                return
-            c = m.controls[:6]
-            if not srv.lockstep and self.future(m.time_usec):
-                return
-            if srv.lockstep:
-                k_us = self.k * srv.h_us
-                self.lockstep_command(m.time_usec == k_us, m.time_usec < k_us, c, now)
-            elif self.last_cmd_us is not None and m.time_usec <= self.last_cmd_us \
-                    and self.last_cmd_us - m.time_usec < 10_000_000:
-                srv.counters.reject("out_of_order")   # overtaken by a newer command (jitter)
-            else:
-                if self.set_controls(c, now):
-                    self.last_cmd_us = m.time_usec
+        if (mid, None) in PROFILE_BY_KEY:
+            self.actuation(PROFILE_BY_KEY[(mid, None)], m, now)
             return
         if mid == M.MAVLINK_MSG_ID_COMMAND_LONG:
             if m.target_system not in (0, self.sysid):
@@ -338,31 +325,43 @@ class SimVehicle:
                 srv.counters.reject("not_commander")
                 self.ack(m.command, M.MAV_RESULT_DENIED, m)
                 return
-            self.command_long(m, now)
+            if (mid, m.command) in PROFILE_BY_KEY:
+                self.actuation(PROFILE_BY_KEY[(mid, m.command)], m, now)
+            else:
+                self.command_long(m, now)
             return
         if mid == M.MAVLINK_MSG_ID_COMMAND_INT:
             self.ack(m.command, M.MAV_RESULT_UNSUPPORTED, m)
 
-    def wrench_command(self, m, now: float) -> None:
-        """MANUAL_CONTROL (ardusub_manual_control) or SET_ATTITUDE_TARGET (px4_attitude_thrust),
-        inverted with the profile's own decoder (bridge.output) against this vehicle's wire state."""
+    def actuation(self, cls, m, now: float) -> None:
+        """A command of output profile ``cls`` (any entry of `output.PROFILE_CLASSES`), decoded
+        with the profile's own decoder against this vehicle's wire state: addressed to us, a
+        profile this vehicle takes, valid contents, then its lockstep stamp or its time order."""
         srv = self.server
-        prof = self.profile
-        target = m.target if m.get_msgId() == M.MAVLINK_MSG_ID_MANUAL_CONTROL else m.target_system
-        if target not in (0, self.sysid):
+        if cls.target(m) not in (0, self.sysid):
             srv.counters.reject("not_for_us")
             return
+        prof = self.profiles.get(cls.key())
         c = prof.decode(m, self.wire) if prof is not None else None
-        if c is None or not np.all(np.isfinite(c)):
+        if c is None:
             srv.counters.reject("bad_command")   # not this vehicle's profile, or out of range
             return
-        if not srv.lockstep:
+        c = np.where(np.isnan(c), self.controls, c)   # NaN: "no change" (DO_SET_ACTUATOR)
+        t_us = prof.time_us(m)
+        if srv.lockstep:
+            stamps = prof.stamps(m, self.k)
+            if stamps is None:   # no stamp (MANUAL_CONTROL): lockstep by sequence, one step per command
+                stamps = (True, False)
+            self.lockstep_command(stamps[0], stamps[1], c, now)
+        elif t_us is None:
             self.set_controls(c, now)
-        elif prof.name == PX4_ATTITUDE_THRUST:
-            k_ms = prof.stamp(self.k)
-            self.lockstep_command(m.time_boot_ms == k_ms, m.time_boot_ms == prof.stamp(self.k - 1), c, now)
-        else:  # MANUAL_CONTROL has no time field: lockstep by sequence, one step per command
-            self.lockstep_command(True, False, c, now)
+        elif self.future(t_us):
+            return
+        elif self.last_cmd_us is not None and t_us <= self.last_cmd_us \
+                and self.last_cmd_us - t_us < 10_000_000:
+            srv.counters.reject("out_of_order")   # overtaken by a newer command (jitter)
+        elif self.set_controls(c, now):
+            self.last_cmd_us = t_us
 
     def future(self, t_us: int) -> bool:
         """Real time: a command stamped more than MAX_AHEAD_US ahead of our clock (both sides
@@ -376,18 +375,6 @@ class SimVehicle:
     def command_long(self, m, now: float) -> None:
         srv = self.server
         cmd = m.command
-        if cmd == M.MAV_CMD_DO_SET_ACTUATOR:
-            if int(m.param7) != srv.actuator_index_offset:
-                srv.counters.reject("bad_command")
-                return
-            p = [m.param1, m.param2, m.param3, m.param4, m.param5, m.param6]
-            c = [self.controls[i] if math.isnan(v) else v for i, v in enumerate(p)]  # NaN: no change
-            if srv.lockstep:
-                k8 = self.k & 0xFF
-                self.lockstep_command(m.confirmation == k8, m.confirmation == ((self.k - 1) & 0xFF), c, now)
-            else:
-                self.set_controls(c, now)
-            return
         if cmd == M.MAV_CMD_COMPONENT_ARM_DISARM:
             if m.param1 in (0.0, 1.0):
                 self.armed = m.param1 == 1.0
@@ -547,7 +534,7 @@ class VehicleServer:
         self._by_fd = {v.sock.fileno(): v for v in self.vehicles}
         if scenario is not None:  # the scenario's output profiles (the wrench ones need its limits and J)
             for v, prof in zip(self.vehicles, profiles_for(cfg, scenario)):
-                v.profile = prof
+                v.profiles[prof.key()] = prof
 
     def default_interval(self, mid):
         return {ID_HEARTBEAT: 1.0, ID_ODOMETRY: self.odom_period, ID_ATTQ: self.aux_period,
