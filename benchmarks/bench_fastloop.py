@@ -58,7 +58,7 @@ def random_tree_text(n, seed=1, step=1e-3, duration=1.0):
 
 def run(sc, compiled=True, log=None, encoding="json"):
     from cosim.master import Master
-    from cosim.log.mcap import McapLogger
+    from cosim.log.writer import McapLogger
     from cosim.plants import FmuPlant
 
     plant = FmuPlant.from_scenario(sc)
@@ -84,7 +84,7 @@ def record_cost(sc, n_rec, fast, use_orjson=True, encoding="json"):
     """Seconds per record of McapLogger.record / record_fast (random finite values, no jump);
     use_orjson=False: record_fast with float-repr templates (the bytes of `record`);
     encoding "cdr": the CDR log's record (one record at a time: the loop hands over blocks)."""
-    from cosim.log.mcap import McapLogger
+    from cosim.log.writer import McapLogger
 
     N, M = sc.graph.n, sc.graph.M
     rng = np.random.default_rng(0)
@@ -207,7 +207,7 @@ def bench(args):
         big = parse_scenario(random_tree_text(args.big, duration=args.big_seconds),
                              name=f"tree{args.big}")
         sizes.append((big, 40))
-    from cosim.log import mcap as mcaplog
+    from cosim.log import writer as mcaplog
 
     for s_, k in sizes:
         slow, tpl = record_cost(s_, k, False), record_cost(s_, k, True, False)

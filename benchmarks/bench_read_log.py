@@ -38,7 +38,7 @@ def main() -> int:
 
 def bench(args) -> int:
     from cosim.log import cdr
-    from cosim.log import mcap as mcaplog
+    from cosim.log import reader as mcaplog
 
     with tempfile.TemporaryDirectory() as d:
         toml = Path(d) / "tree.toml"

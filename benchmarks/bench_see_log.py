@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 import _markdown
-from cosim.log.mcap import McapLogger
+from cosim.log.writer import McapLogger
 from cosim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

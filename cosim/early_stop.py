@@ -17,7 +17,7 @@ from controller import __version__
 from . import signals
 from .files import atomic_path, write_json_atomic
 from .guards import outcome_metadata
-from .log.mcap import McapLogger
+from .log.writer import McapLogger
 from .scenario import design_summary
 
 __all__ = ["stopped_before_start", "write_bare_log"]

@@ -9,7 +9,7 @@ from .controllers import law_name, make_controller
 from .early_stop import stopped_before_start
 from .files import write_json_atomic
 from .log.live import live_logger, live_only
-from .log.mcap import McapLogger
+from .log.writer import McapLogger
 from .master import Master
 from .network import networked
 from .plants import make_plant

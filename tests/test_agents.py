@@ -369,7 +369,7 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
         assert fs["step"] - last_sample <= ma + ho + 3
         assert s[j]["failsafe"]["entries"] >= 1
         # in fail-safe the agent's own wrench is zero (its log's /agents record)
-        from cosim.log.mcap import read_log
+        from cosim.log.reader import read_log
 
         log = read_log(tmp_path / f"a{j}.mcap")
         nb = {t: m for t, m in log["messages"]["/neighbours"]}

@@ -88,7 +88,7 @@ def test_lockstep_converges_cli_and_tlog(tmp_path):
     assert ln["rejected"] == 0 and ln["malformed"] == 0 and ln["sent"] >= 30000
     assert vst["commands"] >= 30000 and vst["steps"] == [5000] * 6
     # the MCAP has the link statistics
-    from cosim.log.mcap import read_log
+    from cosim.log.reader import read_log
 
     log = read_log(tmp_path / "l.mcap")
     assert log["messages"].get("/link/stats") and log["metadata"]["plant"] == "mavlink"

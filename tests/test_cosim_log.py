@@ -12,7 +12,8 @@ import pytest
 
 from cosim.run import run_scenario
 from cosim.master import Master
-from cosim.log.mcap import McapLogger, read_log
+from cosim.log.writer import McapLogger
+from cosim.log.reader import read_log
 from cosim.plants import FmuPlant
 from cosim.scenario import load_scenario
 
@@ -154,14 +155,14 @@ def test_killed_run_leaves_a_readable_log(tmp_path):
 
 @pytest.mark.parametrize("chunking", [True, False])
 def test_message_appender_writes_the_bytes_of_mcaps_writer(chunking):
-    """`_MessageAppender.add` (the logger's fast path into mcap's chunk) against mcap's own
+    """`MessageAppender.add` (the logger's fast path into mcap's chunk) against mcap's own
     `Writer.add_message`: the same messages (several channels, sizes across chunk boundaries,
     log times out of order) give byte-identical files; without chunking it is add_message."""
     import io
 
     from mcap.writer import CompressionType, Writer
 
-    from cosim.log.mcap import _MessageAppender
+    from cosim.log.appender import MessageAppender
 
     rng = np.random.default_rng(7)
     msgs = []
@@ -181,7 +182,7 @@ def test_message_appender_writes_the_bytes_of_mcaps_writer(chunking):
         ids = [w.register_channel(topic=f"/c{k}", message_encoding="json", schema_id=sid,
                                   metadata={"a": "b", "ключ": "значение"} if k == 1 else {})
                for k in range(3)]
-        app = _MessageAppender(w, level=3)   # mcap's zstd level: its bytes exactly
+        app = MessageAppender(w, level=3)   # mcap's zstd level: its bytes exactly
         assert (app.add != app._slow) == chunking   # the fast path needs mcap's chunk builder
         for ch, t, data, seq in msgs:
             if fast:
@@ -214,7 +215,7 @@ def test_message_appender_chunks_at_its_own_zstd_level():
     from mcap.stream_reader import StreamReader as SR
     from mcap.writer import CompressionType, Writer
 
-    from cosim.log.mcap import ZSTD_LEVEL, _MessageAppender
+    from cosim.log.appender import ZSTD_LEVEL, MessageAppender
 
     assert ZSTD_LEVEL != 3
     text = [json.dumps({"x": [float(v) for v in np.random.default_rng(s).standard_normal(40)]})
@@ -227,7 +228,7 @@ def test_message_appender_chunks_at_its_own_zstd_level():
         sid = w.register_schema(name="s", encoding="jsonschema", data=b"{}")
         ids = [w.register_channel(topic=f"/c{k}", message_encoding="json", schema_id=sid)
                for k in range(2)]
-        app = _MessageAppender(w, level=level)
+        app = MessageAppender(w, level=level)
         for q, data in enumerate(text):
             app.add(ids[q % 2], 1000 * q, data, q + 1)
         w.finish()
@@ -257,18 +258,18 @@ def test_message_appender_chunks_at_its_own_zstd_level():
 
 
 def test_message_appender_falls_back_when_not_proven(monkeypatch):
-    """The fast path is used only after `_proven` wrote the same bytes both ways; otherwise the
+    """The fast path is used only after `proven` wrote the same bytes both ways; otherwise the
     appender is mcap's own add_message."""
     import io
 
     from mcap.writer import Writer
 
-    from cosim.log import mcap as mlog
+    from cosim.log import appender as mlog
 
-    assert mlog._proven() is True          # on the mcap installed here
-    monkeypatch.setattr(mlog, "_PROOF", [False])
+    assert mlog.proven() is True          # on the mcap installed here
+    monkeypatch.setattr(mlog, "PROOF", [False])
     w = Writer(io.BytesIO())
-    app = mlog._MessageAppender(w)
+    app = mlog.MessageAppender(w)
     assert app.add == app._slow
 
 

@@ -109,7 +109,7 @@ def test_bridge_table_is_passed_on():
 
 def test_link_stats_are_logged_and_summarised(tmp_path):
     from cosim.run import run_scenario
-    from cosim.log.mcap import read_log
+    from cosim.log.reader import read_log
     from cosim.plants import FmuPlant
 
     sc = load_scenario(PAPER, ["simulation.duration=2.0"])

@@ -9,7 +9,7 @@ import pytest
 
 from cosim.cli import main
 from cosim.log import export as E
-from cosim.log.mcap import read_log
+from cosim.log.reader import read_log
 from cosim.run import run_scenario
 from cosim.scenario import load_scenario
 

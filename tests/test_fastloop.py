@@ -13,7 +13,8 @@ import pytest
 from cosim import fastloop
 from cosim.run import with_timing
 from cosim.master import Master
-from cosim.log.mcap import McapLogger, read_log
+from cosim.log.writer import McapLogger
+from cosim.log.reader import read_log
 from cosim.plants import FmuPlant, PerBodyFmuPlant
 from cosim.scenario import load_scenario, parse_scenario
 from plant_fmu.fast import FMUError
@@ -300,7 +301,7 @@ def test_record_fast_equals_record(tmp_path):
 
 
 def fastloop_orjson():
-    from cosim.log import mcap as mcaplog
+    from cosim.log import writer as mcaplog
 
     return mcaplog._orjson is not None
 

@@ -16,7 +16,8 @@ from mcap.stream_reader import StreamReader
 from controller.errors import Se3SyncError
 from cosim.log import cdr
 from cosim.log import foxglove as fg
-from cosim.log.mcap import McapLogger, read_log
+from cosim.log.writer import McapLogger
+from cosim.log.reader import read_log
 from cosim.master import Master
 from cosim.plants import FmuPlant
 from cosim.scenario import load_scenario
@@ -365,13 +366,13 @@ def test_layout_fill_is_the_library_encoding():
 
 
 def test_add_rows_is_add_message_by_message():
-    """`_MessageAppender.add_rows` (the trails of a CDR log, one write per stretch of a chunk)
+    """`MessageAppender.add_rows` (the trails of a CDR log, one write per stretch of a chunk)
     against `add` row by row, with other channels in between and chunks cut inside the rows:
     the same chunks byte for byte and the same message indexes, and mcap's reader finds every
     message of every channel."""
     from mcap.writer import CompressionType, Writer
 
-    from cosim.log.mcap import _MessageAppender
+    from cosim.log.appender import MessageAppender
 
     n_ch = 40
 
@@ -384,7 +385,7 @@ def test_add_rows_is_add_message_by_message():
         other = w.register_channel(topic="/o", message_encoding="cdr", schema_id=sid)
         ids = [w.register_channel(topic=f"/r{k}", message_encoding="cdr", schema_id=sid)
                for k in range(n_ch)]
-        app = _MessageAppender(w, level=3)
+        app = MessageAppender(w, level=3)
         assert app.add != app._slow
         seq = 0
         for tick in range(30):

@@ -23,7 +23,7 @@ import pytest
 from cosim import guards
 from cosim.cli import main
 from cosim.controllers import make_controller
-from cosim.log.mcap import read_log
+from cosim.log.reader import read_log
 from cosim.master import Master
 from cosim.network import NetworkController, networked
 from cosim.plants import FmuPlant, PerBodyFmuPlant

@@ -11,7 +11,7 @@ import pytest
 from controller import se3
 from cosim.log import foxglove as fg
 from cosim.run import run_scenario
-from cosim.log.mcap import read_log
+from cosim.log.reader import read_log
 from cosim.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -161,7 +161,7 @@ def test_the_checks_see_a_cycle_and_a_private_import():
     deps = dict(GRAPH["cosim.master"])
     assert deps.get("controller.kernels") is True and "cosim.controllers" in deps
     assert "controller._kernels" in dict(GRAPH["controller.law"])
-    assert "cosim.log.mcap" in dict(GRAPH["cosim.log.plot"])  # `from .mcap import ...`
+    assert "cosim.log.reader" in dict(GRAPH["cosim.log.plot"])  # `from .reader import ...`
     # the two cycles issue 11 found on the old layout, as they were
     old = {"bridge.config": {"cosim.scenario"}, "cosim.scenario": {"bridge.config"},
            "cosim.sweep": {"cosim.sweep_report"}, "cosim.sweep_report": {"cosim.sweep"},

@@ -42,7 +42,7 @@ from controller.errors import Se3SyncError
 from controller.kernels import metrics, network_U, relative_pose
 from cosim import signals
 from cosim.controllers import EdgeState, agent_view
-from cosim.log.mcap import McapLogger
+from cosim.log.writer import McapLogger
 from cosim.master import Master
 from cosim.network import parse_network
 from cosim.registry import LAWS

@@ -11,7 +11,7 @@ one's log, summary and stderr into a work directory, waits, and merges:
   directed link j → i: messages sent by j, samples taken by i, lost = the difference, and the
   ages of the data i used.
 * `merge_logs`: the agents' logged own rows (/tf, /agents) and owned edges (/edges, /jumps) at
-  the log instants all of them recorded become one log written by `cosim.log.mcap.McapLogger`
+  the log instants all of them recorded become one log written by `cosim.log.writer.McapLogger`
   for the whole scenario, so `se3sync plot`, `animate` and Foxglove read it as a `run` log.
 """
 from __future__ import annotations
@@ -39,7 +39,8 @@ from cosim import signals
 from cosim.analysis.stability import analyse
 from cosim.controllers import agent_view
 from cosim.files import check_output_dir, write_json_atomic
-from cosim.log.mcap import McapLogger, read_log
+from cosim.log.writer import McapLogger
+from cosim.log.reader import read_log
 from cosim.master import NetworkMetrics
 from cosim.scenario import design_summary
 from cosim.network import parse_network

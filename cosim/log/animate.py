@@ -17,7 +17,7 @@ from controller.se3 import quat_to_rot
 
 from ..files import atomic_path
 from .foxglove import ERR_HI, ERR_LO, box_size, error_color, error_colors
-from .mcap import read_log
+from .reader import read_log
 
 __all__ = ["load_poses", "animate_log", "snapshot", "clusters", "nest_scales"]
 

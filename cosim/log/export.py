@@ -38,7 +38,7 @@ import numpy as np
 from controller.errors import Se3SyncError
 
 from ..files import atomic_path
-from .mcap import read_log
+from .reader import read_log
 
 __all__ = ["CHANNELS", "FORMATS", "UNITS", "Export", "load_export", "export_log", "jumps_path"]
 

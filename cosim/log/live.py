@@ -35,7 +35,7 @@ import numpy as np
 
 from controller.errors import Se3SyncError
 
-from .mcap import McapLogger
+from .writer import McapLogger
 
 __all__ = ["DEFAULT_RATE", "parse_live", "LiveServer", "LiveTee", "live_logger", "live_only"]
 

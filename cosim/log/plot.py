@@ -12,7 +12,7 @@ import numpy as np
 from controller.errors import Se3SyncError
 
 from ..files import atomic_path
-from .mcap import read_log
+from .reader import read_log
 
 __all__ = ["load_series", "plot_log", "plot_logs", "make_figure", "LINESTYLES"]
 
