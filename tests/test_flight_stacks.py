@@ -282,30 +282,29 @@ def _genuine_steps(port: int, n: int) -> list:
 
 
 def test_px4_client_that_never_reads_is_dropped_and_others_keep_stepping():
-    """Vehicle 1's client floods HIL_ACTUATOR_CONTROLS and reads nothing: the server does not block
-    on it (non-blocking sends, a bounded buffer: the client is dropped and counted) and vehicle 2's
-    genuine client gets its 300 lockstep steps."""
-    from bridge.mavlink.link import mavlink2 as M
+    """Vehicle 1's client ends its start-up, then floods HIL_ACTUATOR_CONTROLS that answer each next
+    step (it guesses the stamps) and reads nothing: the server does not block on it (non-blocking
+    sends, a bounded buffer: the client is dropped and counted) and vehicle 2's genuine client gets
+    its 300 lockstep steps."""
     from bridge.vehicles.sim_px4 import Px4SimServer
+    from sim_clients import px4_controls_blob
 
     srv = Px4SimServer(_scenario_two(), port=0, step=0.004, noise=False, lockstep_timeout=3600.0,
                        send_buffer=32 * 1024)
     with _Serve(srv):
-        bad = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        bad.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        bad.connect(("127.0.0.1", srv.links[0].port))
-        mav = M.MAVLink(None, srcSystem=1, srcComponent=1)
-        flood = b"".join(mav.hil_actuator_controls_encode(0, [0.5] * 16, 0, 1).pack(mav) for _ in range(4000))
-        bad.setblocking(False)
+        bad = Px4Client(srv.links[0].port, rcvbuf=4096)
+        bad.start()
+        flood = px4_controls_blob(bad.mav, [bad.clock_us + 4000 * j for j in range(20000)])
+        bad.sock.setblocking(False)
         sent = 0
         result = {}
         th = threading.Thread(target=lambda: result.setdefault("steps", _genuine_steps(srv.links[1].port, 300)))
         th.start()
         while sent < len(flood):
             try:
-                sent += bad.send(flood[sent:])
+                sent += bad.sock.send(flood[sent:])
             except BlockingIOError:
-                select.select([], [bad], [], 0.05)
+                select.select([], [bad.sock], [], 0.05)
             except OSError:
                 break                        # dropped by the server
             if srv.stats()["slow_clients"]:
@@ -316,6 +315,59 @@ def test_px4_client_that_never_reads_is_dropped_and_others_keep_stepping():
     assert st["slow_clients"] == 1
     steps = result["steps"]
     assert len(steps) == 300 and np.all(np.diff(steps) == 4000)
+
+
+def _flooder(*args) -> subprocess.Popen:
+    """tests/sim_clients.py's flooding client in a process of its own (no GIL shared with the server)."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p))
+    return subprocess.Popen([sys.executable, str(ROOT / "tests" / "sim_clients.py"), *map(str, args)], cwd=str(ROOT),
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _wait_for(cond, what: str, guard: float = 60.0) -> None:
+    """A hang guard, not a deadline."""
+    deadline = time.monotonic() + guard
+    while not cond():
+        assert time.monotonic() < deadline, f"{what}: nothing after {guard:g} s"
+        time.sleep(0.01)
+
+
+@pytest.mark.parametrize("mode", ["stale", "guess"])
+def test_px4_flooding_client_takes_at_most_its_share(mode):
+    """Vehicle 1's client (another process) reads everything the server sends and floods
+    HIL_ACTUATOR_CONTROLS: stamped 0 ("stale": they answer no step) or stamped with the next 2,000
+    steps' times ("guess"). While it floods, vehicle 2's genuine client gets its 300 lockstep steps;
+    no vehicle took more than one step per round of the server's loop; the stale controls are
+    counted and took no step (vehicle 1 stepped only while streaming and on the one message that
+    ended its start-up); the guessing client was not read while its backlog was large (counted)."""
+    from bridge.vehicles.sim_px4 import Px4SimServer
+
+    events = []
+    srv = Px4SimServer(_scenario_two(), port=0, step=0.004, noise=False, lockstep_timeout=3600.0,
+                       on_event=events.append)
+    with _Serve(srv):
+        fl = _flooder("px4-flood", srv.links[0].port, mode)
+        try:
+            _wait_for(lambda: srv.stats()["received"] >= 2000 or fl.poll() is not None, "the flood")
+            got = _genuine_steps(srv.links[1].port, 300)
+            flooding = fl.poll() is None
+            st = srv.stats()
+        finally:
+            fl.kill()
+            fl.wait()
+    assert flooding, "the flooding client stopped before vehicle 2's client was done"
+    assert len(got) == 300 and np.all(np.diff(got) == 4000)
+    if mode == "stale":                 # vehicle 1's connection: no step for any of its ≥ 2,000 messages
+        assert st["step_index"][0] <= st["streamed_steps"] + 1
+    v1, v2 = st["vehicles"]
+    assert v2["steps"] >= 300 and v2["stale_controls"] == 0
+    assert v1["steps"] <= st["rounds"] and v2["steps"] <= st["rounds"]
+    if mode == "stale":
+        assert v1["steps"] == v1["streamed_steps"] + 1
+        assert v1["stale_controls"] >= 1999
+        assert sum("stale_controls" in e for e in events) == 1
+    else:
+        assert v1["backlog_pauses"] >= 1 and v1["steps"] > v1["streamed_steps"] + 1
 
 
 def test_px4_idle_client_is_dropped_and_the_vehicle_served_again():
@@ -393,6 +445,35 @@ def test_ardupilot_divergence_resets_one_vehicle_and_the_others_go_on():
     assert len(ra) == 2400 and len(rb) == 400
     assert all(np.all(np.isfinite(d["position"])) and np.abs(d["imu"]["gyro"]).max() <= 1e3 for d in ra)
     assert np.allclose([d["timestamp"] for d in rb], np.arange(1, 401) / 400)
+
+
+def test_ardupilot_flooding_client_takes_at_most_its_share():
+    """Vehicle 1's port is flooded with servo packets of new frames by another process that never
+    waits for a reply. While it floods, vehicle 2's SITL-like client gets its 400 lockstep frames,
+    and no vehicle took more than one step per round of the server's loop (before, one round
+    stepped vehicle 1 up to 64 times)."""
+    from bridge.vehicles.sim_ardupilot import ArduPilotJsonServer
+
+    srv = ArduPilotJsonServer(_scenario_two(), port=0, noise=False)
+    with _Serve(srv):
+        fl = _flooder("ardupilot-flood", srv.links[0].port)
+        try:
+            _wait_for(lambda: srv.stats()["received"] >= 2000 or fl.poll() is not None, "the flood")
+            cl = ArduPilotClient(srv.links[1].port)
+            try:
+                frames = [cl.frame([1000] * 4) for _ in range(400)]
+            finally:
+                cl.close()
+            flooding = fl.poll() is None
+            st = srv.stats()
+        finally:
+            fl.kill()
+            fl.wait()
+    assert flooding, "the flooding client stopped before vehicle 2's client was done"
+    assert np.allclose([d["timestamp"] for d in frames], np.arange(1, 401) / 400)
+    v1, v2 = st["vehicles"]
+    assert v2["steps"] == 400 and v1["steps"] >= 2000
+    assert v1["steps"] <= st["rounds"]
 
 
 # ---------------------------------------------------------------------------------- the command
