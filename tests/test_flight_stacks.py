@@ -370,6 +370,41 @@ def test_px4_flooding_client_takes_at_most_its_share(mode):
         assert v1["backlog_pauses"] >= 1 and v1["steps"] > v1["streamed_steps"] + 1
 
 
+def test_px4_fields_clamped_through_the_server_are_counted_and_said_once():
+    """Vehicle 1 starts 1 km up flying north at 400 m/s: its NED velocity (cm/s in int16) and
+    HIL_GPS's ground speed overflow their fields. Served by the loop, its messages still encode, the
+    clamps are counted per vehicle and said once; vehicle 2, at home, keeps stepping, unclamped."""
+    from cosim.scenario import parse_scenario
+
+    from bridge.vehicles.sim_px4 import Px4SimServer
+
+    text = Path(SITL).read_text().replace("count = 1", "count = 2").replace("edges = []", "edges = [[1, 2]]")
+    text = text.replace("[[initial.agent]]\n", "[[initial.agent]]\nposition = [0.0, 0.0, -1000.0]\n"
+                        "velocity = [0.0, 0.0, 0.0, 400.0, 0.0, 0.0]\n[[initial.agent]]\n", 1)
+    text = text.replace("position = [0.0, 0.0, 0.0]       # NED", "position = [5.0, 0.0, 0.0]       # NED")
+    sc = parse_scenario(text, name="fast", path="fast.toml")
+    events = []
+    srv = Px4SimServer(sc, port=0, step=0.004, noise=False, lockstep_timeout=3600.0, on_event=events.append)
+    with _Serve(srv):
+        fast = Px4Client(srv.links[0].port)
+        try:
+            fast.start()
+            for _ in range(50):
+                fast.send([0.0] * 16, armed=False)
+                fast.step()
+        finally:
+            fast.close()
+        home = _genuine_steps(srv.links[1].port, 50)
+        st = srv.stats()
+    v1, v2 = st["vehicles"]
+    gps = [m for m in fast.messages if m.get_type() == "HIL_GPS"]
+    assert gps and all(m.vn == 32767 for m in gps)
+    assert v1["clamped_fields"] >= 50 and v2["clamped_fields"] == 0 and st["clamped_fields"] == v1["clamped_fields"]
+    said = [e for e in events if "clamped" in e]
+    assert len(said) == 1 and said[0].startswith("vehicle 1:") and "vn" in said[0]
+    assert len(home) == 50 and np.all(np.diff(home) == 4000)
+
+
 def test_px4_idle_client_is_dropped_and_the_vehicle_served_again():
     """A client that connects and never sends a HIL_ACTUATOR_CONTROLS holds its vehicle only until the
     idle timeout; then a genuine client gets the vehicle (from its initial state), and the other
@@ -412,11 +447,17 @@ def test_px4_out_of_range_fields_are_clamped():
         ln.k = 0
         msgs = {m.get_type(): m for m in srv.sensor_messages(ln)}
         gps, st = msgs["HIL_GPS"], msgs["HIL_STATE_QUATERNION"]
+        clamped = srv.stats()["vehicles"][0]["clamped_fields"]
+        # a course a hair west of north is 0 cdeg (359.99994° rounds to 36000: wrapped, not clamped)
+        b.S[0:3], b.S[12:15], b.S[15:18], b.wrench[3:6] = 0.0, 0.0, [10.0, -1e-5, 0.0], 0.0
+        cog = {m.get_type(): m for m in srv.sensor_messages(ln)}["HIL_GPS"].cog
+        clamped_after = srv.stats()["vehicles"][0]["clamped_fields"]
     finally:
         srv.close()
     assert gps.lat == 900000000 and gps.vel == 65534 and gps.alt == 2 ** 31 - 1
     assert (gps.vn, gps.ve, gps.vd) == (32767, -32768, 32767) and (st.vx, st.vy, st.vz) == (32767, -32768, 32767)
     assert st.xacc in (32767, -32768) and abs(st.lon) <= 1800000000
+    assert clamped >= 3 * 8 and cog == 0 and clamped_after == clamped   # lat, abs_pressure, alt, vn, ve, vd, xacc, zacc
 
 
 # ---------------------------------------------------------------------------------- ArduPilot

@@ -36,7 +36,7 @@ server's start, whole seconds, plus simulated time), lat/lon (degE7), alt (mm, M
 (1.0 m), vel/vn/ve/vd (cm/s, NED), cog (cdeg, 65535 below 1 cm/s), fix 3-D, 10 satellites.
 HIL_STATE_QUATERNION quaternion w-first (FRD -> NED), body rates (rad/s), lat/lon/alt as HIL_GPS,
 vx/vy/vz (cm/s NED), accelerations in mG (FRD). Every integer field is clamped to its type (a body
-far away or fast gives a saturated field, never an encoding error). Noise:
+far away or fast gives a saturated field, never an encoding error; counted, see below). Noise:
 `bridge.vehicles.sim_body.Noise` (white, on HIL_SENSOR only; GPS and ground truth exact).
 
 Clients are untrusted: sends are non-blocking into a bounded buffer per connection (a client that
@@ -54,7 +54,9 @@ its share of the server:
 * each round of the server's loop takes at most one step per vehicle, reads at most
   ``RECV_SIZE`` bytes and handles at most ``MSGS_PER_ROUND`` messages per connection; the rest
   waits, and a connection with more than ``BACKLOG_MAX`` bytes waiting is not read until they are
-  handled (``backlog_pauses``: TCP then holds the client back).
+  handled (``backlog_pauses``: TCP then holds the client back);
+* an integer field out of its type's range is clamped (``clamped_fields``, per vehicle; said once
+  per vehicle).
 
 The protocol has no authentication: whoever can connect to the port drives the vehicle.
 """
@@ -93,9 +95,19 @@ BACKLOG_MAX = 16 * 1024
 I16, I32 = (-32768, 32767), (-2 ** 31, 2 ** 31 - 1)
 
 
-def _int(x: float, lo: int, hi: int) -> int:
-    """An integer field: rounded and clamped to its type, never an encoding error."""
-    return int(min(hi, max(lo, round(x)))) if np.isfinite(x) else 0
+def _int(x: float, lo: int, hi: int, clamped: list | None = None, name: str = "") -> int:
+    """An integer field: rounded and clamped to its type, never an encoding error (a clamped or
+    non-finite value appends ``name`` to ``clamped``)."""
+    if not np.isfinite(x):
+        if clamped is not None:
+            clamped.append(name)
+        return 0
+    r = round(x)
+    if lo <= r <= hi:
+        return int(r)
+    if clamped is not None:
+        clamped.append(name)
+    return int(min(hi, max(lo, r)))
 
 
 class _Px4Link:
@@ -127,8 +139,9 @@ class _Px4Link:
         self.more = False           # messages may be waiting in the parser (handle them next round)
         self.paused = False         # not read: more than BACKLOG_MAX bytes wait to be handled
         self.said_stale = False     # stale HIL_ACTUATOR_CONTROLS said (once per connection)
+        self.said_clamped = False   # clamped fields said (once per vehicle)
         self.counts = {"steps": 0, "streamed_steps": 0, "lockstep_timeouts": 0, "stale_controls": 0,
-                       "backlog_pauses": 0, "diverged": 0}
+                       "clamped_fields": 0, "backlog_pauses": 0, "diverged": 0}
 
 
 class Px4SimServer:
@@ -154,7 +167,7 @@ class Px4SimServer:
         self.on_event = on_event or (lambda text: print(f"se3sync vehicle: {text}", file=sys.stderr, flush=True))
         self.counters = {"sent": 0, "received": 0, "malformed": 0, "ignored": 0, "steps": 0, "connections": 0,
                          "streamed_steps": 0, "lockstep_timeouts": 0, "slow_clients": 0, "idle_drops": 0,
-                         "diverged": 0, "stale_controls": 0, "backlog_pauses": 0, "rounds": 0}
+                         "diverged": 0, "stale_controls": 0, "clamped_fields": 0, "backlog_pauses": 0, "rounds": 0}
         self._stop = threading.Event()
         self.ready = threading.Event()
         self.links: list[_Px4Link] = []
@@ -176,27 +189,47 @@ class Px4SimServer:
         gyro = nz.add(b.omega, nz.gyro)
         mag = nz.add(R.T @ B_NED, nz.mag)
         p = b.S[layout.P]
-        lat, lon, alt = ned_to_geodetic(p)
+        clamped: list = []          # names of the fields clamped in this step's messages
+        lat, lon, alt = ned_to_geodetic(p, clamped)
+        if not -1000.0 <= alt <= 40000.0:       # the ISA model's range
+            clamped.append("abs_pressure")
         pres = float(nz.add(isa_pressure_hpa(max(-1000.0, min(alt, 40000.0))), nz.baro))
         sensor = mav.hil_sensor_encode(t_us, acc[0], acc[1], acc[2], gyro[0], gyro[1], gyro[2], mag[0], mag[1],
                                        mag[2], pres, 0.0, alt, isa_temperature_c(alt), FIELDS_SENSORS, 0)
         v = b.v_ned
-        lat7, lon7, alt_mm = _int(lat * 1e7, *I32), _int(lon * 1e7, *I32), _int(alt * 1000, *I32)
-        vcm = [_int(x * 100, *I16) for x in v]
-        sf_mg = [_int(x / G0 * 1000, *I16) for x in b.specific_force()]
+        lat7 = _int(lat * 1e7, *I32, clamped, "lat")
+        lon7 = _int(lon * 1e7, *I32, clamped, "lon")
+        alt_mm = _int(alt * 1000, *I32, clamped, "alt")
+        vcm = [_int(x * 100, *I16, clamped, name) for x, name in zip(v, ("vn", "ve", "vd"))]
+        sf_mg = [_int(x / G0 * 1000, *I16, clamped, name)
+                 for x, name in zip(b.specific_force(), ("xacc", "yacc", "zacc"))]
         om = b.omega
         # ground truth and GPS first, HIL_SENSOR last: PX4 advances its clock on HIL_SENSOR, so the
         # other data of the same instant is already there
         out = []
         if ln.k % self.gps_every == 0:
             gs = float(np.hypot(v[0], v[1]))
-            cog = _int((np.degrees(np.arctan2(v[1], v[0])) % 360.0) * 100, 0, 35999) if gs > 0.01 else 65535
+            # course in [0, 360)° as centidegrees 0..35999 (359.999° rounds to 0, not 36000)
+            cog = int(round((np.degrees(np.arctan2(v[1], v[0])) % 360.0) * 100)) % 36000 if gs > 0.01 else 65535
             out.append(mav.hil_gps_encode(self.epoch_us + t_us, 3, lat7, lon7, alt_mm, 100, 100,
-                                          _int(gs * 100, 0, 65534), vcm[0], vcm[1], vcm[2], cog, 10, 0, 0))
+                                          _int(gs * 100, 0, 65534, clamped, "vel"), vcm[0], vcm[1], vcm[2], cog,
+                                          10, 0, 0))
         out.append(mav.hil_state_quaternion_encode(t_us, list(b.q), om[0], om[1], om[2], lat7, lon7, alt_mm,
                                                    vcm[0], vcm[1], vcm[2], 0, 0, sf_mg[0], sf_mg[1], sf_mg[2]))
         out.append(sensor)
+        if clamped:
+            self._clamped(ln, clamped, t_us)
         return out
+
+    def _clamped(self, ln: _Px4Link, names: list, t_us: int) -> None:
+        """Fields out of their types' ranges: counted per vehicle, said once per vehicle."""
+        self.counters["clamped_fields"] += len(names)
+        ln.counts["clamped_fields"] += len(names)
+        if not ln.said_clamped:
+            ln.said_clamped = True
+            self.on_event(f"vehicle {ln.sysid}: {', '.join(dict.fromkeys(names))} out of range of their MAVLink "
+                          f"fields at t = {t_us * 1e-6:.3f} s (the body is far away or fast): clamped, counted "
+                          "in clamped_fields (said once per vehicle)")
 
     def _send(self, ln: _Px4Link, msg) -> None:
         if ln.conn is None:
