@@ -145,6 +145,36 @@ def test_parameter_files_round_trip(frame, tilt, stack):
         assert abs(pwm - (1000 + 1000 * c_h)) < 1e-3
 
 
+# quad X, 4 × 15 N: ArduPilot's MOT_THST_HOVER = (c − 0.15)/0.8 must lie in 0.125..0.6875
+# (AP_MOTORS_THST_HOVER_MIN/MAX, libraries/AP_Motors/AP_MotorsMulticopter.h), i.e. each rotor's share
+# c = m g/60 N in 0.25..0.70: 1.53..4.28 kg; PX4's MPC_THR_HOVER = c in 0.1..0.8
+# (src/modules/mc_pos_control/multicopter_position_control_params.yaml): 0.61..4.89 kg
+@pytest.mark.parametrize("stack, mass, refused", [
+    ("ardupilot", 1.6, None), ("ardupilot", 4.2, None),
+    ("ardupilot", 1.4, ("MOT_THST_HOVER", "0.09853")), ("ardupilot", 5.0, ("MOT_THST_HOVER", "0.834")),
+    ("px4", 0.7, None), ("px4", 4.8, None),
+    ("px4", 0.5, ("MPC_THR_HOVER", "0.08172")), ("px4", 5.0, ("MPC_THR_HOVER", "0.8172"))])
+def test_hover_throttle_outside_the_stacks_range_is_refused(stack, mass, refused):
+    """A hover throttle the stack would clamp (ArduPilot) or not accept (PX4) is refused on one line
+    naming the parameter and its value; inside the range the file is written and round-trips."""
+    from bridge.mavlink.airframes import params_text, parse_params
+    from bridge.mavlink.mapping import AllocationSpec
+    from controller.errors import Se3SyncError
+
+    spec = AllocationSpec(frame="quad-x", tilt_deg=0.0, arm_length=0.25, max_thrust=15.0, torque_coeff=0.016)
+    if refused is None:
+        p = parse_params(params_text(stack, spec, mass, 9.80665))
+        key = "MOT_THST_HOVER" if stack == "ardupilot" else "MPC_THR_HOVER"
+        lo, hi = (0.125, 0.6875) if stack == "ardupilot" else (0.1, 0.8)
+        assert lo <= p[key] <= hi
+        return
+    with pytest.raises(Se3SyncError) as exc:
+        params_text(stack, spec, mass, 9.80665)
+    msg = str(exc.value)
+    key, value = refused
+    assert f"{key} = {value} " in msg and "\n" not in msg
+
+
 def test_ardupilot_params_for_the_tilted_hexarotor():
     """The order SITL.md worked out by hand (SERVO1..6 = 33, 36, 38, 34, 35, 37, HEXA/PLUS) comes out
     of the geometry; the issue's tilt of +30° is refused with the reason, on one line."""
@@ -174,6 +204,20 @@ def test_write_params_command_line(tmp_path):
     assert (p["FRAME_CLASS"], p["FRAME_TYPE"]) == (2, 1)
     assert geometry_from_params("ardupilot", p) == [(a, 1.0 if s == "CCW" else -1.0)
                                                     for a, s in STACK_TABLES["hexa-x"]["ardupilot"]]
+
+
+@pytest.mark.parametrize("stack, key, value", [("ardupilot", "MOT_THST_HOVER", "0.834"),
+                                                ("px4", "MPC_THR_HOVER", "0.8172")])
+def test_write_params_refuses_a_hover_throttle_out_of_range(tmp_path, stack, key, value):
+    """5 kg on sitl_1uav's quad X (4 × 15 N) needs 0.82 of each rotor to hover: `--write-params`
+    exits 2 with one line naming the parameter and its value, and writes nothing."""
+    out = tmp_path / "heavy.parm"
+    r = subprocess.run([sys.executable, "-m", "cosim.cli", "vehicle", "--scenario", SITL, "--sim-protocol", stack,
+                        "--set", "agents.mass=5.0", "--write-params", str(out)],
+                       capture_output=True, text=True, timeout=120, cwd=str(ROOT))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert f"{key} = {value} " in lines[0] and not out.exists() and not list(tmp_path.iterdir())
 
 
 # ------------------------------------------------------------------------------ scripted flight
