@@ -562,12 +562,16 @@ def test_ardupilot_flooding_client_takes_at_most_its_share():
 
 
 # ---------------------------------------------------------------------------------- the command
-def test_sim_protocol_sigterm_exits_143_with_stats(tmp_path):
-    """`vehicle --sim-protocol ardupilot`: SIGTERM stops it with status 143 (as docs/flight-stacks.md says) and
-    the --stats file written."""
+@pytest.mark.parametrize("stack, proto", [("ardupilot", "UDP"), ("px4", "TCP")])
+def test_sim_protocol_sigterm_exits_143_with_stats(tmp_path, stack, proto):
+    """`vehicle --sim-protocol ardupilot|px4 --sim-port 0`: the start-up line names the port the OS
+    assigned (not ":0"); SIGTERM stops it with status 143 (as docs/flight-stacks.md says) and the
+    --stats file written, with that port in it."""
+    import json
+
     stats = tmp_path / "st.json"
     p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "vehicle", "--scenario", SITL, "--sim-protocol",
-                          "ardupilot", "--sim-port", "0", "--stats", str(stats)], cwd=str(ROOT),
+                          stack, "--sim-port", "0", "--stats", str(stats)], cwd=str(ROOT),
                          stderr=subprocess.PIPE, text=True)
     try:
         line = p.stderr.readline()
@@ -579,3 +583,5 @@ def test_sim_protocol_sigterm_exits_143_with_stats(tmp_path):
             p.kill()
             p.wait()
     assert rc == 143 and stats.exists()
+    port = json.loads(stats.read_text())["ports"][0]
+    assert port > 0 and f"{proto} 127.0.0.1:{port} " in line, line
