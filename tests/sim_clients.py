@@ -14,6 +14,8 @@ import os
 import select
 import socket
 import struct
+import sys
+import threading
 
 import numpy as np
 
@@ -135,8 +137,12 @@ class Px4Client:
     advanced ``start_after`` seconds (PX4's modules start only then), then answer each step with
     HIL_ACTUATOR_CONTROLS stamped with its clock (mode bit 128 when armed)."""
 
-    def __init__(self, port: int, host: str = "127.0.0.1", timeout: float = 30.0):
-        self.sock = socket.create_connection((host, port), timeout=5)
+    def __init__(self, port: int, host: str = "127.0.0.1", timeout: float = 30.0, rcvbuf: int | None = None):
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        if rcvbuf:                           # before connect: the window the server sees
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        self.sock.settimeout(5)
+        self.sock.connect((host, port))
         self.mav = M.MAVLink(None, srcSystem=1, srcComponent=1)
         self.pending: list = []
         self.timeout = timeout
@@ -199,6 +205,72 @@ class Px4Client:
                                                                 M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 1)
                           .pack(self.mav))
         self.mav.seq = (self.mav.seq + 1) & 0xFF
+
+
+def px4_controls_blob(mav, stamps, controls=(0.5,) * 16) -> bytes:
+    """HIL_ACTUATOR_CONTROLS (armed) stamped with each of ``stamps``, back to back."""
+    return b"".join(mav.hil_actuator_controls_encode(t, list(controls), ARMED, 1).pack(mav) for t in stamps)
+
+
+def px4_flood(port: int, mode: str, host: str = "127.0.0.1", h_us: int = 4000, burst: int = 2000) -> None:
+    """A PX4 client gone wrong, for the tests (run as ``python tests/sim_clients.py px4-flood PORT
+    MODE``): starts as PX4 does (Px4Client.start), then reads everything the server sends (in a
+    thread) and sends HIL_ACTUATOR_CONTROLS as fast as the server takes them, until the connection
+    closes. ``mode`` "stale": stamped 0 (they answer no step); "guess": blocks of ``burst`` stamped
+    with the newest HIL_SENSOR's time_usec and the next ``burst`` − 1 steps' (each a valid answer
+    once the server gets that far)."""
+    cl = Px4Client(port, host)
+    cl.start()
+    cl.sock.settimeout(None)
+    clock = [cl.clock_us]
+
+    def reader():
+        mav = M.MAVLink(None)
+        mav.robust_parsing = True
+        while True:
+            try:
+                data = cl.sock.recv(65536)
+            except OSError:
+                return
+            if not data:
+                return
+            if mode == "guess":
+                for m in mav.parse_buffer(data) or []:
+                    if m.get_type() == "HIL_SENSOR":
+                        clock[0] = m.time_usec
+
+    threading.Thread(target=reader, daemon=True).start()
+    stale = px4_controls_blob(cl.mav, [0] * burst)
+    while True:
+        blob = stale if mode == "stale" else px4_controls_blob(cl.mav, [clock[0] + h_us * j for j in range(burst)])
+        try:
+            cl.sock.sendall(blob)
+        except OSError:
+            return
+
+
+def ardupilot_flood(port: int, host: str = "127.0.0.1", rate: int = 400) -> None:
+    """An ArduPilot JSON client gone wrong (``python tests/sim_clients.py ardupilot-flood PORT``):
+    servo packets with a new frame_count each, as fast as it can send them, never waiting for a
+    reply (the replies are read and thrown away); until killed."""
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind((host, 0))
+    sock.setblocking(False)
+    count = 0
+    while True:
+        for _ in range(64):
+            count += 1
+            try:
+                sock.sendto(servo_packet(count, [1000] * 6, rate), (host, port))
+            except (BlockingIOError, InterruptedError):
+                select.select([], [sock], [], 0.01)
+            except OSError:
+                pass
+        try:
+            while True:
+                sock.recv(65536)
+        except OSError:
+            pass
 
 
 def px4_truth(msgs) -> dict:
@@ -291,3 +363,12 @@ def fly(client_kind: str, port: int, frame: str, mass: float, J, *, h: float, af
     out["touchdown_detected"] = ap.touchdown_detected
     out["autopilot"] = ap
     return out
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["px4-flood"]:
+        px4_flood(int(sys.argv[2]), sys.argv[3])
+    elif sys.argv[1:2] == ["ardupilot-flood"]:
+        ardupilot_flood(int(sys.argv[2]))
+    else:
+        sys.exit("usage: sim_clients.py px4-flood PORT stale|guess | ardupilot-flood PORT")

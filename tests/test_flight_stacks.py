@@ -145,6 +145,36 @@ def test_parameter_files_round_trip(frame, tilt, stack):
         assert abs(pwm - (1000 + 1000 * c_h)) < 1e-3
 
 
+# quad X, 4 × 15 N: ArduPilot's MOT_THST_HOVER = (c − 0.15)/0.8 must lie in 0.125..0.6875
+# (AP_MOTORS_THST_HOVER_MIN/MAX, libraries/AP_Motors/AP_MotorsMulticopter.h), i.e. each rotor's share
+# c = m g/60 N in 0.25..0.70: 1.53..4.28 kg; PX4's MPC_THR_HOVER = c in 0.1..0.8
+# (src/modules/mc_pos_control/multicopter_position_control_params.yaml): 0.61..4.89 kg
+@pytest.mark.parametrize("stack, mass, refused", [
+    ("ardupilot", 1.6, None), ("ardupilot", 4.2, None),
+    ("ardupilot", 1.4, ("MOT_THST_HOVER", "0.09853")), ("ardupilot", 5.0, ("MOT_THST_HOVER", "0.834")),
+    ("px4", 0.7, None), ("px4", 4.8, None),
+    ("px4", 0.5, ("MPC_THR_HOVER", "0.08172")), ("px4", 5.0, ("MPC_THR_HOVER", "0.8172"))])
+def test_hover_throttle_outside_the_stacks_range_is_refused(stack, mass, refused):
+    """A hover throttle the stack would clamp (ArduPilot) or not accept (PX4) is refused on one line
+    naming the parameter and its value; inside the range the file is written and round-trips."""
+    from bridge.mavlink.airframes import params_text, parse_params
+    from bridge.mavlink.mapping import AllocationSpec
+    from controller.errors import Se3SyncError
+
+    spec = AllocationSpec(frame="quad-x", tilt_deg=0.0, arm_length=0.25, max_thrust=15.0, torque_coeff=0.016)
+    if refused is None:
+        p = parse_params(params_text(stack, spec, mass, 9.80665))
+        key = "MOT_THST_HOVER" if stack == "ardupilot" else "MPC_THR_HOVER"
+        lo, hi = (0.125, 0.6875) if stack == "ardupilot" else (0.1, 0.8)
+        assert lo <= p[key] <= hi
+        return
+    with pytest.raises(Se3SyncError) as exc:
+        params_text(stack, spec, mass, 9.80665)
+    msg = str(exc.value)
+    key, value = refused
+    assert f"{key} = {value} " in msg and "\n" not in msg
+
+
 def test_ardupilot_params_for_the_tilted_hexarotor():
     """The order SITL.md worked out by hand (SERVO1..6 = 33, 36, 38, 34, 35, 37, HEXA/PLUS) comes out
     of the geometry; the issue's tilt of +30° is refused with the reason, on one line."""
@@ -174,6 +204,20 @@ def test_write_params_command_line(tmp_path):
     assert (p["FRAME_CLASS"], p["FRAME_TYPE"]) == (2, 1)
     assert geometry_from_params("ardupilot", p) == [(a, 1.0 if s == "CCW" else -1.0)
                                                     for a, s in STACK_TABLES["hexa-x"]["ardupilot"]]
+
+
+@pytest.mark.parametrize("stack, key, value", [("ardupilot", "MOT_THST_HOVER", "0.834"),
+                                                ("px4", "MPC_THR_HOVER", "0.8172")])
+def test_write_params_refuses_a_hover_throttle_out_of_range(tmp_path, stack, key, value):
+    """5 kg on sitl_1uav's quad X (4 × 15 N) needs 0.82 of each rotor to hover: `--write-params`
+    exits 2 with one line naming the parameter and its value, and writes nothing."""
+    out = tmp_path / "heavy.parm"
+    r = subprocess.run([sys.executable, "-m", "cosim.cli", "vehicle", "--scenario", SITL, "--sim-protocol", stack,
+                        "--set", "agents.mass=5.0", "--write-params", str(out)],
+                       capture_output=True, text=True, timeout=120, cwd=str(ROOT))
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert f"{key} = {value} " in lines[0] and not out.exists() and not list(tmp_path.iterdir())
 
 
 # ------------------------------------------------------------------------------ scripted flight
@@ -282,30 +326,29 @@ def _genuine_steps(port: int, n: int) -> list:
 
 
 def test_px4_client_that_never_reads_is_dropped_and_others_keep_stepping():
-    """Vehicle 1's client floods HIL_ACTUATOR_CONTROLS and reads nothing: the server does not block
-    on it (non-blocking sends, a bounded buffer: the client is dropped and counted) and vehicle 2's
-    genuine client gets its 300 lockstep steps."""
-    from bridge.mavlink.link import mavlink2 as M
+    """Vehicle 1's client ends its start-up, then floods HIL_ACTUATOR_CONTROLS that answer each next
+    step (it guesses the stamps) and reads nothing: the server does not block on it (non-blocking
+    sends, a bounded buffer: the client is dropped and counted) and vehicle 2's genuine client gets
+    its 300 lockstep steps."""
     from bridge.vehicles.sim_px4 import Px4SimServer
+    from sim_clients import px4_controls_blob
 
     srv = Px4SimServer(_scenario_two(), port=0, step=0.004, noise=False, lockstep_timeout=3600.0,
                        send_buffer=32 * 1024)
     with _Serve(srv):
-        bad = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        bad.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
-        bad.connect(("127.0.0.1", srv.links[0].port))
-        mav = M.MAVLink(None, srcSystem=1, srcComponent=1)
-        flood = b"".join(mav.hil_actuator_controls_encode(0, [0.5] * 16, 0, 1).pack(mav) for _ in range(4000))
-        bad.setblocking(False)
+        bad = Px4Client(srv.links[0].port, rcvbuf=4096)
+        bad.start()
+        flood = px4_controls_blob(bad.mav, [bad.clock_us + 4000 * j for j in range(20000)])
+        bad.sock.setblocking(False)
         sent = 0
         result = {}
         th = threading.Thread(target=lambda: result.setdefault("steps", _genuine_steps(srv.links[1].port, 300)))
         th.start()
         while sent < len(flood):
             try:
-                sent += bad.send(flood[sent:])
+                sent += bad.sock.send(flood[sent:])
             except BlockingIOError:
-                select.select([], [bad], [], 0.05)
+                select.select([], [bad.sock], [], 0.05)
             except OSError:
                 break                        # dropped by the server
             if srv.stats()["slow_clients"]:
@@ -316,6 +359,98 @@ def test_px4_client_that_never_reads_is_dropped_and_others_keep_stepping():
     assert st["slow_clients"] == 1
     steps = result["steps"]
     assert len(steps) == 300 and np.all(np.diff(steps) == 4000)
+
+
+def _flooder(*args) -> subprocess.Popen:
+    """tests/sim_clients.py's flooding client in a process of its own (no GIL shared with the server)."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p))
+    return subprocess.Popen([sys.executable, str(ROOT / "tests" / "sim_clients.py"), *map(str, args)], cwd=str(ROOT),
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _wait_for(cond, what: str, guard: float = 60.0) -> None:
+    """A hang guard, not a deadline."""
+    deadline = time.monotonic() + guard
+    while not cond():
+        assert time.monotonic() < deadline, f"{what}: nothing after {guard:g} s"
+        time.sleep(0.01)
+
+
+@pytest.mark.parametrize("mode", ["stale", "guess"])
+def test_px4_flooding_client_takes_at_most_its_share(mode):
+    """Vehicle 1's client (another process) reads everything the server sends and floods
+    HIL_ACTUATOR_CONTROLS: stamped 0 ("stale": they answer no step) or stamped with the next 2,000
+    steps' times ("guess"). While it floods, vehicle 2's genuine client gets its 300 lockstep steps;
+    no vehicle took more than one step per round of the server's loop; the stale controls are
+    counted and took no step (vehicle 1 stepped only while streaming and on the one message that
+    ended its start-up); the guessing client was not read while its backlog was large (counted)."""
+    from bridge.vehicles.sim_px4 import Px4SimServer
+
+    events = []
+    srv = Px4SimServer(_scenario_two(), port=0, step=0.004, noise=False, lockstep_timeout=3600.0,
+                       on_event=events.append)
+    with _Serve(srv):
+        fl = _flooder("px4-flood", srv.links[0].port, mode)
+        try:
+            _wait_for(lambda: srv.stats()["received"] >= 2000 or fl.poll() is not None, "the flood")
+            got = _genuine_steps(srv.links[1].port, 300)
+            flooding = fl.poll() is None
+            st = srv.stats()
+        finally:
+            fl.kill()
+            fl.wait()
+    assert flooding, "the flooding client stopped before vehicle 2's client was done"
+    assert len(got) == 300 and np.all(np.diff(got) == 4000)
+    if mode == "stale":                 # vehicle 1's connection: no step for any of its ≥ 2,000 messages
+        assert st["step_index"][0] <= st["streamed_steps"] + 1
+    v1, v2 = st["vehicles"]
+    assert v2["steps"] >= 300
+    assert v1["steps"] <= st["rounds"] and v2["steps"] <= st["rounds"]
+    if mode == "stale":
+        assert v1["steps"] == v1["streamed_steps"] + 1
+        assert v1["stale_controls"] >= 1999
+        assert sum(e.startswith("vehicle 1:") and "stale_controls" in e for e in events) == 1
+    else:
+        assert v1["backlog_pauses"] >= 1 and v1["steps"] > v1["streamed_steps"] + 1
+
+
+def test_px4_fields_clamped_through_the_server_are_counted_and_said_once():
+    """Vehicle 1 starts 1 km up flying north at 400 m/s: its NED velocity (cm/s in int16) and
+    HIL_GPS's ground speed overflow their fields. Served by the loop, its messages still encode, the
+    clamps are counted per vehicle and said once; vehicle 2, at home, keeps stepping, unclamped."""
+    from cosim.scenario import parse_scenario
+
+    from bridge.vehicles.sim_px4 import Px4SimServer
+
+    text = Path(SITL).read_text().replace("count = 1", "count = 2").replace("edges = []", "edges = [[1, 2]]")
+    text = text.replace("[[initial.agent]]\n", "[[initial.agent]]\nposition = [0.0, 0.0, -1000.0]\n"
+                        "velocity = [0.0, 0.0, 0.0, 400.0, 0.0, 0.0]\n[[initial.agent]]\n", 1)
+    text = text.replace("position = [0.0, 0.0, 0.0]       # NED", "position = [5.0, 0.0, 0.0]       # NED")
+    sc = parse_scenario(text, name="fast", path="fast.toml")
+    events = []
+    srv = Px4SimServer(sc, port=0, step=0.004, noise=False, lockstep_timeout=3600.0, on_event=events.append)
+    with _Serve(srv):
+        result = {}
+        th = threading.Thread(target=lambda: result.setdefault("home", _genuine_steps(srv.links[1].port, 100)))
+        th.start()
+        fast = Px4Client(srv.links[0].port)
+        try:
+            fast.start()
+            for _ in range(50):
+                fast.send([0.0] * 16, armed=False)
+                fast.step()
+        finally:
+            fast.close()
+        th.join(120)
+        st = srv.stats()
+    v1, v2 = st["vehicles"]
+    gps = [m for m in fast.messages if m.get_type() == "HIL_GPS"]
+    assert gps and all(m.vn == 32767 for m in gps)
+    assert v1["clamped_fields"] >= 50 and v2["clamped_fields"] == 0 and st["clamped_fields"] == v1["clamped_fields"]
+    said = [e for e in events if "clamped" in e]
+    assert len(said) == 1 and said[0].startswith("vehicle 1:") and "vn" in said[0]
+    home = result["home"]
+    assert len(home) == 100 and np.all(np.diff(home) == 4000)
 
 
 def test_px4_idle_client_is_dropped_and_the_vehicle_served_again():
@@ -360,11 +495,17 @@ def test_px4_out_of_range_fields_are_clamped():
         ln.k = 0
         msgs = {m.get_type(): m for m in srv.sensor_messages(ln)}
         gps, st = msgs["HIL_GPS"], msgs["HIL_STATE_QUATERNION"]
+        clamped = srv.stats()["vehicles"][0]["clamped_fields"]
+        # a course a hair west of north is 0 cdeg (359.99994° rounds to 36000: wrapped, not clamped)
+        b.S[0:3], b.S[12:15], b.S[15:18], b.wrench[3:6] = 0.0, 0.0, [10.0, -1e-5, 0.0], 0.0
+        cog = {m.get_type(): m for m in srv.sensor_messages(ln)}["HIL_GPS"].cog
+        clamped_after = srv.stats()["vehicles"][0]["clamped_fields"]
     finally:
         srv.close()
     assert gps.lat == 900000000 and gps.vel == 65534 and gps.alt == 2 ** 31 - 1
     assert (gps.vn, gps.ve, gps.vd) == (32767, -32768, 32767) and (st.vx, st.vy, st.vz) == (32767, -32768, 32767)
     assert st.xacc in (32767, -32768) and abs(st.lon) <= 1800000000
+    assert clamped >= 3 * 8 and cog == 0 and clamped_after == clamped   # lat, abs_pressure, alt, vn, ve, vd, xacc, zacc
 
 
 # ---------------------------------------------------------------------------------- ArduPilot
@@ -395,13 +536,46 @@ def test_ardupilot_divergence_resets_one_vehicle_and_the_others_go_on():
     assert np.allclose([d["timestamp"] for d in rb], np.arange(1, 401) / 400)
 
 
+def test_ardupilot_flooding_client_takes_at_most_its_share():
+    """Vehicle 1's port is flooded with servo packets of new frames by another process that never
+    waits for a reply. While it floods, vehicle 2's SITL-like client gets its 400 lockstep frames,
+    and no vehicle took more than one step per round of the server's loop (before, one round
+    stepped vehicle 1 up to 64 times)."""
+    from bridge.vehicles.sim_ardupilot import ArduPilotJsonServer
+
+    srv = ArduPilotJsonServer(_scenario_two(), port=0, noise=False)
+    with _Serve(srv):
+        fl = _flooder("ardupilot-flood", srv.links[0].port)
+        try:
+            _wait_for(lambda: srv.stats()["received"] >= 2000 or fl.poll() is not None, "the flood")
+            cl = ArduPilotClient(srv.links[1].port)
+            try:
+                frames = [cl.frame([1000] * 4) for _ in range(400)]
+            finally:
+                cl.close()
+            flooding = fl.poll() is None
+            st = srv.stats()
+        finally:
+            fl.kill()
+            fl.wait()
+    assert flooding, "the flooding client stopped before vehicle 2's client was done"
+    assert np.allclose([d["timestamp"] for d in frames], np.arange(1, 401) / 400)
+    v1, v2 = st["vehicles"]
+    assert v2["steps"] == 400 and v1["steps"] >= 2000
+    assert v1["steps"] <= st["rounds"]
+
+
 # ---------------------------------------------------------------------------------- the command
-def test_sim_protocol_sigterm_exits_143_with_stats(tmp_path):
-    """`vehicle --sim-protocol ardupilot`: SIGTERM stops it with status 143 (as docs/flight-stacks.md says) and
-    the --stats file written."""
+@pytest.mark.parametrize("stack, proto", [("ardupilot", "UDP"), ("px4", "TCP")])
+def test_sim_protocol_sigterm_exits_143_with_stats(tmp_path, stack, proto):
+    """`vehicle --sim-protocol ardupilot|px4 --sim-port 0`: the start-up line names the port the OS
+    assigned (not ":0"); SIGTERM stops it with status 143 (as docs/flight-stacks.md says) and the
+    --stats file written, with that port in it."""
+    import json
+
     stats = tmp_path / "st.json"
     p = subprocess.Popen([sys.executable, "-m", "cosim.cli", "vehicle", "--scenario", SITL, "--sim-protocol",
-                          "ardupilot", "--sim-port", "0", "--stats", str(stats)], cwd=str(ROOT),
+                          stack, "--sim-port", "0", "--stats", str(stats)], cwd=str(ROOT),
                          stderr=subprocess.PIPE, text=True)
     try:
         line = p.stderr.readline()
@@ -413,3 +587,5 @@ def test_sim_protocol_sigterm_exits_143_with_stats(tmp_path):
             p.kill()
             p.wait()
     assert rc == 143 and stats.exists()
+    port = json.loads(stats.read_text())["ports"][0]
+    assert port > 0 and f"{proto} 127.0.0.1:{port} " in line, line

@@ -79,6 +79,15 @@ PX4_MOTOR1_FUNCTION = 101   # PWM_MAIN_FUNCn of Motor1 (Motor m: 100 + m)
 # ArduPilot's motor output range (defaults written to the file): pwm = 1000 + 1000·(spin_min +
 # (spin_max − spin_min)·thrust) for MOT_THST_EXPO = 0, i.e. affine in the stack's thrust demand
 AP_SPIN_ARM, AP_SPIN_MIN, AP_SPIN_MAX = 0.10, 0.15, 0.95
+# The hover throttles the stacks accept. ArduPilot: libraries/AP_Motors/AP_MotorsMulticopter.h
+# (AP_MOTORS_THST_HOVER_MIN 0.125f, AP_MOTORS_THST_HOVER_MAX 0.6875f); AP_MotorsMulticopter.cpp's
+# update_throttle_hover() constrains the learnt MOT_THST_HOVER to them, and get_throttle_hover()
+# (the header) returns MOT_THST_HOVER constrained to them: a value outside is not used as written
+# (the parameter's documented @Range, 0.2 0.8, is only advice to a ground station). PX4:
+# src/modules/mc_pos_control/multicopter_position_control_params.yaml, MPC_THR_HOVER min 0.1,
+# max 0.8 (mc_pos_control_params.c @min/@max in older releases).
+AP_THST_HOVER_RANGE = (0.125, 0.6875)
+PX4_THR_HOVER_RANGE = (0.1, 0.8)
 
 
 def check_frame(key: str, name) -> str:
@@ -178,9 +187,8 @@ def ardupilot_params(spec, mass: float, g: float) -> list:
     """[(name, value, comment)] for ArduPilot (a .parm file for --defaults)."""
     cls, typ, name, order = ardupilot_match(spec)
     c_h = hover_fraction(spec, mass, g)
-    if not AP_SPIN_MIN < c_h < AP_SPIN_MAX:
-        raise Se3SyncError(f"--write-params: hovering needs {c_h:.3g} of each rotor's thrust, outside ArduPilot's "
-                           f"motor range {AP_SPIN_MIN:g}..{AP_SPIN_MAX:g} (change allocation.max_thrust or the mass)")
+    hover = round((c_h - AP_SPIN_MIN) / (AP_SPIN_MAX - AP_SPIN_MIN), 6)
+    _check_hover("MOT_THST_HOVER", hover, AP_THST_HOVER_RANGE, "ArduPilot (AP_MotorsMulticopter.h)", c_h, spec, mass)
     A = allocation_matrix(spec)
     ratio = float(np.abs(A[2, :len(order)]).mean()) / (spec.max_thrust * spec.torque_coeff) if spec.torque_coeff else 0
     out = [("FRAME_CLASS", cls, f"{name} (ArduPilot AP_MotorsMatrix.cpp) matched to se3sync frame {spec.frame}"),
@@ -197,9 +205,17 @@ def ardupilot_params(spec, mass: float, g: float) -> list:
             ("MOT_SPIN_MIN", AP_SPIN_MIN, ""),
             ("MOT_SPIN_MAX", AP_SPIN_MAX, ""),
             ("MOT_THST_EXPO", 0.0, "se3sync's thrust is linear in the output"),
-            ("MOT_THST_HOVER", round((c_h - AP_SPIN_MIN) / (AP_SPIN_MAX - AP_SPIN_MIN), 6),
-             f"{mass:g} kg: each rotor at {c_h:.4g} of {spec.max_thrust:g} N")]
+            ("MOT_THST_HOVER", hover, f"{mass:g} kg: each rotor at {c_h:.4g} of {spec.max_thrust:g} N")]
     return out
+
+
+def _check_hover(key: str, value: float, rng: tuple, stack: str, c_h: float, spec, mass: float) -> None:
+    """Refuse a hover throttle the stack would not use as written (one line naming key and value)."""
+    lo, hi = rng
+    if not lo <= value <= hi:
+        raise Se3SyncError(f"--write-params: {key} = {value:.4g} is outside the {lo:g}..{hi:g} that {stack} accepts "
+                           f"(hovering {mass:g} kg takes {c_h:.3g} of each rotor's {spec.max_thrust:g} N): change "
+                           "allocation.max_thrust or the mass")
 
 
 # ------------------------------------------------------------------ PX4
@@ -207,6 +223,7 @@ def px4_params(spec, mass: float, g: float) -> list:
     """[(name, value, comment)] for PX4 (``param set-default`` lines for an airframe file)."""
     rs = rotors(spec)
     c_h = hover_fraction(spec, mass, g)
+    _check_hover("MPC_THR_HOVER", round(c_h, 6), PX4_THR_HOVER_RANGE, "PX4 (mc_pos_control)", c_h, spec, mass)
     out = [("CA_AIRFRAME", 0, "multirotor"),
            ("CA_ROTOR_COUNT", len(rs), f"{spec.frame}: {FRAMES[spec.frame].source}")]
     for k, r in enumerate(rs):

@@ -23,6 +23,10 @@ initial pose (`sim_body`). Malformed packets (size, magic, frame_rate 0) are cou
 without a reply. A body that diverges (`sim_body.Diverged`) is put back at its initial state,
 counted per vehicle (``diverged``) and reported; the other vehicles go on.
 
+Fair share: each round of the server's loop reads at most ``BURST`` packets per vehicle and stops
+at the first that takes a step, so a client that floods its port (UDP: what the server does not
+read the kernel drops) gets one step per round, as every other vehicle's SITL does.
+
 The protocol has no authentication: whoever can send UDP to the port drives the vehicle (keep it
 on loopback or a trusted network).
 """
@@ -48,6 +52,7 @@ from .sim_body import Diverged, Noise, bodies_from_scenario
 MAGIC16, MAGIC32 = 18458, 29569
 PKT16, PKT32 = struct.Struct("<HHI16H"), struct.Struct("<HHI32H")
 DEFAULT_PORT = 9002
+BURST = 4            # packets read per vehicle and round of the loop (at most one of them steps)
 
 
 def parse_servo_packet(data: bytes):
@@ -84,6 +89,7 @@ class _JsonLink:
         self.last_count = None
         self.last_reply = None
         self.diverged = 0
+        self.steps = 0
 
 
 class ArduPilotJsonServer:
@@ -97,7 +103,7 @@ class ArduPilotJsonServer:
         self.noise_on, self.seed = noise, seed
         self.noise = None
         self.counters = {"received": 0, "sent": 0, "malformed": 0, "duplicates": 0, "lost_frames": 0,
-                         "resets": 0, "steps": 0, "diverged": 0}
+                         "resets": 0, "steps": 0, "diverged": 0, "rounds": 0}
         self.on_event = on_event or (lambda text: print(f"se3sync vehicle: {text}", file=sys.stderr, flush=True))
         self._stop = threading.Event()
         self.ready = threading.Event()
@@ -129,11 +135,13 @@ class ArduPilotJsonServer:
              "quaternion": [float(x) for x in b.q]}
         return ("\n" + json.dumps(d, separators=(",", ":")) + "\n").encode()
 
-    def handle(self, ln: _JsonLink, data: bytes, addr) -> None:
+    def handle(self, ln: _JsonLink, data: bytes, addr) -> bool:
+        """One packet; True if it advanced the body."""
         pkt = parse_servo_packet(data)
         if pkt is None:
             self.counters["malformed"] += 1
-            return
+            return False
+        stepped = False
         self.counters["received"] += 1
         rate, count, pwm = pkt
         h = 1.0 / rate
@@ -154,6 +162,8 @@ class ArduPilotJsonServer:
             except Diverged as exc:
                 self._diverged(ln, exc)
             self.counters["steps"] += 1
+            ln.steps += 1
+            stepped = True
             ln.last_count = count
             ln.last_reply = self.reply(ln, h)
         try:
@@ -161,6 +171,7 @@ class ArduPilotJsonServer:
             self.counters["sent"] += 1
         except OSError:
             pass
+        return stepped
 
     def _diverged(self, ln: _JsonLink, exc) -> None:
         """The body left any physical range: back to its initial state; counted and said."""
@@ -183,9 +194,10 @@ class ArduPilotJsonServer:
                 if end is not None and time.monotonic() >= end:
                     break
                 r, _, _ = select.select(list(by_fd), [], [], 0.05)
+                self.counters["rounds"] += 1
                 for fd in r:
                     ln = by_fd[fd]
-                    for _ in range(64):
+                    for _ in range(BURST):      # the rest waits for the next round (or is dropped by the kernel)
                         try:
                             data, addr = ln.sock.recvfrom(2048)
                         except (BlockingIOError, InterruptedError):
@@ -193,14 +205,16 @@ class ArduPilotJsonServer:
                         except OSError:
                             self.counters["malformed"] += 1
                             break
-                        self.handle(ln, data, addr)
+                        if self.handle(ln, data, addr):
+                            break
         except KeyboardInterrupt:
             pass
         return self.stats()
 
     def stats(self) -> dict:
         return dict(self.counters, ports=[ln.port for ln in self.links],
-                    diverged_vehicles=[ln.diverged for ln in self.links])
+                    diverged_vehicles=[ln.diverged for ln in self.links],
+                    vehicles=[{"steps": ln.steps, "diverged": ln.diverged} for ln in self.links])
 
     def close(self) -> None:
         for ln in self.links:

@@ -49,11 +49,14 @@ def isa_temperature_c(alt_m: float) -> float:
     return 15.0 - 0.0065 * alt_m
 
 
-def ned_to_geodetic(p_ned) -> tuple:
+def ned_to_geodetic(p_ned, clamped: list | None = None) -> tuple:
     """Flat-Earth (local tangent plane) NED -> (lat°, lon°, alt m) around the home point (latitude
-    clamped to ±90°, longitude wrapped to ±180°: any position gives a valid fix)."""
+    clamped to ±90°, longitude wrapped to ±180°: any position gives a valid fix; a clamped latitude
+    appends "lat" to ``clamped``)."""
     lat = HOME_LAT + math.degrees(p_ned[0] / EARTH_RADIUS)
     lon = HOME_LON + math.degrees(p_ned[1] / (EARTH_RADIUS * math.cos(math.radians(HOME_LAT))))
+    if clamped is not None and not -90.0 <= lat <= 90.0:
+        clamped.append("lat")
     return min(90.0, max(-90.0, lat)), (lon + 180.0) % 360.0 - 180.0, HOME_ALT - p_ned[2]
 
 

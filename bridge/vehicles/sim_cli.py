@@ -48,13 +48,13 @@ def run_sim_cli(args) -> int:
             port = DEFAULT_PORT if args.sim_port is None else args.sim_port
             srv = Px4SimServer(sc, host=host, port=port, step=args.sim_step, noise=not args.sim_no_noise,
                                seed=args.sim_seed, idle_timeout=args.sim_idle_timeout)
-            where = f"TCP {host}:{port}" + (f"..{port + sc.n_agents - 1}" if sc.n_agents > 1 else "")
+            where = _where("TCP", host, [ln.port for ln in srv.links], 1)
         else:
             from .sim_ardupilot import DEFAULT_PORT, ArduPilotJsonServer
 
             port = DEFAULT_PORT if args.sim_port is None else args.sim_port
             srv = ArduPilotJsonServer(sc, host=host, port=port, noise=not args.sim_no_noise, seed=args.sim_seed)
-            where = f"UDP {host}:{port}" + (f" (+10 per vehicle, {sc.n_agents})" if sc.n_agents > 1 else "")
+            where = _where("UDP", host, [ln.port for ln in srv.links], 10)
     except OSError as exc:
         raise Se3SyncError(f"--sim-port: cannot listen on {host}:{args.sim_port or 'default'}: "
                            f"{exc.strerror or exc}") from None
@@ -77,6 +77,15 @@ def run_sim_cli(args) -> int:
     print(f"se3sync vehicle: stopped; {json.dumps({k: v for k, v in st.items() if k != 'ports'})}",
           file=sys.stderr, flush=True)
     return signals.exit_status() if signals.requested() else 0
+
+
+def _where(proto: str, host: str, ports: list, stride: int) -> str:
+    """The ports the servers listen on, as bound (with --sim-port 0 the OS chose them)."""
+    if len(ports) == 1:
+        return f"{proto} {host}:{ports[0]}"
+    if ports == [ports[0] + stride * i for i in range(len(ports))]:
+        return f"{proto} {host}:{ports[0]}..{ports[-1]}" + (f" (+{stride} per vehicle)" if stride != 1 else "")
+    return f"{proto} {host}, ports {', '.join(map(str, ports))} for vehicles 1..{len(ports)}"
 
 
 def write_params(args, sc, cfg) -> int:

@@ -36,15 +36,29 @@ server's start, whole seconds, plus simulated time), lat/lon (degE7), alt (mm, M
 (1.0 m), vel/vn/ve/vd (cm/s, NED), cog (cdeg, 65535 below 1 cm/s), fix 3-D, 10 satellites.
 HIL_STATE_QUATERNION quaternion w-first (FRD -> NED), body rates (rad/s), lat/lon/alt as HIL_GPS,
 vx/vy/vz (cm/s NED), accelerations in mG (FRD). Every integer field is clamped to its type (a body
-far away or fast gives a saturated field, never an encoding error). Noise:
+far away or fast gives a saturated field, never an encoding error; counted, see below). Noise:
 `bridge.vehicles.sim_body.Noise` (white, on HIL_SENSOR only; GPS and ground truth exact).
 
 Clients are untrusted: sends are non-blocking into a bounded buffer per connection (a client that
 does not read is dropped once ``send_buffer`` bytes are waiting: ``slow_clients``); a connection
 that sends no HIL_ACTUATOR_CONTROLS for ``idle_timeout`` seconds is dropped (``idle_drops``);
 malformed bytes are counted (``malformed``) and skipped; other messages are counted and ignored;
-a diverging body is reset (``diverged``). No client can stop another vehicle. The protocol has no
-authentication: whoever can connect to the port drives the vehicle.
+a diverging body is reset (``diverged``). No client can stop another vehicle, nor take more than
+its share of the server:
+
+* a HIL_ACTUATOR_CONTROLS advances the body only if it answers the HIL_SENSOR actually sent (its
+  ``time_usec`` is that step's stamp: PX4 stamps it with ``hrt_absolute_time()``, its lockstep
+  clock, set from that HIL_SENSOR); others (stale, repeated or guessed stamps) are counted
+  (``stale_controls``, said once per connection) and change nothing — the first one of a
+  connection, which ends the start-up streaming, excepted;
+* each round of the server's loop takes at most one step per vehicle, reads at most
+  ``RECV_SIZE`` bytes and handles at most ``MSGS_PER_ROUND`` messages per connection; the rest
+  waits, and a connection with more than ``BACKLOG_MAX`` bytes waiting is not read until they are
+  handled (``backlog_pauses``: TCP then holds the client back);
+* an integer field out of its type's range is clamped (``clamped_fields``, per vehicle; said once
+  per vehicle).
+
+The protocol has no authentication: whoever can connect to the port drives the vehicle.
 """
 from __future__ import annotations
 
@@ -72,12 +86,28 @@ LOCKSTEP_TIMEOUT = 1.0           # s of wall time without HIL_ACTUATOR_CONTROLS 
 IDLE_TIMEOUT = 30.0              # s of wall time without HIL_ACTUATOR_CONTROLS before dropping a client
 SEND_BUFFER = 256 * 1024         # bytes waiting for a client before it is dropped (≈ 1,000 steps)
 KERNEL_SNDBUF = 64 * 1024        # the connection's kernel send buffer
+# fair share: per connection and round of the loop, at most one step, one read of RECV_SIZE bytes
+# and MSGS_PER_ROUND messages (PX4 sends one HIL_ACTUATOR_CONTROLS of 93 bytes per step, and a
+# HEARTBEAT a second); above BACKLOG_MAX unhandled bytes the connection is not read at all
+RECV_SIZE = 4096
+MSGS_PER_ROUND = 8
+BACKLOG_MAX = 16 * 1024
 I16, I32 = (-32768, 32767), (-2 ** 31, 2 ** 31 - 1)
 
 
-def _int(x: float, lo: int, hi: int) -> int:
-    """An integer field: rounded and clamped to its type, never an encoding error."""
-    return int(min(hi, max(lo, round(x)))) if np.isfinite(x) else 0
+def _int(x: float, lo: int, hi: int, clamped: list | None = None, name: str = "") -> int:
+    """An integer field: rounded and clamped to its type, never an encoding error (a clamped or
+    non-finite value appends ``name`` to ``clamped``)."""
+    if not np.isfinite(x):
+        if clamped is not None:
+            clamped.append(name)
+        return 0
+    r = round(x)
+    if lo <= r <= hi:
+        return int(r)
+    if clamped is not None:
+        clamped.append(name)
+    return int(min(hi, max(lo, r)))
 
 
 class _Px4Link:
@@ -105,6 +135,13 @@ class _Px4Link:
         self.controls = np.zeros(16)
         self.stalled = False        # a lockstep timeout was said (once per stall)
         self.next_hb = 0.0
+        self.sent_us = 0            # time_usec of the HIL_SENSOR sent last (the step an answer must name)
+        self.more = False           # messages may be waiting in the parser (handle them next round)
+        self.paused = False         # not read: more than BACKLOG_MAX bytes wait to be handled
+        self.said_stale = False     # stale HIL_ACTUATOR_CONTROLS said (once per connection)
+        self.said_clamped = False   # clamped fields said (once per vehicle)
+        self.counts = {"steps": 0, "streamed_steps": 0, "lockstep_timeouts": 0, "stale_controls": 0,
+                       "clamped_fields": 0, "backlog_pauses": 0, "diverged": 0}
 
 
 class Px4SimServer:
@@ -130,7 +167,7 @@ class Px4SimServer:
         self.on_event = on_event or (lambda text: print(f"se3sync vehicle: {text}", file=sys.stderr, flush=True))
         self.counters = {"sent": 0, "received": 0, "malformed": 0, "ignored": 0, "steps": 0, "connections": 0,
                          "streamed_steps": 0, "lockstep_timeouts": 0, "slow_clients": 0, "idle_drops": 0,
-                         "diverged": 0}
+                         "diverged": 0, "stale_controls": 0, "clamped_fields": 0, "backlog_pauses": 0, "rounds": 0}
         self._stop = threading.Event()
         self.ready = threading.Event()
         self.links: list[_Px4Link] = []
@@ -152,27 +189,47 @@ class Px4SimServer:
         gyro = nz.add(b.omega, nz.gyro)
         mag = nz.add(R.T @ B_NED, nz.mag)
         p = b.S[layout.P]
-        lat, lon, alt = ned_to_geodetic(p)
+        clamped: list = []          # names of the fields clamped in this step's messages
+        lat, lon, alt = ned_to_geodetic(p, clamped)
+        if not -1000.0 <= alt <= 40000.0:       # the ISA model's range
+            clamped.append("abs_pressure")
         pres = float(nz.add(isa_pressure_hpa(max(-1000.0, min(alt, 40000.0))), nz.baro))
         sensor = mav.hil_sensor_encode(t_us, acc[0], acc[1], acc[2], gyro[0], gyro[1], gyro[2], mag[0], mag[1],
                                        mag[2], pres, 0.0, alt, isa_temperature_c(alt), FIELDS_SENSORS, 0)
         v = b.v_ned
-        lat7, lon7, alt_mm = _int(lat * 1e7, *I32), _int(lon * 1e7, *I32), _int(alt * 1000, *I32)
-        vcm = [_int(x * 100, *I16) for x in v]
-        sf_mg = [_int(x / G0 * 1000, *I16) for x in b.specific_force()]
+        lat7 = _int(lat * 1e7, *I32, clamped, "lat")
+        lon7 = _int(lon * 1e7, *I32, clamped, "lon")
+        alt_mm = _int(alt * 1000, *I32, clamped, "alt")
+        vcm = [_int(x * 100, *I16, clamped, name) for x, name in zip(v, ("vn", "ve", "vd"))]
+        sf_mg = [_int(x / G0 * 1000, *I16, clamped, name)
+                 for x, name in zip(b.specific_force(), ("xacc", "yacc", "zacc"))]
         om = b.omega
         # ground truth and GPS first, HIL_SENSOR last: PX4 advances its clock on HIL_SENSOR, so the
         # other data of the same instant is already there
         out = []
         if ln.k % self.gps_every == 0:
             gs = float(np.hypot(v[0], v[1]))
-            cog = _int((np.degrees(np.arctan2(v[1], v[0])) % 360.0) * 100, 0, 35999) if gs > 0.01 else 65535
+            # course in [0, 360)° as centidegrees 0..35999 (359.999° rounds to 0, not 36000)
+            cog = int(round((np.degrees(np.arctan2(v[1], v[0])) % 360.0) * 100)) % 36000 if gs > 0.01 else 65535
             out.append(mav.hil_gps_encode(self.epoch_us + t_us, 3, lat7, lon7, alt_mm, 100, 100,
-                                          _int(gs * 100, 0, 65534), vcm[0], vcm[1], vcm[2], cog, 10, 0, 0))
+                                          _int(gs * 100, 0, 65534, clamped, "vel"), vcm[0], vcm[1], vcm[2], cog,
+                                          10, 0, 0))
         out.append(mav.hil_state_quaternion_encode(t_us, list(b.q), om[0], om[1], om[2], lat7, lon7, alt_mm,
                                                    vcm[0], vcm[1], vcm[2], 0, 0, sf_mg[0], sf_mg[1], sf_mg[2]))
         out.append(sensor)
+        if clamped:
+            self._clamped(ln, clamped, t_us)
         return out
+
+    def _clamped(self, ln: _Px4Link, names: list, t_us: int) -> None:
+        """Fields out of their types' ranges: counted per vehicle, said once per vehicle."""
+        self.counters["clamped_fields"] += len(names)
+        ln.counts["clamped_fields"] += len(names)
+        if not ln.said_clamped:
+            ln.said_clamped = True
+            self.on_event(f"vehicle {ln.sysid}: {', '.join(dict.fromkeys(names))} out of range of their MAVLink "
+                          f"fields at t = {t_us * 1e-6:.3f} s (the body is far away or fast): clamped, counted "
+                          "in clamped_fields (said once per vehicle)")
 
     def _send(self, ln: _Px4Link, msg) -> None:
         if ln.conn is None:
@@ -200,6 +257,7 @@ class Px4SimServer:
             self._drop(ln)
 
     def _send_step(self, ln: _Px4Link, now: float) -> None:
+        ln.sent_us = (ln.k + 1) * self.h_us
         for m in self.sensor_messages(ln):
             self._send(ln, m)
         ln.t_sent = now
@@ -211,10 +269,12 @@ class Px4SimServer:
             ln.body.step(controls, self.h)
         except Diverged as exc:
             self.counters["diverged"] += 1
+            ln.counts["diverged"] += 1
             ln.body.reset()
             self.on_event(f"vehicle {ln.sysid} diverged ({exc}); reset to its initial state")
         ln.k += 1
         self.counters["steps"] += 1
+        ln.counts["steps"] += 1
 
     def _on_message(self, ln: _Px4Link, m, now: float) -> None:
         if m.get_type() == "BAD_DATA":
@@ -225,12 +285,12 @@ class Px4SimServer:
             self.counters["ignored"] += 1
             return
         ln.last_actuator = now
-        if ln.lockstep and not ln.waiting:
-            self.counters["ignored"] += 1       # an extra reply to a step already answered
-            return
         if not ln.lockstep:
-            ln.lockstep = True                  # the first actuator controls: lockstep from now on
+            ln.lockstep = True                  # the first actuator controls (any stamp): lockstep from now on
             self.on_event(f"vehicle {ln.sysid}: first HIL_ACTUATOR_CONTROLS after {ln.k} streamed steps: lockstep")
+        elif not ln.waiting or m.time_usec != ln.sent_us:
+            self._stale(ln, m.time_usec)        # not the answer to the step sent: no step
+            return
         c = np.asarray(m.controls, dtype=np.float64)
         ln.controls[:len(c)] = c[:16]
         if ln.body.held and (m.mode & M.MAV_MODE_FLAG_SAFETY_ARMED):
@@ -241,6 +301,41 @@ class Px4SimServer:
         self._advance(ln, ln.controls[:6])
         ln.waiting = False
         self._send_step(ln, now)
+
+    def _stale(self, ln: _Px4Link, t_us: int) -> None:
+        self.counters["stale_controls"] += 1
+        ln.counts["stale_controls"] += 1
+        if not ln.said_stale:
+            ln.said_stale = True
+            self.on_event(f"vehicle {ln.sysid}: HIL_ACTUATOR_CONTROLS stamped {t_us} µs does not answer the "
+                          f"HIL_SENSOR sent ({ln.sent_us} µs): ignored, counted in stale_controls (said once per "
+                          "connection)")
+
+    def _handle(self, ln: _Px4Link, data: bytes, now: float) -> None:
+        """Feed ``data`` to the link's parser and handle what is waiting there: at most MSGS_PER_ROUND
+        messages and at most one step; the rest waits for the next round (``ln.more``)."""
+        steps = ln.counts["steps"]
+        mav = ln.mav
+        ln.more = False
+        for i in range(MSGS_PER_ROUND):
+            try:
+                m = mav.parse_char(data if i == 0 else b"")
+            except Exception:  # noqa: BLE001 (network input is untrusted)
+                self.counters["malformed"] += 1
+                continue
+            if m is None:
+                break
+            self._on_message(ln, m, now)
+            if ln.conn is None:
+                return
+            if ln.counts["steps"] != steps:
+                ln.more = mav.buf_len() > 0
+                break
+        else:
+            ln.more = True
+        if mav.buf_index > 4 * BACKLOG_MAX:       # pymavlink frees its buffer only once it is empty
+            del mav.buf[:mav.buf_index]
+            mav.buf_index = 0
 
     def _accept(self, ln: _Px4Link, now: float) -> None:
         try:
@@ -259,7 +354,7 @@ class Px4SimServer:
         if ln.k:                       # a new session starts from the initial state at t = 0
             ln.body.reset(clock=True)
         ln.k = 0
-        ln.lockstep = ln.waiting = ln.stalled = False
+        ln.lockstep = ln.waiting = ln.stalled = ln.more = ln.paused = ln.said_stale = False
         ln.controls[:] = 0.0
         ln.last_actuator = now
         ln.next_stream = now + self.h
@@ -274,7 +369,7 @@ class Px4SimServer:
             except OSError:
                 pass
         ln.conn = None
-        ln.waiting = False
+        ln.waiting = ln.more = ln.paused = False
         ln.out = bytearray()
 
     def _timers(self, ln: _Px4Link, now: float) -> None:
@@ -289,13 +384,15 @@ class Px4SimServer:
         if not ln.lockstep:
             if now - ln.next_stream > 10 * self.h:      # fell far behind (suspended?): no burst
                 ln.next_stream = now
-            while ln.conn is not None and not ln.lockstep and now >= ln.next_stream:
+            if now >= ln.next_stream:                   # one step per round, as every other step
                 self._advance(ln, np.zeros(6))
                 self.counters["streamed_steps"] += 1
+                ln.counts["streamed_steps"] += 1
                 self._send_step(ln, now)
                 ln.next_stream += self.h
         elif ln.waiting and now - ln.t_sent > self.lockstep_timeout:
             self.counters["lockstep_timeouts"] += 1
+            ln.counts["lockstep_timeouts"] += 1
             if not ln.stalled:
                 ln.stalled = True
                 self.on_event(f"vehicle {ln.sysid}: no HIL_ACTUATOR_CONTROLS for {self.lockstep_timeout:g} s at "
@@ -313,6 +410,10 @@ class Px4SimServer:
         self._stop.set()
 
     def run(self, duration: float | None = None) -> dict:
+        """Serve until stop(), Ctrl-C or ``duration`` s. Each round of the loop: one select over the
+        connections (a connection with a large backlog is left out), then per connection at most
+        one read, MSGS_PER_ROUND messages and one step, then the timers (streaming, lockstep
+        timeout, idle drop, heartbeat)."""
         end = None if duration is None else time.monotonic() + duration
         self.ready.set()
         try:
@@ -320,46 +421,54 @@ class Px4SimServer:
                 now = time.monotonic()
                 if end is not None and now >= end:
                     break
-                fds, wfds = {}, []
+                fds, rfds, wfds = {}, [], []
                 timeout = 0.05
                 for ln in self.links:
-                    fds[(ln.conn or ln.lsock).fileno()] = ln
-                    if ln.conn is not None:
-                        if ln.out:
-                            wfds.append(ln.conn.fileno())
-                        if not ln.lockstep:
-                            timeout = min(timeout, max(0.0, ln.next_stream - now))
-                        elif ln.waiting:
-                            timeout = min(timeout, max(0.0, ln.t_sent + self.lockstep_timeout - now))
-                r, w, _ = select.select(list(fds), wfds, [], timeout)
+                    if ln.conn is None:
+                        fds[ln.lsock.fileno()] = ln
+                        rfds.append(ln.lsock.fileno())
+                        continue
+                    fd = ln.conn.fileno()
+                    fds[fd] = ln
+                    backlog = ln.mav.buf_len() > BACKLOG_MAX
+                    if backlog and not ln.paused:
+                        self.counters["backlog_pauses"] += 1
+                        ln.counts["backlog_pauses"] += 1
+                    ln.paused = backlog
+                    if not backlog:
+                        rfds.append(fd)
+                    if ln.out:
+                        wfds.append(fd)
+                    if ln.more:
+                        timeout = 0.0
+                    elif not ln.lockstep:
+                        timeout = min(timeout, max(0.0, ln.next_stream - now))
+                    elif ln.waiting:
+                        timeout = min(timeout, max(0.0, ln.t_sent + self.lockstep_timeout - now))
+                r, w, _ = select.select(rfds, wfds, [], timeout)
+                self.counters["rounds"] += 1
                 now = time.monotonic()
                 for fd in w:
                     self._flush(fds[fd])
-                for fd in r:
-                    ln = fds[fd]
+                readable = set(r)
+                for ln in self.links:
                     if ln.conn is None:
-                        self._accept(ln, now)
+                        if ln.lsock.fileno() in readable:
+                            self._accept(ln, now)
                         continue
-                    if fd != ln.conn.fileno():
-                        continue
-                    try:
-                        data = ln.conn.recv(65536)
-                    except (BlockingIOError, InterruptedError):
-                        continue
-                    except OSError:
-                        data = b""
-                    if not data:
-                        self._drop(ln)
-                        continue
-                    try:
-                        msgs = ln.mav.parse_buffer(data) or []
-                    except Exception:  # noqa: BLE001 (network input is untrusted)
-                        self.counters["malformed"] += 1
-                        continue
-                    for m in msgs:
-                        self._on_message(ln, m, now)
-                        if ln.conn is None:
-                            break
+                    if ln.conn.fileno() in readable:
+                        try:
+                            data = ln.conn.recv(RECV_SIZE)
+                        except (BlockingIOError, InterruptedError):
+                            data = None
+                        except OSError:
+                            data = b""
+                        if data == b"":
+                            self._drop(ln)
+                            continue
+                        self._handle(ln, data or b"", now)
+                    elif ln.more:
+                        self._handle(ln, b"", now)
                 now = time.monotonic()
                 for ln in self.links:
                     self._timers(ln, now)
@@ -368,7 +477,10 @@ class Px4SimServer:
         return self.stats()
 
     def stats(self) -> dict:
-        return dict(self.counters, step_index=[ln.k for ln in self.links], ports=[ln.port for ln in self.links])
+        """The counters (all vehicles), ``vehicles`` (the same per vehicle), ``step_index`` (each
+        connection's step) and ``ports``."""
+        return dict(self.counters, vehicles=[dict(ln.counts) for ln in self.links],
+                    step_index=[ln.k for ln in self.links], ports=[ln.port for ln in self.links])
 
     def close(self) -> None:
         for ln in self.links:
