@@ -44,6 +44,9 @@ def _run(tmp_path, duration, loss=0.0, jitter=0.0, cut=None):
                 summary = run_hil(sc, plant)
                 for t in timers:
                     t.cancel()
+                # every status text each vehicle sent (the printed events are thinned: one
+                # fail-safe/resume line per vehicle per STATUS_QUIET_S)
+                texts = [list(v.statustexts) for v in plant.vehicles]
             finally:
                 plant.close()
             vst = veh.stop()
@@ -54,12 +57,12 @@ def _run(tmp_path, duration, loss=0.0, jitter=0.0, cut=None):
                                       "the vehicles": (vst["late_ticks"], vst["ticks"])},
                                 "real-time HIL through the relay")
 
-    return summary, vst, events, relay, skip_if_busy
+    return summary, vst, events, relay, skip_if_busy, texts
 
 
 @pytest.mark.timeout(120)
 def test_loss_jitter_reordering_still_converges(tmp_path):
-    s, vst, events, relay, skip_if_busy = _run(tmp_path, 8.0, loss=0.10, jitter=0.005)
+    s, vst, events, relay, skip_if_busy, _ = _run(tmp_path, 8.0, loss=0.10, jitter=0.005)
     ln = s["link"]
     assert relay.dropped > 0.05 * (relay.forwarded + relay.dropped)
     assert ln["dropped"] > 0                       # seen as sequence gaps
@@ -74,7 +77,7 @@ def test_loss_jitter_reordering_still_converges(tmp_path):
 
 @pytest.mark.timeout(120)
 def test_link_cut_fails_safe_reports_and_recovers(tmp_path):
-    s, vst, events, relay, skip_if_busy = _run(tmp_path, 8.0, cut=(2.0, 3.0))
+    s, vst, events, relay, skip_if_busy, texts = _run(tmp_path, 8.0, cut=(2.0, 3.0))
     h = 0.004
     ln = s["link"]
     # the vehicles failed safe, each within 3 control periods of its last command: the command
@@ -91,8 +94,11 @@ def test_link_cut_fails_safe_reports_and_recovers(tmp_path):
     # the bridge reported the loss and the recovery of every link
     assert ln["link_losses"] >= 6 and ln["link_recoveries"] >= 6 and ln["links_down"] == []
     assert sum("link lost" in e for e in events) >= 6 and sum("link recovered" in e for e in events) >= 6
-    # (the vehicles' "failsafe" STATUSTEXTs are lost in the cut; "commands resumed" comes through)
-    assert sum("commands resumed" in e for e in events) >= 6
+    # (the vehicles' "failsafe" STATUSTEXTs are lost in the cut; "commands resumed" comes through
+    # from every vehicle. The printed events show it unless the same vehicle already reported a
+    # fail-safe or resume in the 5 s before, which a busy machine causes at the start: so the
+    # vehicles' texts are counted, as the bridge received them)
+    assert all(any("commands resumed" in x for x in tx) for tx in texts), texts
     skip_if_busy()   # the rate of convergence needs the 250 Hz deadline kept
     # ... and the loop recovered
     assert s["final"]["rot_err"] < 0.5 and s["final"]["pos_err"] < 0.05, s["final"]
