@@ -179,7 +179,8 @@ def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
     """Steps n0 … n1−1 (stopping early before a step whose jumps might not fit the buffers).
 
     plant: a `CompiledPlant` (doStep runs from k·h, k = its clock, advanced after each completed
-    doStep); law: the law's compiled record (`law_step`), which computes the wrench into the
+    doStep; with d = len(held) > 0 the FMU is sent held[k % d], the wrench of step k − d, and
+    the law's wrench is kept there: `cosim.plants.DelayedActuation`); law: the law's compiled record (`law_step`), which computes the wrench into the
     plant's input buffer; es: its `EdgeState`. A step n with dec > 0 and n % dec == 0 stores a
     log record in rec (`LogRecords`, metrics from mx, `Metrics`); n % spl == 0 stores a summary
     sample in smp (`Samples`: S and θ after the jump stage; at n = 0 also u, for u(0)), as many
@@ -191,7 +192,8 @@ def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
     plain tuple at a call in half the time of a NamedTuple (the block's call costs about what
     49 separate arguments did); ``law`` keeps its class, which selects its `law_step`.
     """
-    (fn, comp, vr_state, vr_input, S, u), clock = plant
+    (fn, comp, vr_state, vr_input, S, u), clock, held = plant
+    n_held = held.shape[0]
     theta_prev, theta_jump, mu, jumped = es[1], es[2], es[3], es[4]
     edges, Pm, kX, masses, J, rot, pos, U, quat = mx
     jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu = jmp
@@ -251,12 +253,19 @@ def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
             rec_quat[nrec] = quat
             rec_V[nrec] = V
             nrec += 1
+        k = clock[0]
+        if n_held > 0:   # an actuation delay: send the wrench of step k − d, keep this one
+            hk = held[k % n_held]
+            for i in range(u.shape[0]):
+                for a in range(u.shape[1]):
+                    x = hk[i, a]
+                    hk[i, a] = u[i, a]
+                    u[i, a] = x
         st = _fmi2_xreal(fn[1], comp, p_vi, n_in, p_u)
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
             out[O_CALL] = CALL_SET
             break
-        k = clock[0]
         st = _fmi2_do_step(fn[2], comp, k * h, h)
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
