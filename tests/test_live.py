@@ -54,16 +54,33 @@ def test_bad_live_values(text):
     assert str(e.value).startswith("--live: ")
 
 
-def test_run_refuses_a_public_live_socket_on_one_line(tmp_path, capsys):
-    log = tmp_path / "x.mcap"
-    assert main(["run", str(PAPER), "--duration", "0.01", "--log", str(log),
-                 "--live", "0.0.0.0:0"]) == 2
+HIL = ROOT / "scenarios" / "hil_6uav.toml"
+# every command that serves a live view, with an output it would write (TMP: the test's dir)
+LIVE_COMMANDS = {
+    "run": ["run", str(PAPER), "--duration", "0.01", "--log", "TMP/x.mcap"],
+    "connect": ["connect", str(HIL), "--duration", "0.01", "--log", "TMP/x.mcap",
+                "--connect-timeout", "0.5"],
+    "swarm": ["swarm", str(HIL), "--duration", "0.01", "--log", "TMP/x.mcap",
+              "--vehicles", "loopback"],
+    "vehicle": ["vehicle", "--scenario", str(HIL), "--duration", "0.01", "--stats",
+                "TMP/x.json"],
+}
+
+
+@pytest.mark.parametrize("command", list(LIVE_COMMANDS))
+@pytest.mark.parametrize("where", ["0.0.0.0:0", "192.168.1.5:8765", "[::]:0"])
+def test_a_public_live_socket_is_refused_on_one_line(command, where, tmp_path, capsys):
+    """Every command that serves a live view refuses a non-loopback --live without --insecure:
+    one line naming --live and --insecure, exit 2, before anything is started or written."""
+    argv = [a.replace("TMP/", f"{tmp_path}/") for a in LIVE_COMMANDS[command]]
+    assert main([*argv, "--live", where]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "--live" in err and "--insecure" in err
-    assert not log.exists()
-    assert main(["run", str(PAPER), "--duration", "0.01", "--live", "0",
-                 "--live-rate", "0"]) == 2
-    assert "--live-rate" in capsys.readouterr().err
+    assert err.count("\n") == 0 and "--live" in err and "--insecure" in err, err
+    assert os.listdir(tmp_path) == []
+    assert main([*argv, "--live", "0", "--live-rate", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--live-rate" in err, err
+    assert os.listdir(tmp_path) == []
 
 
 class FakeClock:
