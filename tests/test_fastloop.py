@@ -503,3 +503,50 @@ def test_each_law_gets_its_own_loop_cache_renewed_when_its_module_changes(tmp_pa
     names = {fastloop._block_loop(cls.__new__(cls, *[None] * len(cls._fields))).py_func.__qualname__
              for cls in (PaperStep, DecoupledStep)}
     assert len(names) == 2
+
+
+@pytest.mark.parametrize("want", [False, True])
+def test_a_logger_that_wants_no_record_gets_none_from_the_block(want):
+    """A logger with ``frame_wanted`` (the live view without a log): the compiled loop asks it
+    before each block; a block it says no to computes no record (its jumps still come), a block
+    it says yes to computes only its last record on the grid. The summary is the same."""
+    sc = load_scenario(PAPER, ["simulation.duration=0.5", "simulation.log_rate=30"])
+    dec = round(1 / (sc.log_rate * sc.step))
+    got, jumps, asked = [], [], []
+
+    class Wanting:
+        inline = True
+        block_seconds = None
+        counts = {}
+
+        def frame_wanted(self):
+            asked.append(True)
+            return want
+
+        def record_block(self, t_ns, *a):
+            got.append(list(t_ns))
+
+        def jump(self, *a):
+            jumps.append(a[0])
+
+    plant = FmuPlant.from_scenario(sc)
+    try:
+        m = Master(sc, plant, "hybrid", Wanting())
+        s = m.run(sc.n_steps())
+    finally:
+        plant.close()
+    ref_plant = FmuPlant.from_scenario(sc)
+    try:
+        ref = Master(sc, ref_plant, "hybrid").run(sc.n_steps())
+    finally:
+        ref_plant.close()
+    assert asked and s["n_jumps"] == ref["n_jumps"] > 0 and s["samples"] == ref["samples"]
+    assert jumps == [round(j["t"] * 1e9) for j in ref["jumps"]]
+    if not want:
+        assert got == []
+    else:   # one record per block that crosses the grid: its last one
+        assert got and all(len(r) == 1 for r in got)
+        steps = [round(r[0] / (sc.step * 1e9)) for r in got]
+        assert all(k % dec == 0 for k in steps) and steps == sorted(set(steps))
+        assert len(steps) <= len(asked)
+        assert steps[-1] == (sc.n_steps() - 1) // dec * dec   # the last block's last one
