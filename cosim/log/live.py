@@ -12,9 +12,12 @@ the log's writer thread; without one, in the loop's own thread between blocks, w
 reads the clock (``inline``; frames are encoded on a thread of its own). A record becomes a
 frame only when 1/rate s of wall time have passed since the last one (default 30 Hz), only its
 newest row, and only while a client subscribes to some channel; jumps are always sent (they are
-rare, and the view marks them). Without a log the run takes its records at most at the live rate
-of simulated time (`live_only`) and in blocks of a frame period. The messages keep the log's time
-stamps (simulated time, or the wall clock's t = n·h of a hardware run).
+rare, and the view marks them). Without a log the run's records lie on a grid of the live rate
+of simulated time (`live_only`), its blocks are a frame period long, and the compiled loop takes
+a record only from a block that ends with a frame due (`LiveTee.frame_wanted`). Encoding takes
+at most `LiveTee.CPU_SHARE` of a core (the frame rate falls when frames cost more). The messages
+keep the log's time stamps (simulated time, or the wall clock's t = n·h of a hardware run).
+docs/live.md measures what it costs the loop.
 
 Access. The WebSocket has no authentication: a socket on a non-loopback address is refused
 unless ``insecure`` (the MAVLink sockets' rule, `se3sync connect --insecure`).
