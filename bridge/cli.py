@@ -8,6 +8,8 @@ from pathlib import Path
 
 from controller.errors import Se3SyncError
 from cosim.cli.live_options import add_live_options, live_target
+from cosim.cli.outcome import report_outcome
+from cosim.guards import EXIT_DIVERGED
 from cosim.cli.run import add_log_encoding
 from cosim.registry import LAWS
 
@@ -90,10 +92,13 @@ def register(sub) -> None:
         description="Run a scenario's controller against vehicles over MAVLink 2 at the control rate "
                     "(simulation.step), paced by the wall clock (or --lockstep), through the same "
                     "master as `run`: same MCAP log and summary, plus link statistics. Endpoints come "
-                    "from --vehicle or the scenario's [bridge] table. Exit codes: 0 ok, 2 bad input, "
+                    "from --vehicle or the scenario's [bridge] table. A run whose jumps exceed the "
+                    "bound ⌈V̄(0)/(k_X δ)⌉ says so (stderr, \"jump_bound_exceeded\"), as `run` does. "
+                    "Exit codes: 0 ok, 2 bad input, "
                     f"{EXIT_NOT_CONNECTED} a vehicle never connected, {EXIT_LINK} a lockstep link failed, "
-                    "130 interrupted by Ctrl-C, 143 by SIGTERM (log and summary finished, "
-                    "\"interrupted\": true).")
+                    f"{EXIT_DIVERGED} the run diverged and was stopped (log and summary complete, "
+                    "\"diverged\"), 130 interrupted by Ctrl-C, 143 by SIGTERM (log and summary "
+                    "finished, \"interrupted\": true).")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--vehicle", action="append", metavar="ENDPOINT",
                    help="the bridge-side endpoint of vehicle i (udpin:HOST:PORT | udpout:HOST:PORT), "
@@ -173,8 +178,10 @@ def register(sub) -> None:
                     "`se3sync plot` reads. Ctrl-C or SIGTERM stops every child and still writes "
                     "the merged outputs; the children die with the launcher. Exit codes: 0 ok, 2 "
                     "bad input or a port of the swarm taken or already receiving traffic (one "
-                    "line naming it), 5 an agent failed (its last error line is shown), 130 "
-                    "Ctrl-C, 143 SIGTERM.")
+                    "line naming it), 5 an agent failed (its last error line is shown), "
+                    f"{EXIT_DIVERGED} the merged run diverged (a merged sample, or an agent's own "
+                    "view: \"diverged\"), 130 Ctrl-C, 143 SIGTERM. More jumps than the bound "
+                    "⌈V̄(0)/(k_X δ)⌉ are said as `run` says them (\"jump_bound_exceeded\").")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("--vehicles", choices=("loopback", "external"), default="external",
                    help="loopback: also start `se3sync vehicle` for the scenario; external "
@@ -205,6 +212,7 @@ def register(sub) -> None:
 
 
 def _cmd_agent(args) -> int:
+    from cosim.plants import refuse_actuation_delay
     from cosim.scenario import load_scenario
 
     from bridge.swarm.agent import run_agent
@@ -222,6 +230,7 @@ def _cmd_agent(args) -> int:
 
         feed = (*parse_live(args.live_feed, option="--live-feed"), args.live_rate)
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
+    refuse_actuation_delay(sc, "se3sync agent (the vehicle is the plant)")
     if args.start is not None and not (args.start == args.start and abs(args.start) < 1e11):
         raise Se3SyncError(f"--start: must be a Unix time in seconds, got {args.start!r}")
     try:
@@ -304,9 +313,40 @@ def _commander(text: str):
     return tuple(parts)
 
 
+def _vehicle_ports(args) -> None:
+    """--first-system-id in 1..255 and --base-port in 1..65535, every vehicle's port too
+    (vehicle with system id s sends to BASE_PORT + s − 1): port 0 or one past 65535 would be a
+    silent send to nowhere or a traceback at the first datagram. One line naming the option."""
+    if not 1 <= args.first_system_id <= 255:
+        raise Se3SyncError(f"--first-system-id: must be a MAVLink system id in 1..255, got "
+                           f"{args.first_system_id}")
+    bp = args.base_port
+    if bp is None:
+        return
+    if not 1 <= bp <= 65535:
+        raise Se3SyncError(f"--base-port: must be a UDP port in 1..65535, got {bp}")
+    if args.endpoint or args.shared_port or args.sim_protocol:
+        return   # every vehicle sends to BASE_PORT itself, or the ports come from elsewhere
+    if args.scenario:
+        from bridge.mavlink.config import default_config
+        from cosim.scenario import load_scenario
+
+        sc = load_scenario(args.scenario, args.set or [])
+        cfg = sc.bridge or default_config(sc.n_agents)
+        if cfg.routing == "shared":
+            return
+        top = max(v.system_id for v in cfg.vehicles)
+    else:
+        top = args.first_system_id + (args.count or 1) - 1
+    if bp + top - 1 > 65535:
+        raise Se3SyncError(f"--base-port: the vehicle with system id {top} would send to port "
+                           f"{bp + top - 1}, past 65535; use a lower --base-port")
+
+
 def _cmd_vehicle(args) -> int:
     if args.count is not None and args.count < 1:
         raise Se3SyncError(f"--count: must be >= 1, got {args.count}")
+    _vehicle_ports(args)
     _outputs(("--tlog", args.tlog, None), ("--stats", args.stats, None))
     args.live_target = live_target(args)
     if args.live_target is not None and not args.scenario:
@@ -323,6 +363,7 @@ def _cmd_vehicle(args) -> int:
 
 
 def _cmd_connect(args) -> int:
+    from cosim.plants import refuse_actuation_delay
     from cosim.scenario import ScenarioError, load_scenario
 
     from bridge.mavlink.config import default_config
@@ -333,6 +374,7 @@ def _cmd_connect(args) -> int:
     _timeout("--connect-timeout", args.connect_timeout)
     live = live_target(args)
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
+    refuse_actuation_delay(sc, "se3sync connect (the vehicles are the plant)")
     cfg = sc.bridge or default_config(sc.n_agents)
     if args.vehicle:
         cfg = cfg.with_endpoints(args.vehicle)
@@ -375,9 +417,7 @@ def _cmd_connect(args) -> int:
           f"{ln.get('dropped')} (gaps in the vehicles' sequence numbers), refused "
           f"{_refused(ln)}, latency p50/p99 {_ms(ln.get('latency_ms_p50'))}/"
           f"{_ms(ln.get('latency_ms_p99'))} ms, link losses {ln.get('link_losses')}", file=sys.stderr)
-    if summary.get("interrupted"):
-        return 130
-    return 0
+    return report_outcome("connect", summary)
 
 
 def _refused(ln: dict) -> str:

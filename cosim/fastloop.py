@@ -175,14 +175,15 @@ class Samples(NamedTuple):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
+def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, rec0, spl, out):
     """Steps n0 … n1−1 (stopping early before a step whose jumps might not fit the buffers).
 
     plant: a `CompiledPlant` (doStep runs from k·h, k = its clock, advanced after each completed
-    doStep); law: the law's compiled record (`law_step`), which computes the wrench into the
-    plant's input buffer; es: its `EdgeState`. A step n with dec > 0 and n % dec == 0 stores a
-    log record in rec (`LogRecords`, metrics from mx, `Metrics`); n % spl == 0 stores a summary
-    sample in smp (`Samples`: S and θ after the jump stage; at n = 0 also u, for u(0)), as many
+    doStep; with d = len(held) > 0 the FMU is sent held[k % d], the wrench of step k − d, and
+    the law's wrench is kept there: `cosim.plants.DelayedActuation`); law: the law's compiled
+    record (`law_step`), which computes the wrench into the plant's input buffer; es: its
+    `EdgeState`. A step n ≥ rec0 with dec > 0 and n % dec == 0 stores a log record in rec
+    (`LogRecords`, metrics from mx, `Metrics`); n % spl == 0 stores a summary sample in smp (`Samples`: S and θ after the jump stage; at n = 0 also u, for u(0)), as many
     as the block crosses; jmp (`Jumps`) the jumps. out receives the steps done (completed
     doSteps), records, jumps (those of a failing step included, as the Python loop has them),
     the first FMI status ≥ fmi2Error (else 0), the failing call and whether a sample was taken.
@@ -191,7 +192,8 @@ def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
     plain tuple at a call in half the time of a NamedTuple (the block's call costs about what
     49 separate arguments did); ``law`` keeps its class, which selects its `law_step`.
     """
-    (fn, comp, vr_state, vr_input, S, u), clock = plant
+    (fn, comp, vr_state, vr_input, S, u), clock, held = plant
+    n_held = held.shape[0]
     theta_prev, theta_jump, mu, jumped = es[1], es[2], es[3], es[4]
     edges, Pm, kX, masses, J, rot, pos, U, quat = mx
     jmp_step, jmp_edge, jmp_before, jmp_after, jmp_mu = jmp
@@ -236,7 +238,7 @@ def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
             if n == 0:
                 smp_u[:, :] = u
             out[O_SAMPLED] = ns + 1
-        if dec > 0 and n % dec == 0:
+        if n >= rec0 and dec > 0 and n % dec == 0:
             network_U(S, theta_jump, edges, Pm, U)
             V, ximax = metrics(S, edges, U, kX, masses, J, rot, pos, quat)
             rec_step[nrec] = n
@@ -251,12 +253,19 @@ def run_block(plant, law, es, mx, rec, jmp, smp, h, n0, n1, dec, spl, out):
             rec_quat[nrec] = quat
             rec_V[nrec] = V
             nrec += 1
+        k = clock[0]
+        if n_held > 0:   # an actuation delay: send the wrench of step k − d, keep this one
+            hk = held[k % n_held]
+            for i in range(u.shape[0]):
+                for a in range(u.shape[1]):
+                    x = hk[i, a]
+                    hk[i, a] = u[i, a]
+                    u[i, a] = x
         st = _fmi2_xreal(fn[1], comp, p_vi, n_in, p_u)
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
             out[O_CALL] = CALL_SET
             break
-        k = clock[0]
         st = _fmi2_do_step(fn[2], comp, k * h, h)
         if st >= FMI2_ERROR:
             out[O_STATUS] = st
@@ -419,6 +428,10 @@ def run_compiled(master, plant, law, n_steps, bar, spl, dec, budget=None):
     target = TARGET_LOGGED_BLOCK_S if logging else TARGET_BLOCK_S
     # a logger may ask for blocks of its own length (the live view alone: a block per frame)
     target = getattr(logger, "block_seconds", None) or target
+    # ... and say, before each block, whether it wants a record from it at all (the live view
+    # alone, `LiveTee.frame_wanted`: only when a frame is due, and then only the block's last
+    # record; the records of the other blocks would be taken to be thrown away)
+    wanted = getattr(logger, "frame_wanted", None) if logging else None
     n = 0
     interrupted = timed_out = False
     deadline = None
@@ -432,19 +445,23 @@ def run_compiled(master, plant, law, n_steps, bar, spl, dec, budget=None):
     switch = sys.getswitchinterval()
     if logging:
         sys.setswitchinterval(min(switch, LOGGED_SWITCH_S))
+    jb = Jumps.empty(jcap)   # read out (copied) by _hand_over after each block: one for all
+    jb_t = tuple(jb)
     try:
         while n < n_steps and not master.stop_requested:
             nxt = min(n_steps, n + block)
-            cap = (nxt - n - 1) // dec + 1 if logging else 0
+            rec0 = n
+            if wanted is not None:   # no record unless a frame is due; then the last one only
+                rec0 = max(n, (nxt - 1) // dec * dec) if wanted() else nxt
+            cap = (nxt - rec0 - 1) // dec + 1 if logging and nxt > rec0 else 0
             rec = None
             while free and rec is None:
                 r = free.pop()
                 rec = r if r.cap >= cap else None
             if rec is None:
                 rec = LogRecords.empty(cap, N, M)
-            jb = Jumps.empty(jcap)
             t0 = time.perf_counter()
-            loop(cplant, law, es, mx, tuple(rec), tuple(jb), smp_t, h, n, nxt, dec, spl, out)
+            loop(cplant, law, es, mx, tuple(rec), jb_t, smp_t, h, n, nxt, dec, rec0, spl, out)
             now = time.perf_counter()
             dt = now - t0
             n0, n = n, int(out[O_N])
@@ -504,11 +521,13 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp, mx, free=None)
     for s, e, b, a, m in zip(jstep, jedge, jbefore, jafter, jmu):
         master.add_jump({"t": s * h, "edge": e, "theta_before": b, "theta_after": a, "mu": m})
     if writer is None or (njmp == 0 and nrec == 0):
-        if free is not None and writer is not None:
+        if free is not None:   # nothing to write from them: the next block may fill them
             free.append(rec)
         return
     kX = master.metrics.kX
-
+    # a logger called in the loop's own thread (the live view alone) must not hand the GIL
+    # over: the loop would wait for it, up to the switch interval, to go on
+    inline = getattr(writer.logger, "inline", False)
     sleep = time.sleep
 
     def write():
@@ -541,7 +560,8 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp, mx, free=None)
             r = rb
             # hand the GIL over: a block that ends waits for it, by default up to the 5 ms
             # switch interval, which would serialise the loop behind the encoder
-            sleep(0)
+            if not inline:
+                sleep(0)
         while i < njmp:
             t = jstep[i] * h
             jump(round(t * 1e9), t, jedge[i], jbefore[i], jafter[i], jmu[i])
@@ -549,7 +569,7 @@ def _hand_over(master, writer, rec, nrec, jb, njmp, h, nsmp, smp, mx, free=None)
         if free is not None:   # encoded: the loop may fill these buffers again
             free.append(rec)
 
-    if getattr(writer.logger, "inline", False):
+    if inline:
         write()   # a logger that asks to be called here (the live view alone: cheap, see
         # cosim/log/live.py): no hand-over to the writer thread for every block
     else:

@@ -185,9 +185,11 @@ class Master:
                                                  else "")
                   if msgs and getattr(exc, "function", None) else str(exc))
         step = self.first_step + n
-        self.diverged = {"t": step * self.h, "step": step,
-                         "reason": f"{what} is no longer finite "
-                                   f"({' '.join(detail.split())[:200]})"}
+        if self.diverged is None:   # else a sample before it showed it first (the compiled
+            # loop runs on to the end of the block holding that sample, and may fail there)
+            self.diverged = {"t": step * self.h, "step": step,
+                             "reason": f"{what} is no longer finite "
+                                       f"({' '.join(detail.split())[:200]})"}
         self._plant_broken = True
         return True
 

@@ -14,13 +14,14 @@ from typing import NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
 
-from controller.errors import Se3SyncError
+from controller.errors import ConfigError, Se3SyncError
 from controller import layout
 from plant_fmu.fast import FleetFMU, FmiCalls
 
 from .registry import PLANTS, resolve
 
-__all__ = ["Plant", "CompiledPlant", "FmuPlant", "PerBodyFmuPlant", "make_plant"]
+__all__ = ["Plant", "CompiledPlant", "FmuPlant", "PerBodyFmuPlant", "DelayedActuation",
+           "make_plant", "refuse_actuation_delay"]
 
 
 @runtime_checkable
@@ -60,12 +61,16 @@ def _md_text(path) -> str | None:
 
 class CompiledPlant(NamedTuple):
     """What the compiled loop (cosim/fastloop.py) needs of a plant: the FMU's raw calls and
-    buffers (`plant_fmu.fast.FmiCalls`) and the plant's clock, an int64 (1,) holding the steps
+    buffers (`plant_fmu.fast.FmiCalls`), the plant's clock, an int64 (1,) holding the steps
     advanced since t = 0 — the same memory `FmuPlant.advance` counts in, so either loop moves
-    the one clock and neither copies it."""
+    the one clock and neither copies it — and ``held``, the wrenches of an actuation delay of
+    d steps (d, N, 6): at step k the loop sends the FMU ``held[k % d]`` (the wrench of step
+    k − d) and keeps the law's wrench there; d = 0 (an empty array): the law's wrench itself
+    (`DelayedActuation` shares its array with the Python loop)."""
 
     fmi: FmiCalls
     clock: np.ndarray
+    held: np.ndarray
 
 
 class FmuPlant:
@@ -92,6 +97,7 @@ class FmuPlant:
             fmu.close()
             raise
         self._clock = np.zeros(1, np.int64)
+        self._no_delay = np.zeros((0, n, 6))
         self.read = fmu.get_state
         self.apply = fmu.set_input
         self._do_step = fmu.do_step
@@ -122,7 +128,7 @@ class FmuPlant:
         fmu = self._fmu
         if fmu is None or type(self).advance is not FmuPlant.advance:
             return None  # closed, or a subclass with its own step: only Python knows it
-        return CompiledPlant(fmu.fmi_calls(), self._clock)
+        return CompiledPlant(fmu.fmi_calls(), self._clock, self._no_delay)
 
     def raise_fmi_status(self, function: str, status: int) -> None:
         """The FMUError of an FMI call the compiled loop saw fail, with what the FMU logged."""
@@ -226,7 +232,83 @@ class PerBodyFmuPlant:
             f.close()
 
 
+class DelayedActuation:
+    """A plant that applies each wrench ``steps`` = d communication steps late: over
+    [t_n, t_{n+1}] it applies u(t_{n−d}), and zero for n < d (`simulation.actuation_delay`).
+    With d = 1 it is what the plant FMU receives from the controller FMU in a Jacobi FMI master
+    (FMPy's `simulate_ssp`, libcosim's fixed-step algorithm: docs/fmi-system.md).
+
+    Everything else is the inner plant's (read, advance, its clock, statistics, reset, ...).
+    Both loops run it: the Python loop through ``apply``, the compiled loop through
+    ``compiled_plant`` (the inner FMU plant's record with this plant's held wrenches, swapped
+    in by the loop before fmi2SetReal). Both index the held wrenches by the inner plant's clock
+    when it has one (``steps``), so they are the same state whichever loop steps."""
+
+    def __init__(self, inner, steps: int = 1):
+        d = int(steps)
+        if d < 1:
+            raise Se3SyncError(f"DelayedActuation: steps must be >= 1, got {steps!r}")
+        self.inner = inner
+        self.n = n = inner.n
+        self.delay = d
+        self._held = np.zeros((d, n, 6))   # slot k % d: the wrench of step k − d until step k
+        self._out = np.zeros((n, 6))
+        self._k = 0                        # the steps advanced, for an inner plant without clock
+        self._clocked = isinstance(getattr(type(inner), "steps", None), property)
+
+    def __getattr__(self, name):   # the inner plant's capabilities (input_buffer, stats, ...)
+        inner = self.__dict__.get("inner")
+        if inner is None:
+            raise AttributeError(name)
+        return getattr(inner, name)
+
+    def read(self):
+        return self.inner.read()
+
+    def apply(self, u) -> None:
+        k = self.inner.steps if self._clocked else self._k
+        slot = self._held[k % self.delay]
+        np.copyto(self._out, slot)
+        np.copyto(slot, u)
+        self.inner.apply(self._out)
+
+    def advance(self, h: float) -> None:
+        self.inner.advance(h)
+        self._k += 1
+
+    def compiled_plant(self) -> CompiledPlant | None:
+        cp = getattr(self.inner, "compiled_plant", None)
+        p = cp() if cp is not None else None
+        return None if p is None else p._replace(held=self._held)
+
+    def reset(self, S0) -> None:
+        self.inner.reset(S0)
+        self._held[...] = 0.0
+        self._k = 0
+
+    def model_description(self):
+        md = getattr(self.inner, "model_description", None)
+        return md() if md is not None else None
+
+    def close(self) -> None:
+        self.inner.close()
+
+
 def make_plant(kind: str, scenario, **options):
     """The plant registered as ``kind`` (`cosim.registry.PLANTS`), built from the scenario;
-    ``options`` go to its ``from_scenario`` (e.g. ``fmu_path`` for the FMU plants)."""
-    return resolve(PLANTS, kind, "plant").from_scenario(scenario, **options)
+    ``options`` go to its ``from_scenario`` (e.g. ``fmu_path`` for the FMU plants). With
+    ``simulation.actuation_delay`` = d > 0, that plant inside `DelayedActuation` (d steps)."""
+    p = resolve(PLANTS, kind, "plant").from_scenario(scenario, **options)
+    d = getattr(scenario, "actuation_delay", 0)
+    return DelayedActuation(p, d) if d else p
+
+
+def refuse_actuation_delay(scenario, what: str) -> None:
+    """One line naming ``simulation.actuation_delay`` when the scenario sets it and ``what`` (a
+    command, a plant) does not apply it: only the plants `make_plant` builds delay the wrench."""
+    d = getattr(scenario, "actuation_delay", 0)
+    if d:
+        raise ConfigError("simulation.actuation_delay",
+                            f"{d} step(s): only the co-simulation's plants apply it (se3sync run, "
+                            f"the sweeps), not {what}; remove it or set it to 0",
+                            getattr(scenario, "path", None))

@@ -12,7 +12,7 @@ from .log.live import live_logger, live_only
 from .log.writer import McapLogger
 from .master import Master
 from .network import networked
-from .plants import make_plant
+from .plants import make_plant, refuse_actuation_delay
 from .scenario import Scenario, load_scenario, with_timing
 
 __all__ = ["run_scenario", "with_timing", "finish_summary", "write_json_atomic"]
@@ -24,8 +24,9 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
                  log_encoding="json", stage=None, live=None) -> dict:
     """Runs a scenario (a Scenario or a path to a TOML file) and returns the summary dict.
 
-    plant: a registered plant name (`cosim.registry.PLANTS`) or a Plant instance (closed by
-    the caller); fmu_path: the FMU an FMU plant loads; controller: a registered law name
+    plant: a registered plant name (`cosim.registry.PLANTS`; with ``simulation.actuation_delay``
+    inside `cosim.plants.DelayedActuation`) or a Plant instance (closed by the caller; a
+    scenario with an actuation delay is refused); fmu_path: the FMU an FMU plant loads; controller: a registered law name
     (`cosim.registry.LAWS`) or a controller instance. log_path: MCAP written (streamed) there,
     its per-record channels in log_encoding ("json" or "cdr"); summary_path: summary JSON
     written atomically. live: (host, port, rate) of a live view (cosim/log/live.py) or None.
@@ -57,6 +58,8 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
             if not isinstance(scenario, Scenario):
                 scenario = load_scenario(scenario)
             scenario = with_timing(scenario, duration, step)
+            if not own_plant:   # only the plants make_plant builds delay the wrench
+                refuse_actuation_delay(scenario, f"a plant given to the run ({plant_kind})")
             if log_path is None:
                 scenario = live_only(scenario, live)   # records at most at the live view's rate
             at("building the controller")
@@ -103,6 +106,8 @@ def run_scenario(scenario, *, plant="fleet", controller="hybrid", log_path=None,
         # the run is over: a signal now is held until the outputs are written
         with signals.catching(lambda: None):
             summary["plant"] = plant_kind
+            if scenario.actuation_delay:
+                summary["actuation_delay_steps"] = scenario.actuation_delay
             net_stats = getattr(ctrl, "network_stats", None)
             if net_stats is not None:
                 summary["network"] = net_stats()

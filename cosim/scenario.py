@@ -43,6 +43,10 @@ WEIGHTING_RANGE = (1e-9, 1e9)
 MAX_STEPS = 10 ** 9        # communication steps of one run
 MAX_BODY_SUBSTEPS = 10 ** 6   # N · ⌈h / internal_step⌉ per step: the plant FMU's limit per doStep
 MIN_INTERNAL_STEP = 1e-9      # s, the plant FMU's floor
+# simulation.actuation_delay: steps a wrench waits before the plant applies it (the loop of a
+# Jacobi FMI master: 1, docs/fmi-system.md); the held wrenches (delay × N × 6 floats) at most:
+MAX_ACTUATION_DELAY = 10 ** 6
+MAX_ACTUATION_BYTES = 1 << 30
 # default internal step of the plant FMU: the communication step, but at most 1 ms
 MAX_DEFAULT_INTERNAL_STEP = 1e-3
 
@@ -62,7 +66,7 @@ SCHEMA: dict[str, Any] = {
     "gains": {"k_X", "k_xi", "k_e", "k_theta"},
     "initial": {"generator", "axis", "eigenvector", "seed", "position_box", "velocity_ball",
                 "agent", "theta0"},
-    "simulation": {"duration", "step", "log_rate"},
+    "simulation": {"duration", "step", "log_rate", "actuation_delay"},
     "plant": {"gravity", "internal_step", "mode", "ground", "ground_height", "drag_linear", "drag_angular"},
 }
 # Further tables ([bridge], ...) are owned by other packages: see cosim/plugins.py.
@@ -227,6 +231,9 @@ class Scenario:
     # the plant's optional terms ([plant] ground, ground_height, drag_linear, drag_angular) as
     # FleetFMU.set_parameters keywords; empty when all are off (the paper's runs)
     plant_terms: dict = field(default_factory=dict)
+    # simulation.actuation_delay: the plant applies u(t_{n−d}) over [t_n, t_{n+1}] (0 before
+    # t_d); `cosim.plants.make_plant` wraps the plant in `DelayedActuation` when d > 0
+    actuation_delay: int = 0
 
     @property
     def bridge(self):
@@ -508,6 +515,7 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
     duration = _num("simulation.duration", _require("simulation", sim, "duration"), positive=True)
     step = _num("simulation.step", _require("simulation", sim, "step"), positive=True)
     log_rate = _num("simulation.log_rate", sim.get("log_rate", DEFAULT_LOG_RATE), positive=True)
+    actuation_delay = _actuation_delay(sim.get("actuation_delay", 0), N)
 
     # [plant]
     pl = data.get("plant", {})
@@ -537,7 +545,20 @@ def _validate(data: dict, text: str, name: str, path: str, overrides: tuple) -> 
                     weighting=weighting, design=design, gains=gains, masses=masses,
                     inertias=inertias, S0=S0, theta0=theta0, duration=duration, step=step,
                     log_rate=log_rate, gravity=gravity, internal_step=internal,
-                    plant_mode=mode, tables=tables, overrides=overrides, plant_terms=plant_terms)
+                    plant_mode=mode, tables=tables, overrides=overrides, plant_terms=plant_terms,
+                    actuation_delay=actuation_delay)
+
+
+def _actuation_delay(v, N: int) -> int:
+    """simulation.actuation_delay: whole communication steps, 0 … MAX_ACTUATION_DELAY, and the
+    wrenches it holds (d × N × 6 doubles) within MAX_ACTUATION_BYTES."""
+    key = "simulation.actuation_delay"
+    d = _num(key, v, integer=True, nonneg=True, maximum=MAX_ACTUATION_DELAY)
+    need = d * N * 6 * 8
+    if need > MAX_ACTUATION_BYTES:
+        raise ScenarioError(key, f"{d} steps of {N} agents' wrenches need {need / 2 ** 30:.3g} GiB "
+                                 f"(at most {MAX_ACTUATION_BYTES / 2 ** 30:g} GiB): use a shorter delay")
+    return d
 
 
 def _plant_terms(pl: dict, gravity, S0, masses, inertias, internal: float) -> dict:

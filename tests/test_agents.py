@@ -444,6 +444,83 @@ def test_agent_and_swarm_bad_input_is_one_line_exit_2(argv, needle, capsys, tmp_
     assert not os.path.exists("/nonexistent-se3sync")   # nothing made
 
 
+# ------------------------------------------------------------------------------ guards
+def _agent_summaries(sc, *, pos_scale=1.0, jumps_of_1=0, diverged_3=None):
+    """What each agent's summary gives the merge (own rows and owned θ at steps 0 and 250, the
+    1 s samples of h = 4 ms, jumps and counts), made by hand: every agent at its start pose,
+    its position times ``pos_scale`` at t = 1 s; agent 1 with ``jumps_of_1`` jumps; agent 3
+    with its own ``diverged`` record."""
+    out = {}
+    for i in range(1, sc.graph.n + 1):
+        owned = [k for k, (a, _) in enumerate(sc.graph.edge_list, start=1) if a == i]
+        th = {str(k): float(sc.theta0[k - 1]) for k in owned}
+        late = sc.S0[i - 1].copy()
+        late[layout.P] *= pos_scale
+        own = [{"step": 0, "S": sc.S0[i - 1].tolist(), "theta": th},
+               {"step": 250, "S": late.tolist(), "theta": th}]
+        n_j = jumps_of_1 if i == 1 else 0
+        out[i] = {"steps": 251, "first_step": 0, "interrupted": False, "wall_time_s": 1.0,
+                  "failsafe": {"steps": 0, "entries": 0}, "n_jumps": n_j,
+                  "jumps": [{"t": 0.0, "edge": 1, "theta_before": 0.0, "theta_after": 1.0,
+                             "mu": 1.0}] * min(n_j, 10),
+                  "own": {"samples": own, "final": own[-1]},
+                  "diverged": diverged_3 if i == 3 else None}
+    return out
+
+
+def test_the_swarm_merge_carries_the_jump_bound_and_the_divergence():
+    """Issue 28 §2 for `swarm`: the merged summary has "jump_bound_exceeded" (all the agents'
+    jumps against `run`'s bound ⌈V̄(0)/(k_X δ)⌉) and "diverged": a merged 1 s sample of the
+    whole network that `run`'s guard refuses, or an agent's own, whichever came first."""
+    from bridge.swarm.launcher import merge_summaries
+    from cosim import guards
+
+    sc = load(duration=1.0)
+    calm = merge_summaries(sc, _agent_summaries(sc, jumps_of_1=5))
+    V0 = calm["V0"]
+    assert calm["jump_bound"] == math.ceil(V0 / (sc.gains.k_X * sc.design.delta))
+    assert calm["n_jumps"] == 5 and calm["jump_bound_exceeded"] is False
+    assert calm["diverged"] is None
+    bound = calm["jump_bound"]
+    # more jumps than the bound (agent 1 lists 10 of them, counts them all)
+    many = merge_summaries(sc, _agent_summaries(sc, jumps_of_1=bound + 1))
+    assert many["n_jumps"] == bound + 1 and many["jump_bound_exceeded"] is True
+    # positions 1000 times their start at t = 1 s: V̄ past 100 V̄(0), as `run` would stop there
+    far = merge_summaries(sc, _agent_summaries(sc, pos_scale=1000.0))
+    assert far["samples"][1]["V"] > guards.DIVERGE_FACTOR * V0
+    dv = far["diverged"]
+    assert dv["t"] == 1.0 and dv["step"] == 250 and dv["agent"] is None and "V̄" in dv["reason"]
+    # an agent that stopped on its own view before that is the earlier divergence
+    own = {"t": 0.5, "step": 125, "reason": "max|ξ| = 2e+06 exceeds 1e+06"}
+    both = merge_summaries(sc, _agent_summaries(sc, pos_scale=1000.0, diverged_3=own))
+    assert both["diverged"]["agent"] == 3 and both["diverged"]["t"] == 0.5
+    assert "agent 3" in both["diverged"]["reason"]
+
+
+@pytest.mark.parametrize("case, status, needle", [
+    ("diverged", 6, "se3sync swarm: diverged at t = 1 s (step 250): V̄"),
+    ("jumps", 0, "se3sync swarm: warning: "),
+])
+def test_swarm_says_the_outcome_as_run_does(case, status, needle, capsys, monkeypatch):
+    """`swarm` reports its merged summary through `run`'s reporting: a diverged swarm exits 6
+    with one line, more jumps than the bound is a warning line (the launcher's processes are
+    replaced by the merge of hand-made agent summaries)."""
+    import bridge.swarm.launcher as launcher
+    from cosim.cli import main
+
+    sc = load(duration=1.0)
+    bound = launcher.merge_summaries(sc, _agent_summaries(sc))["jump_bound"]
+    kw = {"pos_scale": 1000.0} if case == "diverged" else {"jumps_of_1": bound + 7}
+    merged = launcher.merge_summaries(sc, _agent_summaries(sc, **kw), wall=1.0)
+    monkeypatch.setattr(launcher, "run_swarm", lambda *a, **k: (merged, 0))
+    rc = main(["swarm", HIL, "--duration", "1"])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    hits = [ln for ln in err if ln.startswith(needle)]
+    assert rc == status and len(hits) == 1, err
+    if case == "jumps":
+        assert f"{bound + 7} jumps, more than the bound" in hits[0]
+
+
 # ------------------------------------------------------------------------------ signals
 @pytest.mark.timeout(300)
 def test_sigterm_stops_every_child_and_still_writes_the_merged_outputs(tmp_path):

@@ -115,3 +115,53 @@ def test_connect_exits_3_when_no_vehicle(tmp_path):
     assert r.returncode == 3
     lines = [x for x in r.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and "did not connect within 0.5 s" in lines[0], r.stderr
+
+
+def _connect_lockstep(tmp_path, sets, duration):
+    """`se3sync connect --lockstep --force` against `se3sync vehicle --lockstep` (processes):
+    (exit status, stderr lines, summary, log path)."""
+    port = free_base_port(6)
+    sets = ["--set", f"bridge.base_port={port}", *(x for s in sets for x in ("--set", s))]
+    summary, log = tmp_path / "s.json", tmp_path / "l.mcap"
+    with VehicleProcess(["--scenario", HIL, "--lockstep", "--aux-rate", "0", *sets], tmp_path) as veh:
+        r = subprocess.run([sys.executable, "-m", "cosim.cli", "connect", HIL, "--lockstep", *sets,
+                            "--force", "--duration", str(duration), "--summary", str(summary),
+                            "--log", str(log), "--connect-timeout", "20"],
+                           capture_output=True, text=True, timeout=240, cwd=str(ROOT))
+        veh.stop()
+    lines = [x for x in r.stderr.splitlines() if x.strip()]
+    assert "Traceback" not in r.stderr, r.stderr
+    return r.returncode, lines, json.loads(summary.read_text()), log
+
+
+def test_connect_says_when_the_jumps_exceed_the_bound(tmp_path):
+    """Issue 28 §2 for `connect`: h = 40 ms (unstable above 19 ms, hence --force) chatters over
+    the lockstep link without diverging: more jumps than Theorem 1's bound. The summary says so
+    and so does one stderr line, as for `run`; the exit status stays 0."""
+    rc, lines, s, _ = _connect_lockstep(tmp_path, ["simulation.step=0.04"], 30)
+    assert s["n_jumps"] > s["jump_bound"] and s["jump_bound_exceeded"] is True, s["n_jumps"]
+    assert s["diverged"] is None and s["steps"] == 750
+    warn = [x for x in lines if "more than the bound" in x]
+    assert len(warn) == 1 and warn[0].startswith("se3sync connect: warning: ")
+    assert f"{s['n_jumps']} jumps" in warn[0] and f"= {s['jump_bound']} " in warn[0]
+    assert rc == 0, lines
+
+
+def test_connect_ends_a_diverging_run_with_its_status(tmp_path):
+    """Issue 28 §2 for `connect`: h = 0.2 s drives the swarm apart over the lockstep link (the
+    vehicles' wrench limits keep the state finite): the run stops at the first 1 s sample whose
+    V̄ exceeds 100 V̄(0), exit 6, one line saying when and why, log and summary complete."""
+    from cosim import guards
+    from cosim.log.mcap import read_log
+
+    rc, lines, s, log = _connect_lockstep(tmp_path, ["simulation.step=0.2"], 60)
+    assert rc == guards.EXIT_DIVERGED == 6, lines
+    dv = s["diverged"]
+    over = [x["t"] for x in s["samples"] if x["V"] > guards.DIVERGE_FACTOR * s["V0"]]
+    assert over and dv["t"] == over[0] and "V̄" in dv["reason"]
+    assert s["steps"] == dv["step"] < 300 and s["interrupted"] is False
+    line = [x for x in lines if "diverged" in x]
+    assert len(line) == 1 and line[0].startswith("se3sync connect: diverged at t = ")
+    assert "exit status 6" in line[0]
+    r = read_log(log)
+    assert not r["truncated"] and r["outcome"]["diverged"] == dv

@@ -18,6 +18,7 @@ from cosim.cli import main
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = str(ROOT / "scenarios" / "paper_6uav.toml")
 SMALL = str(ROOT / "scenarios" / "sweep_small.toml")
+HIL = str(ROOT / "scenarios" / "hil_6uav.toml")
 
 
 def _call(argv, capsys):
@@ -82,6 +83,39 @@ CASES = [
                       "TMP/g.mcap"], ["plant.gravity"]),
     ("simulation-not-table", ["run", "TMP/sim5.toml", "--duration", "1"], ["simulation"]),
     ("toml-deep", ["check", "TMP/deep.toml"], ["TOML"]),
+    # the vehicles' ports: port 0 was a silent send to nowhere, -5 or 65536 a traceback at the
+    # first datagram
+    ("vehicle-base-port-0", ["vehicle", "--base-port", "0", "--duration", "0.1", "--stats",
+                             "TMP/v.json"], ["--base-port", "1..65535", "got 0"]),
+    ("vehicle-base-port-negative", ["vehicle", "--base-port", "-5", "--duration", "0.1"],
+     ["--base-port", "got -5"]),
+    ("vehicle-base-port-past-65535", ["vehicle", "--base-port", "65535", "--count", "2",
+                                      "--duration", "0.1"], ["--base-port", "65536"]),
+    ("vehicle-base-port-scenario", ["vehicle", "--scenario", HIL, "--base-port", "65533",
+                                    "--duration", "0.1"], ["--base-port", "system id 6"]),
+    ("vehicle-system-id-0", ["vehicle", "--first-system-id", "0", "--duration", "0.1"],
+     ["--first-system-id"]),
+    # simulation.actuation_delay: whole steps, bounded; only the co-simulation applies it
+    ("actuation-delay-negative", ["run", PAPER, "--set", "simulation.actuation_delay=-1",
+                                  "--log", "TMP/a.mcap"], ["simulation.actuation_delay", ">= 0"]),
+    ("actuation-delay-float", ["run", PAPER, "--set", "simulation.actuation_delay=1.5",
+                               "--summary", "TMP/a.json"],
+     ["simulation.actuation_delay", "integer"]),
+    ("actuation-delay-too-long", ["run", PAPER, "--set", "simulation.actuation_delay=1000001",
+                                  "--summary", "TMP/a.json"],
+     ["simulation.actuation_delay", "<= 1e+06"]),
+    ("actuation-delay-memory", ["check", "TMP/chain30.toml", "--set",
+                                "simulation.actuation_delay=1000000"],
+     ["simulation.actuation_delay", "GiB"]),
+    ("actuation-delay-connect", ["connect", HIL, "--set", "simulation.actuation_delay=1",
+                                 "--log", "TMP/c.mcap", "--connect-timeout", "0.5"],
+     ["simulation.actuation_delay", "se3sync connect"]),
+    ("actuation-delay-agent", ["agent", HIL, "--id", "1", "--set",
+                               "simulation.actuation_delay=1", "--summary", "TMP/a.json"],
+     ["simulation.actuation_delay", "se3sync agent"]),
+    ("actuation-delay-swarm", ["swarm", HIL, "--set", "simulation.actuation_delay=1",
+                               "--summary", "TMP/s.json"],
+     ["simulation.actuation_delay", "se3sync swarm"]),
 ]
 
 
@@ -102,6 +136,11 @@ def test_bad_input_is_one_line_and_nothing_written(case, tmp_path, logfile, caps
     (tmp_path / "sim5.toml").write_text(text.replace("[simulation]", "[simulation_]")
                                         + "\nsimulation = 5\n")
     (tmp_path / "deep.toml").write_text("x = " + "[" * 600 + "]" * 600 + "\n")
+    chain = text.replace("count = 6 ", "count = 30 ").replace(
+        "edges = [[1, 2], [2, 3], [3, 4], [2, 5], [5, 6]]",
+        f"edges = {[[i, i + 1] for i in range(1, 30)]}").replace(
+        'generator = "paper"\naxis = [0.2686, 0.8549, 0.4438]', 'generator = "random"\nseed = 1')
+    (tmp_path / "chain30.toml").write_text(chain)
     before = _files(tmp_path)
     argv = [a.replace("TMP/", str(tmp_path) + "/") for a in argv]
     rc, lines = _call(argv, capsys)

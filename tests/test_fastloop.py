@@ -52,13 +52,14 @@ def messages(path, decoded=False):
 
 
 def run_both(sc, tmp_path, controller="hybrid", log=True, steps=None, fast_json=False,
-             encoding="json"):
+             encoding="json", make=FmuPlant.from_scenario):
     """(summary, final state, log messages) of the reference loop, then of the compiled one.
     fast_json: the compiled loop's log encodes numbers with orjson (compared as values),
-    else with float repr (compared as bytes). encoding: the log's (McapLogger)."""
+    else with float repr (compared as bytes). encoding: the log's (McapLogger). make: the
+    plant of a scenario."""
     out = []
     for compiled in (False, True):
-        plant = FmuPlant.from_scenario(sc)
+        plant = make(sc)
         path = tmp_path / f"{'c' if compiled else 'py'}.mcap"
         logger = McapLogger(path, sc, controller=controller, encoding=encoding) if log else None
         if logger is not None:
@@ -134,6 +135,57 @@ def test_gradient_controller_bit_identical(tmp_path):
     sc = load_scenario(PAPER, ["simulation.duration=0.3"])
     ref, fast = run_both(sc, tmp_path, controller="gradient")
     assert_same(ref, fast)
+
+
+@pytest.mark.parametrize("d", [1, 3])
+def test_actuation_delay_bit_identical_in_both_loops(tmp_path, d):
+    """simulation.actuation_delay = d: `make_plant` wraps the plant in DelayedActuation, whose
+    compiled record has the held wrenches the compiled loop swaps in before fmi2SetReal, as the
+    Python loop's ``apply`` does: the same summary, state and log, bit for bit."""
+    from cosim.plants import DelayedActuation, make_plant
+
+    sc = load_scenario(PAPER, ["simulation.duration=0.5", f"simulation.actuation_delay={d}"])
+    assert sc.actuation_delay == d
+    p = make_plant("fleet", sc)
+    assert isinstance(p, DelayedActuation) and p.delay == d
+    p.close()
+    ref, fast = run_both(sc, tmp_path, make=lambda s: make_plant("fleet", s))
+    assert_same(ref, fast)
+    plain = run_both(load_scenario(PAPER, ["simulation.duration=0.5"]), tmp_path, log=False)[0]
+    assert not np.array_equal(plain[1], ref[1])   # the delay changes the run
+
+
+def test_actuation_delay_applies_the_wrench_of_d_steps_before():
+    """DelayedActuation checked by hand, in both loops: 40 steps of the plant FMU driven with
+    u(t_{n−d}) computed by the law on the state at t_{n−d} (u ≡ 0 for n < d) give the state of
+    the master's run with simulation.actuation_delay = d; the log and summary keep the law's
+    own u(t_0) (the wrench commanded, not the one applied)."""
+    from cosim.controllers import make_controller
+    from cosim.plants import make_plant
+
+    for d in (1, 2):
+        sc = load_scenario(PAPER, ["simulation.duration=0.1", f"simulation.actuation_delay={d}"])
+        n = 40
+        p = FmuPlant.from_scenario(sc)
+        law = make_controller("hybrid", sc)
+        sent = [np.zeros((sc.graph.n, 6))] * d
+        u0 = None
+        for _ in range(n):
+            u, _ = law.step_state(p.read().copy(), sc.step)
+            u0 = u.copy() if u0 is None else u0
+            sent.append(u.copy())
+            p.apply(sent.pop(0))
+            p.advance(sc.step)
+        S = p.read().copy()
+        p.close()
+        for compiled in (True, False):
+            plant = make_plant("fleet", sc)
+            m = Master(sc, plant, "hybrid")
+            m.use_compiled = compiled
+            m.run(n)
+            assert np.array_equal(plant.read(), S), (d, compiled)
+            assert np.array_equal(m.u0, u0)
+            plant.close()
 
 
 def test_jump_buffers_full_end_the_block_early(tmp_path, monkeypatch):
@@ -452,3 +504,50 @@ def test_each_law_gets_its_own_loop_cache_renewed_when_its_module_changes(tmp_pa
     names = {fastloop._block_loop(cls.__new__(cls, *[None] * len(cls._fields))).py_func.__qualname__
              for cls in (PaperStep, DecoupledStep)}
     assert len(names) == 2
+
+
+@pytest.mark.parametrize("want", [False, True])
+def test_a_logger_that_wants_no_record_gets_none_from_the_block(want):
+    """A logger with ``frame_wanted`` (the live view without a log): the compiled loop asks it
+    before each block; a block it says no to computes no record (its jumps still come), a block
+    it says yes to computes only its last record on the grid. The summary is the same."""
+    sc = load_scenario(PAPER, ["simulation.duration=0.5", "simulation.log_rate=30"])
+    dec = round(1 / (sc.log_rate * sc.step))
+    got, jumps, asked = [], [], []
+
+    class Wanting:
+        inline = True
+        block_seconds = None
+        counts = {}
+
+        def frame_wanted(self):
+            asked.append(True)
+            return want
+
+        def record_block(self, t_ns, *a):
+            got.append(list(t_ns))
+
+        def jump(self, *a):
+            jumps.append(a[0])
+
+    plant = FmuPlant.from_scenario(sc)
+    try:
+        m = Master(sc, plant, "hybrid", Wanting())
+        s = m.run(sc.n_steps())
+    finally:
+        plant.close()
+    ref_plant = FmuPlant.from_scenario(sc)
+    try:
+        ref = Master(sc, ref_plant, "hybrid").run(sc.n_steps())
+    finally:
+        ref_plant.close()
+    assert asked and s["n_jumps"] == ref["n_jumps"] > 0 and s["samples"] == ref["samples"]
+    assert jumps == [round(j["t"] * 1e9) for j in ref["jumps"]]
+    if not want:
+        assert got == []
+    else:   # one record per block that crosses the grid: its last one
+        assert got and all(len(r) == 1 for r in got)
+        steps = [round(r[0] / (sc.step * 1e9)) for r in got]
+        assert all(k % dec == 0 for k in steps) and steps == sorted(set(steps))
+        assert len(steps) <= len(asked)
+        assert steps[-1] == (sc.n_steps() - 1) // dec * dec   # the last block's last one

@@ -1,8 +1,10 @@
 """The closed loop as an FMI system: the controller FMU (pythonfmu) passes `fmpy validate`; the
 SSP archive validates against the SSP 1.0 schemas; running it in FMPy (`fmpy.ssp`) and in
-libcosim (libcosimpy) reproduces the se3sync master's run of the same scenario with the
-one-step actuation delay those fixed-step (Jacobi) masters add: the same jumps (step and edge)
-and the 1 s samples within 1e-9 relative."""
+libcosim (libcosimpy) equals `se3sync run` of the same scenario with
+``simulation.actuation_delay = 1``, the one-step actuation delay those fixed-step (Jacobi)
+masters add: the same jumps (step and edge) and the 1 s samples within 1e-9 relative, for the
+hybrid law and for the gradient law."""
+import json
 import os
 import zipfile
 from pathlib import Path
@@ -14,27 +16,32 @@ pytest.importorskip("pythonfmu")
 pytest.importorskip("libcosimpy")
 
 from cosim.cli import main  # noqa: E402
-from cosim.fmi.masters import (DelayedActuation, run_fmpy, run_libcosim, samples,  # noqa: E402
-                               ssp_parameters)
+from cosim.fmi.masters import run_fmpy, run_libcosim, samples, ssp_parameters  # noqa: E402
 from cosim.fmi.ssp import CONTROLLER, PLANT, SSD_NAME, write_ssp  # noqa: E402
-from cosim.plants import FmuPlant  # noqa: E402
-from cosim.run import run_scenario  # noqa: E402
 from cosim.scenario import load_scenario  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 HIL = ROOT / "scenarios" / "hil_6uav.toml"
 
 
+DURATION = "simulation.duration=3"
+
+
 @pytest.fixture(scope="module")
-def scenario(tmp_path_factory):
+def scenario_file(tmp_path_factory):
     """hil_6uav (h = 4 ms) from a random start whose edges jump at t = 0 and later (the start
-    test_agents uses for a mid-run jump), 3 s."""
+    test_agents uses for a mid-run jump)."""
     text = HIL.read_text().replace('generator = "paper"\naxis = [0.2997, 0.8380, 0.4560]',
                                    'generator = "random"\nseed = 6\nvelocity_ball = 0.5')
-    d = tmp_path_factory.mktemp("fmi")
-    path = d / "hil_random6.toml"
+    path = tmp_path_factory.mktemp("fmi") / "hil_random6.toml"
     path.write_text(text)
-    return load_scenario(path, ["simulation.duration=3"])
+    return path
+
+
+@pytest.fixture(scope="module")
+def scenario(scenario_file):
+    """The scenario, 3 s."""
+    return load_scenario(scenario_file, [DURATION])
 
 
 @pytest.fixture(scope="module")
@@ -44,20 +51,26 @@ def system(scenario, tmp_path_factory):
     return out
 
 
-@pytest.fixture(scope="module")
-def reference(scenario):
-    """The se3sync master with the wrench applied one step late (`DelayedActuation`)."""
-    plant = DelayedActuation(FmuPlant.from_scenario(scenario))
-    try:
-        return run_scenario(scenario, plant=plant)
-    finally:
-        plant.close()
+def _run(scenario_file, tmp_path_factory, *extra):
+    """The summary of `se3sync run SCENARIO --set simulation.duration=3 EXTRA…`."""
+    out = tmp_path_factory.mktemp("run") / "s.json"
+    argv = ["run", str(scenario_file), "--set", DURATION, *extra, "--summary", str(out)]
+    assert main(argv) == 0
+    return json.loads(out.read_text())
 
 
 @pytest.fixture(scope="module")
-def plain(scenario):
+def reference(scenario_file, tmp_path_factory):
+    """`se3sync run` with the wrench applied one step late: what a Jacobi master runs."""
+    s = _run(scenario_file, tmp_path_factory, "--set", "simulation.actuation_delay=1")
+    assert s["actuation_delay_steps"] == 1
+    return s
+
+
+@pytest.fixture(scope="module")
+def plain(scenario_file, tmp_path_factory):
     """`se3sync run` of the scenario, as it is."""
-    return run_scenario(scenario)
+    return _run(scenario_file, tmp_path_factory)
 
 
 def _schema_dir():
@@ -147,44 +160,50 @@ def _close(a, b, rel=1e-9):
         np.testing.assert_allclose(x["theta"], y["theta"], rtol=rel, atol=1e-300)
 
 
+def _jumps(summary, h):
+    return [(round(j["t"] / h), j["edge"]) for j in summary["jumps"]]
+
+
 @pytest.mark.parametrize("master", ["fmpy", "libcosim"])
-def test_system_in_a_master_equals_the_run_with_actuation_delay(system, scenario, reference,
-                                                                plain, master):
+def test_system_in_a_master_equals_run_with_one_step_of_actuation_delay(system, scenario,
+                                                                        reference, plain,
+                                                                        master):
     h, steps = scenario.step, scenario.n_steps()
     run = (run_fmpy if master == "fmpy" else run_libcosim)(system, steps, h)
-    ref_jumps = [(round(j["t"] / h), j["edge"]) for j in reference["jumps"]]
+    ref_jumps = _jumps(reference, h)
     assert any(s > 0 for s, _ in ref_jumps) and any(s == 0 for s, _ in ref_jumps)
     assert run.jumps == ref_jumps
-    # the delay moves no jump of this run: the same steps and edges as `se3sync run`
-    assert run.jumps == [(round(j["t"] / h), j["edge"]) for j in plain["jumps"]]
+    # the delay moves no jump of this run: the same steps and edges as plain `se3sync run`
+    assert run.jumps == _jumps(plain, h)
     got = samples(scenario, run)
     assert [s["t"] for s in got] == [0.0, 1.0, 2.0]
     _close(got, reference["samples"][:3])
+    # ... but not plain `run`'s samples: the delay is what differs (docs/fmi-system.md)
+    d = abs(got[1]["pos_err"] - plain["samples"][1]["pos_err"]) / plain["samples"][1]["pos_err"]
+    assert d > 1e-4, d
 
 
-def test_delayed_actuation_is_the_wrench_of_the_step_before(scenario):
-    """DelayedActuation, checked by hand: 40 steps of the plant FMU driven with u(t_{n−1})
-    computed by the law on the state at t_{n−1} (u ≡ 0 first) give the reference's state."""
-    from cosim.master import Master
-    from cosim.controllers import make_controller
+@pytest.fixture(scope="module")
+def gradient_system(scenario, tmp_path_factory):
+    out = tmp_path_factory.mktemp("ssp_gradient") / "system.ssp"
+    write_ssp(scenario, out, law="gradient")
+    return out
 
-    n = 40
-    plant = DelayedActuation(FmuPlant.from_scenario(scenario))
-    m = Master(scenario, plant, "hybrid")
-    m.run(n)
-    S_ref = plant.read().copy()
-    plant.close()
-    p = FmuPlant.from_scenario(scenario)
-    law = make_controller("hybrid", scenario)
-    prev = np.zeros((scenario.graph.n, 6))
-    for _ in range(n):
-        u, _ = law.step_state(p.read().copy(), scenario.step)
-        p.apply(prev)
-        prev = u.copy()
-        p.advance(scenario.step)
-    S = p.read().copy()
-    p.close()
-    assert np.array_equal(S, S_ref)
+
+@pytest.mark.parametrize("master", ["fmpy", "libcosim"])
+def test_gradient_law_system_equals_run_with_one_step_of_actuation_delay(
+        gradient_system, scenario, scenario_file, tmp_path_factory, master):
+    """The gradient baseline's FMU (`--law gradient`: θ ≡ 0, no jump) in the SSP against
+    `se3sync run --controller gradient` with the same delay."""
+    h, steps = scenario.step, scenario.n_steps()
+    ref = _run(scenario_file, tmp_path_factory, "--controller", "gradient", "--set",
+               "simulation.actuation_delay=1")
+    run = (run_fmpy if master == "fmpy" else run_libcosim)(gradient_system, steps, h)
+    assert run.jumps == _jumps(ref, h) == []
+    assert not run.theta.any()
+    got = samples(scenario, run)
+    assert [s["t"] for s in got] == [0.0, 1.0, 2.0]
+    _close(got, ref["samples"][:3])
 
 
 def test_ssp_command_errors_are_one_line(tmp_path, capsys):

@@ -54,16 +54,33 @@ def test_bad_live_values(text):
     assert str(e.value).startswith("--live: ")
 
 
-def test_run_refuses_a_public_live_socket_on_one_line(tmp_path, capsys):
-    log = tmp_path / "x.mcap"
-    assert main(["run", str(PAPER), "--duration", "0.01", "--log", str(log),
-                 "--live", "0.0.0.0:0"]) == 2
+HIL = ROOT / "scenarios" / "hil_6uav.toml"
+# every command that serves a live view, with an output it would write (TMP: the test's dir)
+LIVE_COMMANDS = {
+    "run": ["run", str(PAPER), "--duration", "0.01", "--log", "TMP/x.mcap"],
+    "connect": ["connect", str(HIL), "--duration", "0.01", "--log", "TMP/x.mcap",
+                "--connect-timeout", "0.5"],
+    "swarm": ["swarm", str(HIL), "--duration", "0.01", "--log", "TMP/x.mcap",
+              "--vehicles", "loopback"],
+    "vehicle": ["vehicle", "--scenario", str(HIL), "--duration", "0.01", "--stats",
+                "TMP/x.json"],
+}
+
+
+@pytest.mark.parametrize("command", list(LIVE_COMMANDS))
+@pytest.mark.parametrize("where", ["0.0.0.0:0", "192.168.1.5:8765", "[::]:0"])
+def test_a_public_live_socket_is_refused_on_one_line(command, where, tmp_path, capsys):
+    """Every command that serves a live view refuses a non-loopback --live without --insecure:
+    one line naming --live and --insecure, exit 2, before anything is started or written."""
+    argv = [a.replace("TMP/", f"{tmp_path}/") for a in LIVE_COMMANDS[command]]
+    assert main([*argv, "--live", where]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "--live" in err and "--insecure" in err
-    assert not log.exists()
-    assert main(["run", str(PAPER), "--duration", "0.01", "--live", "0",
-                 "--live-rate", "0"]) == 2
-    assert "--live-rate" in capsys.readouterr().err
+    assert err.count("\n") == 0 and "--live" in err and "--insecure" in err, err
+    assert os.listdir(tmp_path) == []
+    assert main([*argv, "--live", "0", "--live-rate", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--live-rate" in err, err
+    assert os.listdir(tmp_path) == []
 
 
 class FakeClock:
@@ -109,6 +126,46 @@ def test_tee_sends_the_newest_record_at_most_rate_times_per_second(monkeypatch):
     # a frame every ⌈(1/30) / 0.002⌉ = 17 records: the first record at or after the previous
     # frame + 1/30 s
     assert sent == list(range(0, 1000, 17))
+
+
+def test_frames_that_cost_more_cpu_than_the_share_come_less_often(monkeypatch):
+    """The view's CPU budget: a frame that takes E of the encoding thread's CPU time delays the
+    next one to E / CPU_SHARE after it began. Frames of 10 ms of CPU at a share of 0.2: one
+    every 50 ms instead of every 1/30 s (records 2 ms apart: every 25th)."""
+    clock = FakeClock()
+    cpu = [0.0]
+    monkeypatch.setattr(L.time, "monotonic", clock)
+    monkeypatch.setattr(L.time, "thread_time", lambda: cpu[0])
+    sent = []
+
+    class Enc:
+        def record(self, t_ns, *a):
+            sent.append(t_ns)
+            cpu[0] += 0.010
+
+    class Sink:
+        @staticmethod
+        def watched():
+            return True
+
+    class Server:
+        rate = 30.0
+        encoder = Enc()
+        frames = 0
+        sink = Sink()
+
+    class Inner:
+        counts = {}
+
+        def record(self, *a):
+            pass
+
+    assert L.LiveTee.CPU_SHARE == 0.2
+    tee = L.LiveTee(Inner(), Server())
+    for k in range(1000):
+        clock.t = 100.0 + k * 0.002
+        tee.record(k, None)
+    assert sent == list(range(0, 1000, 25))
 
 
 def test_inline_tee_encodes_copies_on_its_own_thread_and_drops_when_behind(monkeypatch):
@@ -258,3 +315,38 @@ def test_a_websocket_client_receives_the_logs_channels(tmp_path, encoding):
     # the rate bound (an upper bound: load can only lower the count)
     n_tf = sum(1 for g in got if g[0] == "/tf")
     assert n_tf <= 20 * window + 2
+
+
+@pytest.mark.timeout(300)
+def test_without_a_log_each_frame_is_the_record_a_log_holds_at_its_step(tmp_path):
+    """Without --log the compiled loop takes a record only from a block that ends with a frame
+    due (`LiveTee.frame_wanted`), the block's last one on the record grid (the live rate of
+    simulated time): each /tf, /edges, /agents and /lyapunov message received is, byte for
+    byte, the message a log of the same run (records on the same grid) holds at its time."""
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    p = subprocess.Popen([str(SE3SYNC), "run", str(PAPER), "--duration", "2000",
+                          "--live", "127.0.0.1:0", "--live-rate", "20"],
+                         stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        url = None
+        for line in p.stderr:
+            if "live view on ws://" in line:
+                url = line.split("live view on ")[1].split()[0]
+                break
+        assert url is not None
+        _, _, got, _ = _collect(url, want_tf=8)
+    finally:
+        p.send_signal(signal.SIGINT)
+        rest = p.communicate(timeout=120)[1]
+    assert p.returncode == 130, rest
+    rec = [g for g in got if g[0] in ("/tf", "/edges", "/agents", "/lyapunov")]
+    times = sorted({t for _, t, _ in rec})
+    assert len(times) >= 8
+    grid = 50_000_000                     # records at 20 Hz of simulated time
+    assert all(t % grid == 0 for t in times), times
+    log = tmp_path / "same.mcap"
+    assert main(["run", str(PAPER), "--duration", f"{times[-1] / 1e9 + 0.05:.4f}",
+                 "--set", "simulation.log_rate=20", "--log", str(log)]) == 0
+    logged = _messages_with_bytes(log)
+    for topic, t, data in rec:
+        assert logged[(topic, t)] == data, (topic, t)

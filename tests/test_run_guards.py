@@ -218,6 +218,29 @@ def test_non_finite_state_is_a_divergence_in_both_loops(tmp_path, capsys):
         ("fleet (compiled loop)", True)][1]
 
 
+def test_a_sample_divergence_is_not_replaced_by_a_plant_failure_later_in_the_block():
+    """h = 19.2 ms (just past the 19 ms limit): V̄ passes 100 V̄(0) at the sample of step 416
+    (t = 7.99 s) and the state stops being finite at step 440, in the same block of the compiled
+    loop, which runs on to the end of the block. Both loops report the first: before, the
+    compiled loop's plant failure overwrote it (t = 8.45 s, another reason than the Python
+    loop's)."""
+    sc = load_scenario(HIL, step=0.0192, duration=9.0)
+    out = {}
+    for compiled in (True, False):
+        plant = FmuPlant.from_scenario(sc)
+        m = Master(sc, plant, "hybrid")
+        m.use_compiled = compiled
+        try:
+            out[compiled] = m.run(sc.n_steps())
+        finally:
+            plant.close()
+    dv = out[False]["diverged"]
+    assert dv["step"] == 416 and "V̄" in dv["reason"], dv
+    assert out[True]["diverged"] == dv
+    assert out[True]["steps"] > dv["step"]          # the compiled loop went on, and failed
+    assert out[True]["final"]["t"] == dv["t"]       # its last sample: the state is not finite
+
+
 def test_growth_stops_the_compiled_loop_at_the_block_and_the_python_loop_at_once(monkeypatch):
     """With the limit lowered below V̄ at t = 0 (0.93 V̄(0) after the first jumps) the first
     sample is a divergence: the Python loop stops before stepping on, the compiled loop at the

@@ -35,8 +35,9 @@ from tqdm import tqdm
 
 from controller import V_bar, jump_bound, layout
 from controller.errors import Se3SyncError
-from cosim import signals
+from cosim import guards, signals
 from cosim.analysis.stability import analyse
+from cosim.cli.outcome import report_outcome
 from cosim.controllers import agent_view
 from cosim.files import check_output_dir, write_json_atomic
 from cosim.log.writer import McapLogger
@@ -44,6 +45,7 @@ from cosim.log.reader import read_log
 from cosim.master import NetworkMetrics
 from cosim.scenario import design_summary
 from cosim.network import parse_network
+from cosim.plants import refuse_actuation_delay
 from cosim.scenario import ScenarioError, load_scenario
 
 from bridge.live import SwarmLive
@@ -162,6 +164,9 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
                                             "other_sources": ln.get("other_sources", {}),
                                             "kernel_drops": ln.get("kernel_drops")}}})
     steps = max((s["first_step"] + s["steps"] for s in summaries.values()), default=0)
+    # every jump is an owner's, counted by its agent (an agent lists at most guards.MAX_JUMPS)
+    n_jumps = sum(summaries[i].get("n_jumps", len(summaries[i]["jumps"])) for i in present)
+    bound = jump_bound(V0, sc.gains.k_X, sc.design.delta)   # as `run`'s master computes it
     return {
         "scenario": sc.name, "scenario_path": str(sc.path), "controller": law,
         "plant": "mavlink (one agent process per vehicle)", "lockstep": bool(lockstep),
@@ -169,13 +174,34 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
         "interrupted": bool(interrupted or any(s["interrupted"] for s in summaries.values())),
         "agents_missing": missing,
         "design": design_summary(sc), "V0": V0,
-        "jump_bound": jump_bound(V0, sc.gains.k_X, sc.design.delta),
-        "n_jumps": len(jumps), "jumps": jumps, "final": final, "samples": samples,
+        "jump_bound": bound, "n_jumps": n_jumps, "jump_bound_exceeded": n_jumps > bound,
+        "diverged": _diverged(sc, V0, samples, summaries),
+        "jumps": jumps, "final": final, "samples": samples,
         "links": links,
         "link_total": _link_total(links),
         "agents": agents,
         "rejected_total": _rejected_total(agents),
     }
+
+
+def _diverged(sc, V0, samples, summaries):
+    """How the swarm diverged, the earliest of: a merged sample of the whole network that
+    `run`'s guard calls diverged (`cosim.guards.sample_divergence`), and an agent that stopped
+    because its own view diverged (with ``"agent"``); None if neither."""
+    found = []
+    limit = guards.V_limit(V0, sc.gravity)
+    for rec in samples:
+        why = guards.sample_divergence(rec, limit)
+        if why is not None:
+            found.append({"t": rec["t"], "step": round(rec["t"] / sc.step), "reason": why,
+                          "agent": None})
+            break
+    for i, s in sorted(summaries.items()):
+        dv = s.get("diverged")
+        if dv:
+            found.append({"t": dv["t"], "step": dv["step"],
+                          "reason": f"agent {i}'s own view: {dv['reason']}", "agent": i})
+    return min(found, key=lambda d: (d["t"], d["agent"] is not None)) if found else None
 
 
 def _rejected_total(agents) -> dict:
@@ -591,6 +617,7 @@ def _swarm_cli(args, early: list) -> int:
         raise Se3SyncError(f"--start-delay: must be a number of seconds in [0, 3600], got "
                            f"{args.start_delay!r}")
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
+    refuse_actuation_delay(sc, "se3sync swarm (the vehicles are the plant)")
     agent_view(args.controller, sc, 1)   # the law has a per-agent view, or one line saying not
     key = read_key_file(args.key) if args.key else None
     net = sc.tables.get("network") or parse_network({}, sc.n_agents)
@@ -622,4 +649,5 @@ def _swarm_cli(args, early: list) -> int:
           f"{f.get('rot_err', float('nan')):.3g}, pos_err {f.get('pos_err', float('nan')):.3g}; "
           f"inter-agent messages {tot['sent']}, lost {tot['lost']}, age p99 "
           f"{tot['age_p99_steps_max']} steps; refused: {_refused_line(merged)}", file=sys.stderr)
-    return rc
+    status = report_outcome("swarm", merged)   # the jump bound, a divergence: as `run` says them
+    return rc or status

@@ -19,9 +19,10 @@ def register(sub) -> None:
                     "runs), their connections (state S to the controller, wrenches to the "
                     "plant), every parameter of each in an SSV file, and the communication step "
                     "as the default experiment. Tested in FMPy (fmpy.ssp.simulate_ssp) and "
-                    "libcosim (libcosimpy): both reproduce `se3sync run` with one communication "
-                    "step of actuation delay, which their fixed-step exchange adds "
-                    "(docs/fmi-system.md). Written to a temporary name and renamed. Exit codes: "
+                    "libcosim (libcosimpy): both reproduce `se3sync run --set "
+                    "simulation.actuation_delay=1`, the one communication step of actuation delay "
+                    "their fixed-step (Jacobi) exchange adds (docs/fmi-system.md). Written to a "
+                    "temporary name and renamed. Exit codes: "
                     "0 ok, 2 bad input.")
     p.add_argument("scenario", help="scenario TOML file")
     p.add_argument("-o", "--output", required=True, metavar="SYSTEM.ssp",

@@ -4,8 +4,9 @@ Both FMPy's `fmpy.ssp.simulate_ssp` and libcosim's fixed-step algorithm step eve
 values of the previous communication point and exchange outputs afterwards (a Jacobi scheme).
 The controller FMU samples the state at t_n in its step [t_n, t_n + h] and outputs u(t_n), so
 the plant applies u(t_n) over the next step: the loop these masters run is `se3sync run` with one
-communication step of actuation delay (u ≡ 0 on the first step). `DelayedActuation` is that
-plant for cosim's master, the reference the masters are held to (docs/fmi-system.md).
+communication step of actuation delay (u ≡ 0 on the first step), i.e. `se3sync run` with
+``simulation.actuation_delay = 1`` (`cosim.plants.DelayedActuation`), the run the masters are
+held to (docs/fmi-system.md).
 
 `run_fmpy` and `run_libcosim` return a `SystemRun`: the plant state at every communication point,
 θ after the jump stage and every jump (step, edge), read from the FMUs' own outputs.
@@ -13,11 +14,9 @@ plant for cosim's master, the reference the masters are held to (docs/fmi-system
 from __future__ import annotations
 
 import os
-import shutil
 import tempfile
 import zipfile
 from dataclasses import dataclass
-from pathlib import Path
 from xml.etree import ElementTree as ET
 
 import numpy as np
@@ -25,37 +24,11 @@ import numpy as np
 from controller.errors import Se3SyncError
 
 from ..master import NetworkMetrics
+from ..plants import DelayedActuation   # noqa: F401  (the masters' loop in cosim; re-exported)
 from .ssp import CONTROLLER, NS, PLANT, SSD_NAME, state_connectors
 
 __all__ = ["SystemRun", "DelayedActuation", "ssp_parameters", "run_fmpy", "run_libcosim",
            "samples"]
-
-
-class DelayedActuation:
-    """A `cosim.plants.Plant` that applies each wrench one step late (zero on the first step):
-    what a plant FMU receives from the controller FMU in a Jacobi master."""
-
-    def __init__(self, inner):
-        self.inner = inner
-        self.n = inner.n
-        self._held = np.zeros((inner.n, 6))
-
-    def read(self):
-        return self.inner.read()
-
-    def apply(self, u) -> None:
-        self.inner.apply(self._held)
-        self._held = np.array(u, dtype=float, copy=True)
-
-    def advance(self, h: float) -> None:
-        self.inner.advance(h)
-
-    def model_description(self):
-        md = getattr(self.inner, "model_description", None)
-        return md() if md is not None else None
-
-    def close(self) -> None:
-        self.inner.close()
 
 
 @dataclass

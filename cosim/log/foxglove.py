@@ -314,7 +314,10 @@ class CdrScene:
             poses = self._kept[:, :self._nkept]
         else:
             poses = np.concatenate((self._kept[:, :self._nkept], cur[:, None]), axis=1)
-        L = poses.shape[1]
+        return self._trail_layout(poses.shape[1]).fill(poses.reshape(len(poses), -1), t_ns)
+
+    def _trail_layout(self, L: int):
+        """The layout of a trail of L poses, made on first use."""
         lay = self._trail.get(L)
         if lay is None:
             lay = self._trail[L] = cdr.compile_layout(cdr.SCHEMA["trail"], lambda f, t, m: {
@@ -322,7 +325,13 @@ class CdrScene:
                 "poses": [{"position": {"x": f(), "y": f(), "z": f()},
                            "orientation": {"x": f(), "y": f(), "z": f(), "w": f()}}
                           for _ in range(L)]})
-        return lay.fill(poses.reshape(len(poses), -1), t_ns)
+        return lay
+
+    def warm(self) -> None:
+        """Makes the trail layouts of every length now (a trail has 1 … trail_len + 1 poses),
+        so that none is made while a run steps (the live view: cosim/log/live.py)."""
+        for L in range(1, self.sb.trail_len + 2):
+            self._trail_layout(L)
 
 
 # ------------------------------------------------------------------ layout

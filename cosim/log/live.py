@@ -12,9 +12,12 @@ the log's writer thread; without one, in the loop's own thread between blocks, w
 reads the clock (``inline``; frames are encoded on a thread of its own). A record becomes a
 frame only when 1/rate s of wall time have passed since the last one (default 30 Hz), only its
 newest row, and only while a client subscribes to some channel; jumps are always sent (they are
-rare, and the view marks them). Without a log the run takes its records at most at the live rate
-of simulated time (`live_only`) and in blocks of a frame period. The messages keep the log's time
-stamps (simulated time, or the wall clock's t = n·h of a hardware run).
+rare, and the view marks them). Without a log the run's records lie on a grid of the live rate
+of simulated time (`live_only`), its blocks are a frame period long, and the compiled loop takes
+a record only from a block that ends with a frame due (`LiveTee.frame_wanted`). Encoding takes
+at most `LiveTee.CPU_SHARE` of a core (the frame rate falls when frames cost more). The messages
+keep the log's time stamps (simulated time, or the wall clock's t = n·h of a hardware run).
+docs/live.md measures what it costs the loop.
 
 Access. The WebSocket has no authentication: a socket on a non-loopback address is refused
 unless ``insecure`` (the MAVLink sockets' rule, `se3sync connect --insecure`).
@@ -23,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import ipaddress
+import math
 import os
 import queue
 import shutil
@@ -41,6 +45,7 @@ __all__ = ["DEFAULT_RATE", "parse_live", "LiveServer", "LiveTee", "live_logger",
 
 DEFAULT_RATE = 30.0          # Hz of wall time: live frames per second
 WORKER_NICE = 10             # the live view's encoding thread, below the control loop
+WATCH_CHECK_S = 0.25         # s of wall time between two looks for a subscribed client
 LOCAL_NAMES = ("localhost",)
 
 
@@ -82,13 +87,21 @@ def parse_live(text: str, insecure: bool = False, option: str = "--live") -> tup
 
 class _Sink:
     """Takes `McapLogger`'s messages (the appender's interface) and logs them on foxglove-sdk
-    channels of the server's context, one per log channel, made on first use."""
+    channels of the server's context, one per log channel, made on first use.
+
+    Messages go to the channel's native ``BaseChannel.log(bytes, log_time, sink_id)``, not
+    through `foxglove.Channel.log`, whose Python checks (the encoding, the message's type) cost
+    more than the log call itself: a 1000-agent frame is 1000 trail messages (26 of 43 ms per
+    frame went there)."""
 
     def __init__(self, context):
         self.context = context
         self.logger = None
         self._chan = {}
+        self._log = {}   # channel id -> the native channel's log
         self.sent = 0
+        self._watching = False
+        self._watch_until = -math.inf
 
     def _channel(self, cid):
         ch = self._chan.get(cid)
@@ -100,19 +113,39 @@ class _Sink:
             ch = self._chan[cid] = foxglove.Channel(
                 topic, schema=foxglove.Schema(name=name, encoding=senc, data=data),
                 message_encoding=menc, context=self.context)
+            self._log[cid] = ch.base.log
         return ch
 
     def watched(self) -> bool:
-        """Whether any client subscribes to any channel (no viewer: nothing to encode)."""
-        return any(ch.has_sinks() for ch in self._chan.values())
+        """Whether any client subscribes to any channel (no viewer: nothing to encode). Asked
+        of every channel (a 1000-agent view has 1000 trail channels) at most every
+        `WATCH_CHECK_S` of wall time; a new viewer is seen that much later."""
+        now = time.monotonic()
+        if now < self._watch_until:
+            return self._watching
+        self._watching = any(ch.has_sinks() for ch in self._chan.values())
+        self._watch_until = now + WATCH_CHECK_S
+        return self._watching
+
+    def _logger_of(self, cid):
+        log = self._log.get(cid)
+        if log is None:
+            self._channel(cid)
+            log = self._log[cid]
+        return log
 
     def add(self, channel_id, log_time, data, sequence):
-        self._channel(channel_id).log(bytes(data), log_time=int(log_time))
+        self._logger_of(channel_id)(data if type(data) is bytes else bytes(data),
+                                    int(log_time), None)
         self.sent += 1
 
     def add_rows(self, channel_ids, log_time, rows, sequence):
+        t = int(log_time)
+        logs = self._log
         for cid, row in zip(channel_ids, rows):
-            self.add(cid, log_time, row.tobytes(), 0)
+            log = logs.get(cid) or self._logger_of(cid)
+            log(row.tobytes(), t, None)
+        self.sent += len(rows)
 
     def close(self):
         chans, self._chan = self._chan, {}
@@ -159,6 +192,11 @@ class LiveServer:
         self.sink.logger = self.encoder
         for cid in list(self.encoder.channels):   # advertised now, before the first frame
             self.sink._channel(cid)
+        # what the encoder would otherwise make at its first frames, while the loop runs: the
+        # CDR layouts of the trails of every length (25 of them, 0.14 s at 1000 agents)
+        warm = getattr(getattr(self.encoder, "_cdr_scene", None), "warm", None)
+        if warm is not None:
+            warm()
         self.frames = 0
         self._closed = False
 
@@ -200,9 +238,17 @@ class LiveTee:
     it in its own thread instead of handing every block to the writer thread (a thread switch
     per block, +12 % of the loop's CPU time at N = 6), it only checks the clock there, and the
     frames it takes (copies of one record) are encoded on a thread of its own; at most two wait,
-    later ones are dropped, so the loop never waits for the view."""
+    later ones are dropped, so the loop never waits for the view. Inline, the compiled loop
+    asks `frame_wanted` before each block and takes a record only from a block that ends with
+    a frame due, and only its last one.
+
+    CPU budget: encoding a frame takes thread CPU time E (a 1000-agent frame: its scene and
+    1000 trails); the next frame is not due before E / `CPU_SHARE` after this one began, so the
+    view's encoding takes at most that share of one core, whatever N, and the frame rate falls
+    below the live rate when a frame costs more than ``CPU_SHARE / rate`` (docs/live.md)."""
 
     MAX_PENDING = 2
+    CPU_SHARE = 0.2
 
     def __init__(self, inner, server: LiveServer):
         self.inner = inner
@@ -215,9 +261,13 @@ class LiveTee:
         # inline, the loop's blocks need be no shorter than a frame period (the writer thread's
         # 10 ms blocks are for a log's encoding): fewer returns to Python per second
         self.block_seconds = self._period if self.inline else None
+        if not self.inline:   # with a log, every record is the log's: none to skip
+            self.frame_wanted = None
         self.dropped = 0
         self._q = self._worker = None
         self._pending = 0
+        self._asked = None       # when the loop last asked `frame_wanted`
+        self._granted = False    # ... and was told yes: its next record is the frame
         if self.inline:
             self._q = queue.Queue()
             self._worker = threading.Thread(target=self._work, name="se3sync-live",
@@ -242,16 +292,23 @@ class LiveTee:
             if item is None:
                 return
             fn, args, frame = item
-            try:
-                fn(*args)
-            except Exception:  # noqa: BLE001 - the view must never stop the run
-                pass
+            self._call(fn, args, frame)
             if frame:
                 self._pending -= 1
 
+    def _call(self, fn, args, frame):
+        """Encodes (and sends) one item; a frame pushes the next one back by its CPU cost."""
+        t0, c0 = time.monotonic(), time.thread_time()
+        try:
+            fn(*args)
+        except Exception:  # noqa: BLE001 - the view must never stop the run
+            pass
+        if frame:
+            self._next = max(self._next, t0 + (time.thread_time() - c0) / self.CPU_SHARE)
+
     def _emit(self, fn, args, frame):
         if self._q is None:
-            fn(*args)
+            self._call(fn, args, frame)
         elif not frame:
             self._q.put((fn, tuple(_copy(a) for a in args), False))
         elif self._pending < self.MAX_PENDING:
@@ -267,6 +324,29 @@ class LiveTee:
         self._next = now + self._period
         if not self.server.sink.watched():   # nobody is looking: no frame to encode
             return False
+        self.server.frames += 1
+        return True
+
+    def frame_wanted(self) -> bool:
+        """Whether the block the compiled loop is about to run should give a record for a
+        frame: a frame falls due before the block ends (its end is guessed from the last
+        block's length, the time since the last call), one can be queued, and someone watches.
+        The loop takes no record from a block it is told no (`cosim.fastloop.run_compiled`),
+        and the last record of one it is told yes: that record is the frame. Inline only."""
+        now = time.monotonic()
+        lead = 0.0 if self._asked is None else now - self._asked
+        self._asked = now
+        self._granted = (now + lead >= self._next and self._pending < self.MAX_PENDING
+                         and self.server.sink.watched())
+        return self._granted
+
+    def _take(self) -> bool:
+        """The record of a block `frame_wanted` said yes to is the frame; the next one falls
+        due a frame period after this one was due (or after now, if that is later)."""
+        if not self._granted:
+            return False
+        self._granted = False
+        self._next = max(self._next, time.monotonic()) + self._period
         self.server.frames += 1
         return True
 
@@ -290,7 +370,7 @@ class LiveTee:
             else:
                 for r in range(len(t_ns)):
                     inner.record(t_ns[r], *(x[r] for x in a))
-        if len(t_ns) and self._due():
+        if len(t_ns) and (self._take() or self._due()):
             self._emit(self.enc.record_block, (t_ns[-1:], *(x[-1:] for x in a)), True)
 
     def jump(self, *a):
