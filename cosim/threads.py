@@ -4,12 +4,13 @@ NumPy and SciPy each load their own OpenBLAS, which by default starts one thread
 every call large enough and keeps them spinning between calls. On the matrices se3sync gives it
 (the analysis's dense eigenproblems of at most a few thousand rows, the 3 × 3 and 6 × 6
 products of a step) the threads gain little when the machine is idle and cost several times the
-work when other jobs share the cores: `se3sync check scenarios/hil_6uav.toml` took 2.3 s idle
-and 7–30 s with another job on the two cores, with 5 times the CPU time of one thread, which
-takes the same 2.3 s whatever the load. So the count is chosen here, per job:
+work when other jobs share the cores: `se3sync check scenarios/hil_6uav.toml` takes 2.4–2.5 s
+idle either way, but with other jobs on the two cores 53 s on the library's default threads
+(17 s of CPU: the threads spin) against 17 s on one (2.7 s of CPU, as idle; medians of 3,
+benchmarks/bench_check_load.py). So the count is chosen here, per job:
 
 * **analysis** (`check`, the checks before `run`, `swarm` and `connect`, `run`'s delay guard):
-  `analysis_threads` by the loop's size, applied by `analysis` around `stability.analyse`,
+  `analysis_threads` (one, at every size), applied by `analysis` around `stability.analyse`,
   `delay_margin.delay_margin` and `convergence_rate.convergence`;
 * **sweep samples** (`run_chunk`, in a Dask worker process or in-process):
   `SWEEP_WORKER_THREADS` per worker process, the cores being shared by the workers;
@@ -37,7 +38,7 @@ from threadpoolctl import threadpool_info, threadpool_limits
 
 from controller.errors import Se3SyncError
 
-__all__ = ["ENV", "ANALYSIS_THREADS", "ANALYSIS_MANY_STATES", "SWEEP_WORKER_THREADS",
+__all__ = ["ENV", "ANALYSIS_THREADS", "SWEEP_WORKER_THREADS",
            "AGENT_THREADS", "override", "chosen", "analysis_threads", "blas_threads",
            "analysis", "limit_process", "blas_info"]
 
@@ -45,10 +46,12 @@ ENV = "SE3SYNC_BLAS_THREADS"
 # The loader's variables: read by a BLAS library when it is loaded
 LOAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
+# One at every size. Measured on 2 cores (benchmarks/bench_check_load.py): with the cores to
+# itself, a dense eigvals on 2 threads is as fast as on one up to 1100 rows and 1.5× faster at
+# 2000 (the largest the delay margin solves densely); with two other jobs on the cores it is 4
+# to 9 times slower at every size. A rule by size would buy 1.5× on an idle machine at the risk
+# of 6× on a shared one: SE3SYNC_BLAS_THREADS=2 buys it where the cores are known to be free.
 ANALYSIS_THREADS = 1
-# Loops of more states than this (12N + M) would get the library's default threads, if that
-# paid (it does not, measured: docs/performance.md#blas-threads); kept for the rule's shape
-ANALYSIS_MANY_STATES = None
 SWEEP_WORKER_THREADS = 1
 AGENT_THREADS = 1
 
@@ -79,10 +82,8 @@ def chosen(n: int | None) -> int | None:
 
 
 def analysis_threads(states: int) -> int | None:
-    """The analysis's BLAS threads for a loop of ``states`` states (12N + M): one (see the
-    module docstring); None (the library's default) above `ANALYSIS_MANY_STATES` if set."""
-    if ANALYSIS_MANY_STATES is not None and states > ANALYSIS_MANY_STATES:
-        return None
+    """The analysis's BLAS threads for a loop of ``states`` states (12N + M): `ANALYSIS_THREADS`
+    whatever the size (why: at its definition). None would leave the library's default."""
     return ANALYSIS_THREADS
 
 
