@@ -228,3 +228,14 @@ def test_a_sweep_chunk_runs_blas_on_one_thread(spec, monkeypatch):
     before, seen, after = blas_threads_in_chunk(short)
     assert len(seen) == 2 and all(set(s) == {1} for s in seen), seen
     assert after == before
+
+
+def test_a_bad_blas_override_is_refused_before_any_sample(spec, monkeypatch, tmp_path):
+    from controller.errors import Se3SyncError
+    from cosim.sweep.runner import run_sweep
+    from cosim.threads import ENV
+
+    monkeypatch.setenv(ENV, "-3")
+    with pytest.raises(Se3SyncError, match=f"{ENV}: must be an integer >= 0"):
+        run_sweep(spec, tmp_path / "o.parquet", workers=0)
+    assert not (tmp_path / "o.parquet").exists()
