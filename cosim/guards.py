@@ -19,7 +19,7 @@ import json
 import math
 
 __all__ = ["outcome_metadata", "EXIT_DIVERGED", "DIVERGE_FACTOR", "XI_LIMIT", "MAX_SAMPLES", "MAX_JUMPS",
-           "RUN_DELAY_MAX_AGENTS", "ONE_BLAS_THREAD_STATES", "V_limit", "sample_divergence"]
+           "RUN_DELAY_MAX_AGENTS", "V_limit", "sample_divergence"]
 
 EXIT_DIVERGED = 6          # `se3sync run`: stopped because the run diverged
 # V̄ is non-increasing along the paper's closed loop (gravity-free), so V̄(t) ≤ V̄(0); the sampled
@@ -32,11 +32,7 @@ MAX_JUMPS = 10_000         # jumps listed in the summary (all are counted, and l
 # `run` computes the delay margin before a run with a delay up to this many agents unless
 # --delay-agents says otherwise (tree of 1000 agents: 6-10 s on 2 cores; see `check`)
 RUN_DELAY_MAX_AGENTS = 1000
-# Loops of at most this many states get the margin's dense eigenproblems on one BLAS thread:
-# OpenBLAS's threads on such small matrices cost more than they give, and with the cores busy
-# they spin (hil_6uav, 77 states, both cores loaded: 20 s of CPU and 71 s wall on the default
-# threads, 1.7 s and 6.8 s on one)
-ONE_BLAS_THREAD_STATES = 600
+# (the margin's BLAS threads: cosim/threads.py, as for every analysis)
 
 
 OUTCOME_KEYS = ("steps", "sim_time_s", "interrupted", "stopped_during", "diverged", "n_jumps",

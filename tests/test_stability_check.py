@@ -2,6 +2,7 @@
 import json
 import math
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -150,3 +151,83 @@ def test_delay_margin_progress_lines_on_a_terminal(capsys, monkeypatch):
     assert seen[d] == pytest.approx(dm["rho_at_margin"], abs=1e-8)
     assert seen[d + 1] == pytest.approx(dm["rho_beyond"], abs=1e-8)
     assert f"{len(seen)} eigenproblems" in dm["delay_method"]
+
+
+# ------------------------------------------------------------------ BLAS threads (cosim/threads.py)
+def _spy_blas(monkeypatch):
+    """Every eigenproblem np.linalg solves, with the BLAS libraries' thread counts at the time
+    (threadpoolctl)."""
+    from cosim.threads import blas_info
+
+    seen = []
+    for name in ("eigvals", "eig"):
+        orig = getattr(np.linalg, name)
+
+        def spy(*a, _orig=orig, **k):
+            if len(seen) < 50:        # threadpool_info reads every loaded library: a few ms
+                seen.append(tuple(n for _, n in blas_info()))
+            return _orig(*a, **k)
+        monkeypatch.setattr(np.linalg, name, spy)
+    return seen
+
+
+def test_check_runs_its_eigenproblems_on_one_blas_thread(capsys, monkeypatch):
+    """The policy (cosim/threads.py): `check`'s analysis runs BLAS on one thread per library,
+    whatever the library's default, and gives the default back afterwards; the override
+    SE3SYNC_BLAS_THREADS=0 leaves the default; a bad override is one line, exit 2."""
+    import cosim.analysis.delay_margin  # noqa: F401 - scipy's BLAS is loaded too
+    from cosim.threads import ENV, blas_info
+
+    monkeypatch.delenv(ENV, raising=False)
+    before = blas_info()
+    assert len(before) >= 1
+    seen = _spy_blas(monkeypatch)
+    assert main(["check", *QUICK]) == 0
+    assert json.loads(capsys.readouterr().out)["delay_margin"]["delay_margin_steps"] == 5
+    assert len(seen) >= 3 and set(seen) == {(1,) * len(before)}, seen[:5]
+    assert blas_info() == before          # restored
+    seen.clear()
+    monkeypatch.setenv(ENV, "0")          # the library's default, as before the policy
+    assert main(["check", *QUICK]) == 0
+    capsys.readouterr()
+    assert seen and set(seen) == {tuple(n for _, n in before)}
+    monkeypatch.setenv(ENV, "two")
+    assert main(["check", *QUICK]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and ENV in err[0]
+
+
+@pytest.mark.parametrize("entry", ["analyse", "delay_margin", "convergence"])
+def test_every_analysis_entry_point_chooses_its_blas_threads(monkeypatch, entry):
+    """Called as a library (run's pre-check, swarm's, the delay guard), each entry point applies
+    the policy by itself: one BLAS thread for hil_6uav's 77-state loop."""
+    from cosim import threads
+    from cosim.analysis.convergence_rate import convergence
+    from cosim.analysis.delay_margin import delay_margin
+    from cosim.analysis.stability import analyse
+
+    monkeypatch.delenv(threads.ENV, raising=False)
+    assert threads.analysis_threads(77) == 1
+    fn = {"analyse": analyse, "delay_margin": delay_margin, "convergence": convergence}[entry]
+    seen = _spy_blas(monkeypatch)
+    fn(load_scenario(QUICK[0], [QUICK[3], QUICK[5]]))
+    assert seen and all(set(s) == {1} for s in seen), seen[:5]
+
+
+def test_limit_process_covers_blas_loaded_later():
+    """An agent process (`limit_process`, bridge/swarm/agent.py's run_agent): one thread in
+    NumPy's BLAS, loaded, and in SciPy's, loaded afterwards."""
+    import os
+    import subprocess
+
+    code = ("import json, sys, numpy; from cosim.threads import limit_process, blas_info; "
+            "assert 'scipy' not in sys.modules; limit_process(1); import scipy.linalg; "
+            "print(json.dumps(blas_info()))")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("SE3SYNC_BLAS_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                        "MKL_NUM_THREADS")}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                       cwd=str(Path(__file__).resolve().parents[1]))
+    assert r.returncode == 0, r.stderr
+    info = json.loads(r.stdout)   # [[file, threads]]
+    assert len(info) == 2 and all(n == 1 for _, n in info), info

@@ -160,3 +160,20 @@ def test_interrupt_and_resume(client, spec, reference, tmp_path):
     with pytest.raises(SweepError, match="--out: .*seed 5 != 6"):
         run_sweep(dataclasses.replace(spec, seed=6), out, workers=0, controllers=LAWS2)
     assert out.read_bytes() == before
+
+
+def test_a_dask_worker_runs_its_chunks_on_one_blas_thread(client, spec):
+    """cosim/threads.py in a worker process of the cluster: one BLAS thread per library while
+    it runs samples, even when the worker's libraries were set to two."""
+    def probe(spec):
+        import os
+
+        from test_sweep_worker import blas_threads_in_chunk
+        return os.getpid(), blas_threads_in_chunk(spec)
+
+    import os
+
+    pid, (before, seen, after) = client.submit(probe, spec, pure=False).result(timeout=300)
+    assert pid != os.getpid()
+    assert len(seen) == 2 and all(set(s) == {1} for s in seen), seen
+    assert after == before

@@ -186,3 +186,56 @@ def test_failures_are_rows_not_exceptions(spec):
     assert ok["status"] == "ok" and ok["converged"]
     e = sw.run_sample(spec, 0, "nonsense")
     assert e["status"] == "error" and "controller" in e["error"]
+
+
+def blas_threads_in_chunk(spec, threads_outside=2):
+    """(BLAS threads before, during each sample of, and after `run_chunk`), with the process's
+    libraries first set to ``threads_outside`` threads (as a worker without Dask's nanny
+    environment, or a machine default, would have them). Runs where it is called: in this
+    process or, submitted, in a Dask worker (tests/test_sweep_dask.py)."""
+    from threadpoolctl import threadpool_limits
+
+    from cosim.sweep import spec as sw_
+    from cosim.threads import blas_info
+
+    seen = []
+    orig = sw_.run_sample
+
+    def spy(*a):
+        seen.append([n for _, n in blas_info()])
+        return orig(*a)
+
+    with threadpool_limits(limits=threads_outside, user_api="blas"):
+        before = [n for _, n in blas_info()]
+        sw_.run_sample = spy
+        try:
+            rows = sw_.run_chunk(spec, [(0, "hybrid"), (12, "gradient")])
+        finally:
+            sw_.run_sample = orig
+        after = [n for _, n in blas_info()]
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    return before, seen, after
+
+
+def test_a_sweep_chunk_runs_blas_on_one_thread(spec, monkeypatch):
+    """cosim/threads.py: a chunk of samples gets SWEEP_WORKER_THREADS = 1 BLAS thread per
+    library (the workers share the cores), and the process's own count back afterwards."""
+    from cosim.threads import ENV, SWEEP_WORKER_THREADS
+
+    monkeypatch.delenv(ENV, raising=False)
+    assert SWEEP_WORKER_THREADS == 1
+    short = dataclasses.replace(spec, timeout=None)
+    before, seen, after = blas_threads_in_chunk(short)
+    assert len(seen) == 2 and all(set(s) == {1} for s in seen), seen
+    assert after == before
+
+
+def test_a_bad_blas_override_is_refused_before_any_sample(spec, monkeypatch, tmp_path):
+    from controller.errors import Se3SyncError
+    from cosim.sweep.runner import run_sweep
+    from cosim.threads import ENV
+
+    monkeypatch.setenv(ENV, "-3")
+    with pytest.raises(Se3SyncError, match=f"{ENV}: must be an integer >= 0"):
+        run_sweep(spec, tmp_path / "o.parquet", workers=0)
+    assert not (tmp_path / "o.parquet").exists()

@@ -48,6 +48,7 @@ from cosim.network import parse_network
 from cosim.registry import LAWS
 from cosim.run import finish_summary
 from cosim.scenario import restrict
+from cosim.threads import AGENT_THREADS, limit_process
 
 from .agent_link import AgentLink
 from bridge.mavlink.config import check_endpoint, default_config, read_key_file
@@ -547,6 +548,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
     docstring); the library entry point of `se3sync agent`. Raises ConnectError (the vehicle
     never connected) and LinkError (lockstep: a vehicle or neighbour stopped answering; a late
     joiner heard nothing). A run that fails removes its log; an interrupted one keeps it."""
+    limit_process(AGENT_THREADS)   # one job per process: BLAS threads would only compete
     node = AgentNode(scenario, agent_id, law=law, lockstep=lockstep, key_file=key_file,
                      insecure=insecure, vehicle=vehicle, connect_timeout=connect_timeout,
                      signing_state=signing_state, tlog=tlog, on_event=on_event)

@@ -22,6 +22,7 @@ import numpy as np
 from controller import layout
 
 from ..signals import interruptible
+from ..threads import analysis as blas_policy
 from .linear import GAINS, law_of
 from .stability_sparse import (
     DENSE_MAX,
@@ -104,6 +105,7 @@ def slowest_mode(lin: Linearisation, h: float) -> dict:
             "graph_eigenvalue": s}
 
 
+@blas_policy
 def convergence(scenario, h: float | None = None, law="hybrid", e0: float | None = None,
                 eps: float = 0.05, lin: Linearisation | None = None) -> dict:
     """The slowest decay rate, the time to the sweep's tolerances from e0 (default: the

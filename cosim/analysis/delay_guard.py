@@ -2,11 +2,9 @@
 of its loop: what `se3sync run` refuses before a run (docs/run-guards.md)."""
 from __future__ import annotations
 
-from threadpoolctl import threadpool_limits
-
 from controller.errors import ConfigError
 
-from ..guards import ONE_BLAS_THREAD_STATES, RUN_DELAY_MAX_AGENTS
+from ..guards import RUN_DELAY_MAX_AGENTS
 from .delay_margin import delay_margin
 
 __all__ = ["delay_guard"]
@@ -40,11 +38,7 @@ def delay_guard(scenario, law="hybrid", max_agents: int = RUN_DELAY_MAX_AGENTS, 
         out["why"] = (f"not computed: {scenario.graph.n} agents > {max_agents} "
                       "(--delay-agents)")
         return out
-    if 12 * scenario.graph.n + scenario.graph.M <= ONE_BLAS_THREAD_STATES:
-        with threadpool_limits(limits=1, user_api="blas"):
-            dm = delay_margin(scenario, law=law, progress=progress, sweep=sweep)
-    else:
-        dm = delay_margin(scenario, law=law, progress=progress, sweep=sweep)
+    dm = delay_margin(scenario, law=law, progress=progress, sweep=sweep)   # BLAS: cosim/threads.py
     m = dm["delay_margin_steps"]
     out.update(delay_margin_steps=m, delay_margin_s=dm["delay_margin_s"])
     if m is None:

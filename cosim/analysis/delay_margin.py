@@ -28,6 +28,7 @@ import scipy.sparse.linalg as sla
 from controller.errors import Se3SyncError
 
 from ..signals import interruptible
+from ..threads import analysis as blas_policy
 from .delay_count import determinant_on_tree, roots_outside
 from .stability_sparse import Linearisation
 
@@ -453,6 +454,7 @@ def crossing_delay(Phi0, B, C, n_omega: int = 200, depth: int = NARROW_DEPTH,
     return best if math.isfinite(best[0]) else None
 
 
+@blas_policy
 def delay_margin(scenario, h: float | None = None, law="hybrid", d_cap: int = 1024,
                  lin: Linearisation | None = None, secant: bool = True, guess: bool = True,
                  progress=None, sweep=None, count: bool | None = None) -> dict:

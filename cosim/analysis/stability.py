@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..threads import analysis as blas_policy
 from .linear import law_of, loop_jacobian
 from .stability_sparse import analyse_fast, largest_stable_step
 
@@ -77,6 +78,7 @@ def max_stable_step(scenario, Kx=None, G=None, law="hybrid", rel_tol: float = 0.
                                rel_tol)
 
 
+@blas_policy
 def analyse(scenario, h: float | None = None, law="hybrid", bisect: bool = True) -> dict:
     """{"step", "spectral_radius", "stable", "max_stable_step", "method"} for the scenario's h
     (or h), the loop of ``law`` (a registered law name, `cosim.registry.LAWS`; True / False:

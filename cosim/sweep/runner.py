@@ -35,6 +35,7 @@ from controller.errors import Se3SyncError
 from ..controllers import law_names
 from ..files import atomic_path, write_json_atomic
 from ..scenario import load_scenario
+from ..threads import override as blas_override
 from .spec import COLUMNS, SweepSpec, error_row, load_spec_scenario, n_adversarial, run_chunk
 
 __all__ = ["SweepError", "run_sweep", "read_results", "write_results", "make_spec"]
@@ -186,6 +187,7 @@ def run_sweep(spec, out, *, controllers=CONTROLLERS, workers=None, scheduler=Non
     no Dask). ``stop_after``: test hook, stop (as if interrupted) after that many new rows.
     """
     out = Path(out)
+    blas_override()   # a bad SE3SYNC_BLAS_THREADS: one line here, not an error row per sample
     sc = load_spec_scenario(spec)
     n_adv = n_adversarial(sc)
     n_total = n_adv + spec.n_random

@@ -45,6 +45,7 @@ from ..initial import poses_from_relative, random_state
 from ..master import Master
 from ..plants import make_plant
 from ..scenario import parse_scenario
+from ..threads import SWEEP_WORKER_THREADS, blas_threads, chosen
 
 __all__ = ["SweepSpec", "COLUMNS", "KINDS", "n_adversarial", "describe_sample",
            "initial_state", "critical_pose", "run_sample", "run_chunk", "error_row",
@@ -330,8 +331,10 @@ def _run(spec: SweepSpec, sc, index: int, controller: str, t_wall: float) -> dic
 
 
 def run_chunk(spec: SweepSpec, tasks) -> list[dict]:
-    """Runs (sample, controller) pairs in order; one row each."""
-    return [run_sample(spec, int(i), str(c)) for i, c in tasks]
+    """Runs (sample, controller) pairs in order; one row each. BLAS runs on
+    `cosim.threads.SWEEP_WORKER_THREADS` thread(s): the cores are shared by the workers."""
+    with blas_threads(chosen(SWEEP_WORKER_THREADS)):
+        return [run_sample(spec, int(i), str(c)) for i, c in tasks]
 
 
 def with_faults(spec: SweepSpec, faults) -> SweepSpec:
