@@ -514,3 +514,70 @@ def test_vehicle_fail_safe_reports_are_quiet_before_the_first_command_then_rate_
     reports = [e for e in events if "failsafe" in e or "resumed" in e]
     assert st["vehicle_failsafes"] >= 6 * 5, st["vehicle_failsafes"]   # they happened, counted
     assert len(reports) <= 6, reports                                   # one line per vehicle
+
+
+# ------------------------------------------------------------------------------ the audit of issue 29
+# Faults an audit of the fixes above reproduced (each test failed before its fix).
+def _plant_on_os_port(tmp_path, overrides=(), key=None):
+    """A `MavlinkPlant` for hil_6uav whose six vehicles share one udpin socket on a port the OS
+    chose (routing by system id), and that port."""
+    from bridge.mavlink.config import default_config
+    from bridge.mavlink.plant import MavlinkPlant
+
+    sc = load(list(overrides))
+    cfg = (sc.bridge or default_config(sc.n_agents)).with_endpoints(["udpin:127.0.0.1:0"] * sc.n_agents)
+    p = MavlinkPlant(sc, cfg, key=key, connect_timeout=5, on_event=lambda s: None,
+                     signing_state=str(tmp_path / "bridge.signing.json") if key else None)
+    return p, p.socks[0].local[1]
+
+
+def _odometry(peer) -> bytes:
+    t = int(time.time() * 1e6)
+    return bytes(peer.pack(peer.mav.odometry_encode(
+        t, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD, 0, 0, 0, [1, 0, 0, 0],
+        0, 0, 0, 0, 0, 0, [math.nan] + [0.0] * 20, [math.nan] + [0.0] * 20, 0, 0, 100)))
+
+
+def _udp():
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    return s
+
+
+def _poll_until(p, pred, guard=30.0):
+    """Services the plant until pred() (a guard of ``guard`` s against a hang, not a deadline)."""
+    t_end = time.monotonic() + guard
+    while not pred() and time.monotonic() < t_end:
+        p.poll(0.01)
+    return pred()
+
+
+def test_an_unsigned_heartbeat_takes_no_vehicle_source_under_a_key(tmp_path):
+    """Audit 5: with --key and bridge.allow_unsigned_heartbeat, one unsigned HEARTBEAT from a
+    stranger set vehicle 1's source: the genuine, signed vehicle was then refused as
+    `other_source` 20 times out of 20. Only a signed packet may set the source under a key."""
+    p, port = _plant_on_os_port(tmp_path, ["bridge.allow_unsigned_heartbeat=true"], key=KEY)
+    att, veh = _udp(), _udp()
+    try:
+        plain = Peer(1, 1, Counters())
+        att.sendto(bytes(plain.pack(plain.mav.heartbeat_encode(2, 0, 0, 0, 4))), ("127.0.0.1", port))
+        assert _poll_until(p, lambda: p.counters.datagrams >= 1)
+        vp = Peer(1, 1, Counters(), key=KEY, link_id=0)
+        for _ in range(20):
+            veh.sendto(_odometry(vp), ("127.0.0.1", port))
+            time.sleep(0.001)
+        assert _poll_until(p, lambda: p.counters.datagrams >= 21)
+        # a stranger's unsigned HEARTBEATs once the vehicle is the source: refused, but no
+        # evidence of a second process (it would make `connect` refuse the run)
+        for _ in range(5):
+            att.sendto(bytes(plain.pack(plain.mav.heartbeat_encode(2, 0, 0, 0, 4))),
+                       ("127.0.0.1", port))
+        assert _poll_until(p, lambda: p.counters.datagrams >= 26)
+        v = p.vehicles[0]
+        assert v.src == veh.getsockname(), (v.src, dict(p.counters.rejected))
+        assert v.tracker.n_states == 20
+        assert dict(p.counters.rejected) == {"other_source": 5} and v.others == {}
+    finally:
+        p.close()
+        att.close()
+        veh.close()

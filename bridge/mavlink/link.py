@@ -233,6 +233,13 @@ class Peer:
         self._pending_sig = (stream, ts)
         return True
 
+    def fresh(self, pkt: bytes) -> bool:
+        """A signed packet's timestamp is newer than its stream's window (`_fresh`); nothing is
+        recorded and nothing is counted (a packet the caller refuses anyway)."""
+        ok = self._fresh(pkt, pkt[5], pkt[6])
+        self._pending_sig = None
+        return ok
+
     def authentic(self, pkt: bytes) -> bool:
         """Without a key always; with one: signed with it (or an allowed unsigned HEARTBEAT);
         a refusal is counted (``unsigned``, ``bad_signature``). Touches no replay window."""

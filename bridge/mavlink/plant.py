@@ -17,8 +17,8 @@ from controller.errors import Se3SyncError
 from cosim import signals
 
 from .config import default_config, read_key_file
-from .link import (Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2, receive_datagrams,
-                   require_key_or_insecure)
+from .link import (IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
+                   receive_datagrams, require_key_or_insecure)
 from .signing_state import open_signing_state
 from .state import StateTracker
 from .transport import WIRE, Transport, profiles_for, wire_to_state
@@ -259,11 +259,17 @@ class MavlinkPlant:
                 else:
                     c.reject("wrong_system")
                 return
+            signed = self.key is None or bool(pkt[2] & IFLAG_SIGNED)
             if v.src is not None and addr != v.src and now - v.src_t <= alive:
                 # a second process claims this vehicle while the first is alive (a leftover
-                # vehicle on the same ports, a spoofer): never used, counted, reported once
+                # vehicle on the same ports, a spoofer): never used, counted, reported once.
+                # With a key only a fresh signed packet is evidence of a second process (the
+                # refusal at connect); an unsigned HEARTBEAT or a replay proves nothing
                 if v.peer.authentic(pkt):
-                    self._other_source(v, addr)
+                    if signed and self.key is not None and not v.peer.fresh(pkt):
+                        c.reject("replay")
+                    else:
+                        self._other_source(v, addr, evidence=signed)
                 return
             n0 = c.refusals()
             if pkt[7] | (pkt[8] << 8) | (pkt[9] << 16) == ID_ODOMETRY:
@@ -277,7 +283,12 @@ class MavlinkPlant:
                 # authentic and refused by nothing (a fallback message ignored while ODOMETRY
                 # comes is not refused): its sequence number counts, its signature's window moves
                 v.peer.commit()
-                if v.src is None or addr == v.src:
+                # with a key only a signed packet sets the vehicle's source or keeps it alive:
+                # an unsigned HEARTBEAT (allow_unsigned_heartbeat) from anyone would otherwise
+                # take the slot and lock the genuine, signed vehicle out as `other_source`
+                if not signed:
+                    pass
+                elif v.src is None or addr == v.src:
                     v.src, v.src_t = addr, now
                 elif used:   # the first source was silent for a link timeout: a restart
                     v.src, v.src_t = addr, now
@@ -286,8 +297,12 @@ class MavlinkPlant:
 
         receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + self.read_budget_s)
 
-    def _other_source(self, v: _Vehicle, addr) -> None:
+    def _other_source(self, v: _Vehicle, addr, evidence: bool = True) -> None:
+        """Counts a packet from a second source; with ``evidence`` (no key, or signed) it is
+        also recorded per address (`other_sources`, the refusal at connect, the report)."""
         self.counters.reject("other_source")
+        if not evidence:
+            return
         if addr not in v.others and len(v.others) >= 16:
             addr = ("*", 0)          # many addresses (spoofed at random): counted together
         n = v.others.get(addr, 0) + 1
