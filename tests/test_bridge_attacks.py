@@ -581,3 +581,43 @@ def test_an_unsigned_heartbeat_takes_no_vehicle_source_under_a_key(tmp_path):
         p.close()
         att.close()
         veh.close()
+
+
+def _until(pred, guard=30.0):
+    t_end = time.monotonic() + guard      # a guard against a hang, not a deadline
+    while not pred() and time.monotonic() < t_end:
+        time.sleep(0.01)
+    return pred()
+
+
+def test_a_signed_heartbeat_replayed_into_another_vehicle_moves_nothing(tmp_path):
+    """Audit 4: agent 1's signed HEARTBEAT (link id 1), captured and replayed into vehicle 2 by a
+    stranger, passed the signature check (a new stream for vehicle 2) and moved vehicle 2's
+    streams to the stranger, uncounted. A vehicle takes a signed commander packet only on its
+    own link id (= its system id): refused as `wrong_link`, and nothing moves."""
+    hb = lambda p: bytes(p.pack(p.mav.heartbeat_encode(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,  # noqa: E731
+                                                       mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 4)))
+    with VehicleThread(count=2, endpoints=["udpin:127.0.0.1:0"] * 2, key=KEY, rate=250, aux_rate=0,
+                       signing_state=str(tmp_path / "vehicle.signing.json")) as srv:
+        p1, p2 = (("127.0.0.1", v.sock.local[1]) for v in srv.vehicles)
+        c1 = Peer(255, 191, Counters(), key=KEY, link_id=1)    # agent 1's commander link
+        c2 = Peer(255, 191, Counters(), key=KEY, link_id=2)    # agent 2's
+        a1, a2, ev = _udp(), _udp(), _udp()
+        try:
+            a2.sendto(hb(c2), p2)
+            assert _until(lambda: srv.vehicles[1].gcs_addr == a2.getsockname())
+            captured = hb(c1)
+            a1.sendto(captured, p1)                                # genuine, to vehicle 1
+            assert _until(lambda: srv.vehicles[0].gcs_addr == a1.getsockname())
+            ev.sendto(captured, p2)                                # replayed into vehicle 2
+            assert _until(lambda: srv.counters.datagrams >= 3)
+            time.sleep(0.05)
+            assert srv.vehicles[1].gcs_addr == a2.getsockname()
+            assert dict(srv.counters.rejected) == {"wrong_link": 1}
+            # vehicle 2's own link goes on (its window did not move)
+            a2.sendto(hb(c2), p2)
+            assert _until(lambda: srv.counters.received >= 3)
+            assert dict(srv.counters.rejected) == {"wrong_link": 1}
+        finally:
+            for s in (a1, a2, ev):
+                s.close()

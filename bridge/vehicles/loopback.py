@@ -39,8 +39,8 @@ from cosim.scenario import load_scenario
 from plant_fmu.fast import FleetFMU
 
 from bridge.live import VehicleLive
-from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
-                   parse_endpoint, receive_datagrams, require_key_or_insecure)
+from bridge.mavlink.link import (DRAIN_BUDGET, IFLAG_SIGNED, SIG_LEN, Counters, Peer, TLog, UdpSocket,
+                   crc_ok, mavlink2, parse_endpoint, receive_datagrams, require_key_or_insecure)
 from bridge.mavlink.signing_state import open_signing_state
 from bridge.mavlink.mapping import FleetMapping, MappingSpec
 from bridge.mavlink.config import default_config, read_key_file
@@ -81,6 +81,7 @@ class SimVehicle:
         self.server = server
         self.index = index
         self.sysid = system_id
+        self.link_id = system_id & 0xFF   # the commander's signing link id for this vehicle
         self.sock = UdpSocket(endpoint)
         self.peer = Peer(system_id, 1, server.counters, key=server.key,
                          allow_unsigned_heartbeat=server.allow_unsigned_heartbeat,
@@ -567,6 +568,12 @@ class VehicleServer:
 
         def on_packet(pkt, addr):
             commander = pkt[5] == csys and (not ccomp or pkt[6] == ccomp)
+            if commander and keyed and pkt[2] & IFLAG_SIGNED and pkt[-SIG_LEN] != v.link_id:
+                # the commander signs each vehicle's link on its own stream (link id = the
+                # vehicle's system id): a signed commander packet on another link id is another
+                # vehicle's, replayed here (a HEARTBEAT would move where the streams go)
+                c.reject("wrong_link")
+                return
             if not commander and not keyed and \
                     (pkt[7] | (pkt[8] << 8) | (pkt[9] << 16)) in ACTUATION_MSGS:
                 # refused before decoding (cheap): actuation from anyone but the commander
