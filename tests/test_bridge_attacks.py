@@ -443,7 +443,11 @@ def test_a_real_ground_station_configures_telemetry_but_cannot_actuate():
             assert system is not None and system.get_system_id() == 1
             tel = Telemetry(system)
             tel.set_rate_odometry(50.0)                 # raises unless acknowledged (ACCEPTED)
-            assert srv.vehicles[0].interval[mavlink2.MAVLINK_MSG_ID_ODOMETRY] == pytest.approx(0.02)
+            # its own stream: it is the vehicle's one link and no commander has talked, so it
+            # configures what goes there; the commander's own streams are untouched
+            odo = mavlink2.MAVLINK_MSG_ID_ODOMETRY
+            assert srv.vehicles[0].stream_period(odo) == pytest.approx(0.02)
+            assert srv.vehicles[0].interval[odo] == pytest.approx(1 / 250)
             stamps = []
             tel.subscribe_odometry(lambda o, *_: stamps.append(o.time_usec))
             t_end = time.monotonic() + 30
@@ -621,3 +625,103 @@ def test_a_signed_heartbeat_replayed_into_another_vehicle_moves_nothing(tmp_path
         finally:
             for s in (a1, a2, ev):
                 s.close()
+
+
+def _odometry_stamps(sock, n, guard=30.0):
+    """time_usec of the next n ODOMETRY messages arriving at ``sock`` (the vehicle's own stamps:
+    the rate it sends at, whatever the machine's load does to the delivery); other messages
+    are skipped. A guard of ``guard`` s against a vehicle that sends none, not a deadline."""
+    from bridge.mavlink.link import split_datagram
+
+    rx = Peer(0, 0, Counters())
+    out = []
+    sock.settimeout(0.05)
+    t_end = time.monotonic() + guard
+    while len(out) < n and time.monotonic() < t_end:
+        try:
+            data, _ = sock.recvfrom(65535)
+        except socket.timeout:
+            continue
+        for pkt in split_datagram(data)[0]:
+            m = rx.accept(pkt)
+            if m is not None and m.get_type() == "ODOMETRY":
+                out.append(m.time_usec)
+    return out
+
+
+def _drain_socket(sock):
+    sock.setblocking(False)
+    try:
+        while True:
+            sock.recvfrom(65535)
+    except (BlockingIOError, OSError):
+        pass
+
+
+def test_a_ground_station_configures_only_its_own_streams():
+    """Audit 1: one unauthenticated SET_MESSAGE_INTERVAL(ODOMETRY, −1) from a ground station
+    (system 245) took the commander's ODOMETRY from 250/s to 0, uncounted; a MAVSDK
+    set_rate_odometry(50) would cut it to 50 Hz. Now stream rates are kept per requester: the
+    ground station's request configures the streams to its own address, counted, and the
+    commander's 250 Hz stream goes on, also when the request comes from the commander's
+    address."""
+    odo = mavlink2.MAVLINK_MSG_ID_ODOMETRY
+    with VehicleThread(count=1, endpoints=["udpin:127.0.0.1:0"], rate=250, aux_rate=0) as srv:
+        v = srv.vehicles[0]
+        vaddr = ("127.0.0.1", v.sock.local[1])
+        cmdr, gcs = _udp(), _udp()
+        try:
+            c = Peer(255, 191, Counters())
+            g = Peer(245, 190, Counters())
+            cmdr.sendto(bytes(c.pack(c.mav.heartbeat_encode(6, 8, 0, 0, 4))), vaddr)
+            assert _until(lambda: v.gcs_addr == cmdr.getsockname())
+
+            def interval(peer, sock, us):
+                sock.sendto(bytes(peer.pack(peer.mav.command_long_encode(
+                    1, 1, mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, 0, odo, us, 0, 0, 0, 0, 0))), vaddr)
+
+            interval(g, gcs, -1)                             # off: for the ground station only
+            assert _until(lambda: srv.counters.received >= 2)   # handled
+            _drain_socket(cmdr)
+            stamps = _odometry_stamps(cmdr, 100)
+            assert len(stamps) == 100                        # before: none
+            assert np.median(np.diff(stamps)) == pytest.approx(4000, rel=0.05)
+            # 50 Hz for the ground station: to its own address, at the rate it asked
+            interval(g, gcs, 20000)
+            assert _until(lambda: srv.counters.received >= 3)
+            gst = _odometry_stamps(gcs, 40)
+            assert len(gst) == 40 and np.median(np.diff(gst[5:])) == pytest.approx(20_000, rel=0.05)
+            _drain_socket(cmdr)
+            stamps = _odometry_stamps(cmdr, 100)
+            assert np.median(np.diff(stamps)) == pytest.approx(4000, rel=0.05)
+            # a ground station behind the commander's address (a router) may not lower it either
+            interval(g, cmdr, -1)
+            assert _until(lambda: srv.counters.received >= 4)
+            assert v.stream_period(odo) == pytest.approx(0.004)
+            _drain_socket(cmdr)
+            assert len(_odometry_stamps(cmdr, 100)) == 100
+            assert v.interval[odo] == pytest.approx(0.004)   # the commander's own table
+            assert srv.ground_requests == 3                   # counted
+            st = srv.stats()
+            assert st["ground_stations"]["interval_requests"] == 3
+            assert st["ground_stations"]["streams"]["1"][
+                "{}:{}".format(*gcs.getsockname())] == {"ODOMETRY": 50.0}
+            assert st["rejected"] == 0
+            # the number of ground stations with streams of their own is bounded (counted)
+            from bridge.vehicles.loopback import MAX_GROUND_STATIONS
+
+            others = [_udp() for _ in range(MAX_GROUND_STATIONS)]
+            try:
+                for s in others:
+                    interval(g, s, 100_000)
+                assert _until(lambda: srv.ground_requests
+                              + srv.counters.rejected.get("no_stream_slot", 0) == 3 + len(others))
+                # two have streams already (the ground station and the one behind the router)
+                assert srv.ground_requests == 3 + MAX_GROUND_STATIONS - 2
+                assert srv.counters.rejected["no_stream_slot"] == 2
+            finally:
+                for s in others:
+                    s.close()
+        finally:
+            cmdr.close()
+            gcs.close()
