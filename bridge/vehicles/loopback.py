@@ -453,7 +453,8 @@ class SimVehicle:
         if c is None:
             srv.counters.reject("bad_command")   # not this vehicle's profile, or out of range
             return
-        c = np.where(np.isnan(c), self.controls, c)   # NaN: "no change" (DO_SET_ACTUATOR)
+        if prof.name == DO_SET_ACTUATOR:   # NaN: "no change" there (MAVLink's definition); in any
+            c = np.where(np.isnan(c), self.controls, c)   # other profile NaN is a bad command
         t_us = prof.time_us(m)
         if srv.lockstep:
             stamps = prof.stamps(m, self.k)
