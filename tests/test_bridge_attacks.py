@@ -24,7 +24,7 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 
 from _attack import can_spoof, os_ports, spoofed_sendto, swarm_scenario  # noqa: E402
-from test_bridge_helpers import ROOT, VehicleThread, load  # noqa: E402
+from test_bridge_helpers import ROOT, VehicleThread, bound_udp, load  # noqa: E402
 
 from bridge.mavlink.link import Counters, Peer, mavlink2  # noqa: E402
 from controller import layout  # noqa: E402
@@ -725,3 +725,96 @@ def test_a_ground_station_configures_only_its_own_streams():
         finally:
             cmdr.close()
             gcs.close()
+
+
+_FLOOD_FAST = r"""
+import os, socket, sys
+dst = (sys.argv[1], int(sys.argv[2])); stop = sys.argv[3]
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+junk = [(b"\xfd" if i % 2 else b"\x00") + os.urandom(200) for i in range(64)]
+sent = 0
+while not os.path.exists(stop):
+    for j in junk:
+        try:
+            s.sendto(j, dst)
+            sent += 1
+        except OSError:
+            pass
+print(sent)
+"""
+
+
+@pytest.mark.timeout(300)
+def test_a_flood_from_a_stranger_starves_no_vehicle_state(tmp_path):
+    """Audit 3: the bridge's udpin socket did not tell senders apart: a stranger's junk filled
+    its buffer and the vehicle's states behind it were dropped by the kernel (20,000 junk
+    datagrams, then 40 genuine states: 0 of 40 taken, 18,402 kernel drops). Now a vehicle whose
+    source is known has a socket of its own, connected to that source: a flooded catch-all
+    costs it nothing. The reader pauses 20 ms now and then (a descheduled process) while the
+    flood goes on, so the catch-all overflows; the genuine states sent into those pauses must
+    be taken (≥ 90 %)."""
+    p, port = _plant_on_os_port(tmp_path)
+    veh = _udp()
+    stop = tmp_path / "stop-flood"
+    flood = None
+    try:
+        vp = Peer(1, 1, Counters())
+        veh.sendto(_odometry(vp), ("127.0.0.1", port))
+        assert _poll_until(p, lambda: p.vehicles[0].tracker.n_states == 1)
+        flood = subprocess.Popen([sys.executable, "-c", _FLOOD_FAST, "127.0.0.1", str(port), str(stop)],
+                                 stdout=subprocess.PIPE, text=True)
+        d0 = p.counters.datagrams
+        assert _poll_until(p, lambda: p.counters.datagrams > d0 + 5000, guard=60)   # it floods
+        sent = 0
+        for _ in range(40):
+            time.sleep(0.02)                   # the reader is away; the flood fills the buffer
+            for _ in range(5):
+                veh.sendto(_odometry(vp), ("127.0.0.1", port))
+                sent += 1
+            t_end = time.monotonic() + 0.01
+            while time.monotonic() < t_end:
+                p.poll(0.002)
+    finally:
+        stop.write_text("")
+        flooded = int(flood.communicate(timeout=60)[0]) if flood is not None else 0
+    try:
+        for _ in range(50):                    # what is still queued
+            p.poll(0.002)
+        st = p.stats()
+        taken = p.vehicles[0].tracker.n_states - 1
+        catch_all = p.socks[0].kernel_drops()
+    finally:
+        p.close()
+        veh.close()
+    if not catch_all:
+        pytest.skip(f"the flooder sent {flooded} datagrams, too few to overflow the bridge's "
+                    f"socket (0 kernel drops) on this machine: nothing was tested")
+    assert taken >= 0.9 * sent, (taken, sent, st)
+    assert st["source_sockets"] == 1 and st["kernel_drops_sources"] == 0, st
+    assert st["kernel_drops"] >= catch_all > 0
+    assert st["rejected_by_reason"].get("out_of_order", 0) == 0, st
+
+
+def test_a_udpout_vehicle_hears_only_its_commander():
+    """Audit 3, the vehicle's side: its udpout socket took datagrams from anyone, so a stranger's
+    junk could fill it ahead of the commander's commands. It is now connected to its target:
+    the kernel drops everything else before it reaches the socket."""
+    br, port = bound_udp()
+    with VehicleThread(count=1, endpoints=[f"udpout:127.0.0.1:{port}"], rate=250, aux_rate=0,
+                       command_timeout=100.0) as srv:
+        br.settimeout(60)                       # its first datagram: a guard, not a deadline
+        _, vaddr = br.recvfrom(65535)
+        stranger = _udp()
+        try:
+            for _ in range(20_000):
+                stranger.sendto(b"\xfd" + bytes(200), vaddr)
+            tx = Peer(255, 191, Counters())
+            t0 = int(time.time() * 1e6)
+            for k in range(40):
+                br.sendto(bytes(tx.pack(tx.mav.set_actuator_control_target_encode(
+                    t0 + k, 0, 1, 1, [0.1] * 6 + [0, 0]))), vaddr)
+            assert _until(lambda: srv.vehicles[0].commands == 40)
+            assert srv.counters.datagrams == 40 and srv.counters.malformed == 0
+        finally:
+            stranger.close()
+            br.close()
