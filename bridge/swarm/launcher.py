@@ -575,7 +575,7 @@ def _refused_line(merged) -> str:
 
 def run_swarm_cli(args) -> int:
     """Handler of ``se3sync swarm``."""
-    early = []
+    early = [True] if signals.requested() else []   # noted while the command line loaded
     with signals.catching(lambda: early.append(True)):
         # a signal from here on still writes both outputs (run_swarm starts nothing then)
         return _swarm_cli(args, early)
