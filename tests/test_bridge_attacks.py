@@ -880,7 +880,8 @@ def test_the_merged_summary_carries_each_links_refusals(tmp_path):
                 links[str(j)] = {"sent": 100, "published": 100, "received": 99, "samples": 98,
                                  "restarts": 0, "last_step": 99, "age_p50_steps": 1,
                                  "age_p99_steps": 2, "rejected": sum(why.values()),
-                                 "rejected_by_reason": dict(why), "kernel_drops": 0}
+                                 "rejected_by_reason": dict(why), "kernel_drops": 0,
+                                 "conflicts": 3 if (j, r) == (1, 2) else 0}
         own = {**{k: v for (_, r), why in refused.items() if r == i for k, v in why.items()},
                "wrong_address": 10 * i}
         return {"steps": 100, "first_step": 0, "interrupted": False, "wall_time_s": 0.4,
@@ -899,6 +900,7 @@ def test_the_merged_summary_carries_each_links_refusals(tmp_path):
         assert by[(j, i)]["rejected_by_reason"] == why
         assert by[(j, i)]["rejected"] == sum(why.values())
         assert (by[(j, i)]["sent"], by[(j, i)]["received"], by[(j, i)]["lost"]) == (100, 98, 2)
+        assert by[(j, i)]["conflicts"] == (3 if (j, i) == (1, 2) else 0)
     a2 = merged["agents"][1]
     assert a2["agent"] == 2
     assert a2["rejected"]["neighbour_link"] == {
