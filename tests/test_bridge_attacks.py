@@ -911,3 +911,47 @@ def test_the_merged_summary_carries_each_links_refusals(tmp_path):
     assert tot["neighbour_link"] == {"future": 2, "replay": 1, "bad_stamp": 4, "nan": 1,
                                      "not_neighbour": 0, "wrong_address": 60, "malformed": 600}
     assert tot["vehicle_link"] == {"other_source": 6, "wrong_link": 3, "malformed": 6}
+
+
+def test_parameter_lists_for_ground_stations_are_rate_limited():
+    """Audit of issue 29, 7: every PARAM_REQUEST_LIST was answered with six PARAM_VALUE to its
+    sender's address, which without a key anyone can forge (a reflector). A ground station's
+    list is now answered once per second per address and four times per second in all; the
+    rest is counted (`rate_limited`). The commander's are not limited."""
+    import bridge.vehicles.loopback as loopback
+
+    PARAM_LISTS_PER_S = getattr(loopback, "PARAM_LISTS_PER_S", 4)
+    with VehicleThread(count=1, endpoints=["udpin:127.0.0.1:0"], rate=250, aux_rate=0) as srv:
+        vaddr = ("127.0.0.1", srv.vehicles[0].sock.local[1])
+        socks = [_udp() for _ in range(PARAM_LISTS_PER_S + 1)]
+        cmdr = _udp()
+        try:
+            g, c = Peer(245, 190, Counters()), Peer(255, 191, Counters())
+            req = lambda p: bytes(p.pack(p.mav.param_request_list_encode(1, 1)))  # noqa: E731
+            for _ in range(3):
+                socks[0].sendto(req(g), vaddr)             # three from one address
+            for s in socks[1:]:
+                s.sendto(req(g), vaddr)                    # one each from the others
+            for _ in range(3):
+                cmdr.sendto(req(c), vaddr)                 # the commander's
+            n = 3 + len(socks) - 1 + 3
+            assert _until(lambda: srv.counters.received >= n)
+            time.sleep(0.1)
+
+            def values(s):
+                s.setblocking(False)
+                got = 0
+                try:
+                    while True:
+                        d, _ = s.recvfrom(65535)
+                        got += d[7] | (d[8] << 8) | (d[9] << 16) == mavlink2.MAVLINK_MSG_ID_PARAM_VALUE
+                except (BlockingIOError, OSError):
+                    return got
+
+            got = [values(s) for s in socks]
+            assert sum(got) == 6 * PARAM_LISTS_PER_S and got[0] == 6, got
+            assert values(cmdr) == 18
+            assert dict(srv.counters.rejected) == {"rate_limited": 3}
+        finally:
+            for s in (*socks, cmdr):
+                s.close()

@@ -78,6 +78,9 @@ ACTUATION_COMMANDS = frozenset((*(cmd for _, cmd in PROFILE_BY_KEY if cmd is not
                                 M.MAV_CMD_DO_MOTOR_TEST, M.MAV_CMD_DO_FLIGHTTERMINATION))
 MAX_GROUND_STATIONS = 4         # per vehicle: ground stations with streams of their own
 GROUND_STATION_TIMEOUT = 5.0    # s without a packet from one: its streams stop (heartbeats: 1 Hz)
+PARAM_LIST_PERIOD = 1.0         # a ground station's PARAM_REQUEST_LIST: answered once per this
+PARAM_LISTS_PER_S = 4           # long per address, and at most this many per second in all (each
+#                                 answer is six PARAM_VALUE to an address that may be forged)
 CAPABILITIES = (M.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
                 | M.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET)
 
@@ -136,6 +139,7 @@ class SimVehicle:
         self.commander_heard = False    # a commander packet was accepted in full
         # each ground station's own streams, by its address: {addr: GroundStreams}
         self.ground: dict = {}
+        self.param_lists: dict = {}     # a ground station's address -> when its list was answered
         self.wire = np.zeros(13)
         self.S = np.zeros(layout.S_WIDTH)
         # the output profiles this vehicle decodes, by (message id, command): the two that carry
@@ -267,6 +271,21 @@ class SimVehicle:
         index = m.param_index if m.param_index >= 0 else (names.index(name) if name in names else -1)
         if not self.send_param(index, addr):
             self.server.counters.reject("bad_command")   # no such parameter
+
+    def param_list_allowed(self, addr, now: float) -> bool:
+        """A ground station's PARAM_REQUEST_LIST is answered (six PARAM_VALUE to the sender's
+        address, which without a key may be forged) at most once per `PARAM_LIST_PERIOD` per
+        address and `PARAM_LISTS_PER_S` times per second in all."""
+        pl = self.param_lists
+        last = pl.get(addr)
+        if last is not None and now - last < PARAM_LIST_PERIOD:
+            return False
+        for a in [a for a, t in pl.items() if now - t >= PARAM_LIST_PERIOD]:
+            del pl[a]
+        if len(pl) >= PARAM_LISTS_PER_S:
+            return False
+        pl[addr] = now
+        return True
 
     def statustext(self, severity: int, text: str) -> None:
         self.send(self.peer.mav.statustext_encode(severity, text.encode()[:50]))
@@ -408,6 +427,10 @@ class SimVehicle:
         if mid in (M.MAVLINK_MSG_ID_PARAM_REQUEST_LIST, M.MAVLINK_MSG_ID_PARAM_REQUEST_READ):
             if m.target_system not in (0, self.sysid):
                 srv.counters.reject("not_for_us")
+                return
+            if mid == M.MAVLINK_MSG_ID_PARAM_REQUEST_LIST and not commander \
+                    and not self.param_list_allowed(addr, now):
+                srv.counters.reject("rate_limited")
                 return
             self.param_request(m, addr)
             return
