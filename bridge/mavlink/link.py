@@ -46,7 +46,7 @@ MSG_HEARTBEAT = 0
 REJECT_REASONS = ("unsigned", "bad_signature", "replay", "wrong_system", "not_for_us",
                   "unknown_message", "stale", "out_of_order", "nan", "non_unit_quaternion",
                   "bad_frame", "bad_command", "not_commander", "future", "other_source",
-                  "wrong_address", "wrong_link")
+                  "wrong_address", "wrong_link", "no_stream_slot", "rate_limited")
 NEW_STREAM_UNITS = 6_000_000   # pymavlink's rule: a new signing stream at most 60 s (10 µs units) behind
 LOOPBACK_HOSTS = ("localhost",)
 
