@@ -208,7 +208,8 @@ def register(sub) -> None:
     p.add_argument("--force", action="store_true",
                    help="run even if the sampled loop is unstable at this step")
     add_live_options(p)
-    p.set_defaults(func=_cmd_swarm)
+    # a signal before the agents start still writes the merged summary and log (`main`)
+    p.set_defaults(func=_cmd_swarm, stops_cleanly=True)
 
 
 def _cmd_agent(args) -> int:
@@ -266,11 +267,16 @@ def _cmd_agent(args) -> int:
 
 
 def _cmd_swarm(args) -> int:
-    from bridge.swarm.launcher import run_swarm_cli
+    from cosim import signals
 
-    _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None))
-    args.live_target = live_target(args)
-    return run_swarm_cli(args)
+    # a signal while the launcher loads (numpy, numba, mcap: about a second) is only noted:
+    # the launcher then starts no process and still writes both outputs (`run_swarm_cli`)
+    with signals.deferred():
+        from bridge.swarm.launcher import run_swarm_cli
+
+        _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None))
+        args.live_target = live_target(args)
+        return run_swarm_cli(args)
 
 
 def _timeout(option: str, value) -> None:

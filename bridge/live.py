@@ -11,8 +11,11 @@ every jump of those edges (`FeedTee`). The parent (`SwarmLive`) keeps each agent
 per second, with the log's messages.
 
 The feed is network input: a datagram is taken only from a loopback address, with the right
-magic, version and length, an agent id of the scenario, edges that agent owns and finite
-numbers; anything else is counted by reason (`SwarmLive.rejected`) and dropped.
+magic, version and length, an agent id of the scenario, edges that agent owns, finite numbers
+and a time stamp within a window of the view's current time (`AHEAD_S` plus `SPEED` times the
+wall time since the last datagram taken; `FIRST_AHEAD_S` for the first): one forged stamp far
+ahead would otherwise hold every later frame back (``future``); anything else is counted by
+reason (`SwarmLive.rejected`) and dropped.
 
 `vehicle --live`: the loopback vehicles' own state (their world frame, NED by default) with the
 scenario's graph, at most ``rate`` frames per second (`VehicleLive`); θ, μ_U, U and V̄ are the
@@ -41,6 +44,10 @@ _COUNT = struct.Struct("<H")
 _EDGE = struct.Struct("<HddB")           # edge id, θ after the jump stage, μ_U, jumped
 _JUMP = struct.Struct("<Hdddd")          # edge id, t, θ⁻, θ⁺, μ_U
 MAX_DATAGRAM = 65000
+FIRST_AHEAD_S = 10.0    # the first datagram's stamp: at most this far into the run
+AHEAD_S = 2.0           # later ones: at most this far ahead of the view's current time…
+SPEED = 50.0            # …plus this many times the wall time since the last one (lockstep runs
+#                         faster than the wall clock)
 
 
 def encode_feed(agent: int, t_ns: int, S_row, u_row, edges, jumps) -> bytes:
@@ -115,6 +122,7 @@ class SwarmLive:
         self.jumped = np.zeros(M, bool)
         self.metrics = NetworkMetrics(sc)
         self.t_ns = 0
+        self._t_wall = None     # time.monotonic() of the last datagram taken
         self._last = -1
         self.received = 0
         self.rejected = {}
@@ -149,6 +157,11 @@ class SwarmLive:
         if not 1 <= agent <= N:
             self._reject("agent")
             return False
+        now = time.monotonic()
+        ahead = FIRST_AHEAD_S if self._t_wall is None else AHEAD_S + SPEED * (now - self._t_wall)
+        if int(t_ns) > self.t_ns + ahead * 1e9:
+            self._reject("future")
+            return False
         if not np.isfinite(row).all():
             self._reject("non_finite")
             return False
@@ -175,6 +188,7 @@ class SwarmLive:
         for k, t, a, b, mu in jumps:
             self.enc.jump(round(t * 1e9), t, k, a, b, mu)
         self.t_ns = max(self.t_ns, int(t_ns))
+        self._t_wall = now
         return True
 
     def _frame(self):

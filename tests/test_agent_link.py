@@ -601,3 +601,23 @@ def test_lockstep_history_is_kept_around_the_own_step_not_the_newest_stamp(closi
     send_raw(sc, 1, sample_datagram(mav, 14 * H_US, 14.0))
     poll_until(rx, lambda: rx.stats()["datagrams"] == sent + 1)
     assert rx.pose_at(2, 9) is None and rx.pose_at(2, 10)[0] == 10.0 and rx.pose_at(2, 14)[0] == 14.0
+
+
+def test_a_differing_copy_of_a_history_entry_is_counted_never_used(closing):
+    """Audit of issue 29, 7: a later copy of a step's pose or θ that differed from the first was
+    dropped silently; it is now counted (``conflicts``, per link), the first copy kept, and an
+    identical resend is not a conflict."""
+    sc = scenario()
+    rx = AgentLink.from_scenario(sc, 1, history=4)
+    closing.append(rx)
+    mav = mavlink2.MAVLink(None, srcSystem=2, srcComponent=AGENT_COMPONENT)
+    rx.set_step(10)
+    sends = [sample_datagram(mav, 10 * H_US, 1.0),
+             sample_datagram(mav, 10 * H_US, 1.0),                    # a resend: the same
+             sample_datagram(mav, 10 * H_US, 5.0, theta=(0.9, -0.5))]  # another pose and θ
+    for d in sends:
+        send_raw(sc, 1, d)
+    poll_until(rx, lambda: rx.stats()["datagrams"] == len(sends))
+    st = rx.stats()
+    assert st["conflicts"] == 2 and st["links"]["2"]["conflicts"] == 2, st
+    assert rx.pose_at(2, 10)[0] == 1.0 and rx.theta_at(2, 10) == {2: 0.5, 4: -0.5}

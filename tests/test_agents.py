@@ -354,6 +354,14 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
     s = {i: json.loads((tmp_path / f"a{i}.json").read_text()) for i in (1, 2, 4, 5, 6)}
     ma, ho = s[2]["network"]["max_age_steps"], s[2]["network"]["hold_steps"]
     assert (ma, ho) == (5, 25)
+    # what follows needs the 250 Hz deadline kept (tests/_machine.py): the kill comes at 3 s of
+    # the wall clock, which an agent far behind its clock has not reached in its steps, and a
+    # sample agent 3 sent late, just before the kill, arrives during the hold and stretches it
+    # (both seen on a busy machine)
+    skip_if_deadline_missed(cpu, {**{f"agent {i}": (x["link"]["late_steps"], x["steps"])
+                                     for i, x in s.items()},
+                                  "the vehicles": (vst["late_ticks"], vst["ticks"])},
+                            "real-time swarm with an agent killed and restarted")
     for j in (2, 4):   # agent 3's neighbours
         # the kill at t = 3 s: the first fail-safe for agent 3 after it (a loaded machine may add
         # short hold/fresh flips before), the hold just before it, fresh again after it
@@ -379,13 +387,8 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
             if t in nb and nb[t]["failsafe"]:
                 own = next(a for a in m["agents"] if a["agent"] == j)
                 assert own["torque"] == [0.0, 0.0, 0.0] and own["force"] == [0.0, 0.0, 0.0]
-    # the restarted agent rejoins while the run goes on, and the swarm converges: that needs
-    # the 250 Hz deadline kept (tests/_machine.py; a busy machine took 23 s to restart agent 3,
-    # after the 24 s run had ended)
-    skip_if_deadline_missed(cpu, {**{f"agent {i}": (x["link"]["late_steps"], x["steps"])
-                                     for i, x in s.items()},
-                                  "the vehicles": (vst["late_ticks"], vst["ticks"])},
-                            "real-time swarm with an agent killed and restarted")
+    # the restarted agent rejoins while the run goes on, and the swarm converges (a busy
+    # machine took 23 s to restart agent 3, after the 24 s run had ended: skipped above)
     assert rc["3b"] == 0, (tmp_path / "a3b.err").read_text()
     s3 = json.loads((tmp_path / "a3b.json").read_text())
     assert s3["first_step"] > 0   # it joined the running swarm

@@ -78,7 +78,7 @@ def _session(state, n):
     with VehicleThread(count=1, base_port=port, key=KEY, signing_state=state, rate=100, aux_rate=0,
                        command_timeout=100.0) as srv:
         sock, addr = _listen(lis)
-        gcs = Peer(255, 191, Counters(), key=KEY, link_id=3)
+        gcs = Peer(255, 191, Counters(), key=KEY, link_id=1)
         t0 = int(time.time() * 1e6)
         pkts = [_command(gcs, t0 + i, 0.1 + 1e-4 * (i % 100)) for i in range(n)]
         for i in range(0, n, 100):
@@ -103,7 +103,7 @@ def _replay(state, pkts):
             _drain(sock)
         replay = dict(srv.counters.rejected), srv.vehicles[0].commands, srv.counters.dropped
         # a new genuine session with the same key is accepted (nothing is locked out)
-        gcs = Peer(255, 191, Counters(), key=KEY, link_id=3)
+        gcs = Peer(255, 191, Counters(), key=KEY, link_id=1)
         sock.sendto(_command(gcs, int(time.time() * 1e6), 0.5), addr)
         assert _wait(lambda: srv.vehicles[0].commands == replay[1] + 1)
         sock.close()
@@ -116,7 +116,7 @@ def test_signed_replay_into_restarted_vehicle_is_rejected(tmp_path):
     pkts = _session(state, n)
     # what was persisted at exit: the stream's last timestamp, read from the packets themselves
     saved = json.loads(state.read_text())
-    assert [3, 255, 191, _sig_timestamp(pkts[-1])] in saved["streams"]
+    assert [1, 255, 191, _sig_timestamp(pkts[-1])] in saved["streams"]
     rejected, commands, dropped = _replay(state, pkts)
     assert commands == 0 and rejected == {"replay": n} and dropped == 0
 

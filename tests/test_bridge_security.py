@@ -62,13 +62,13 @@ def test_signing_rejects_unsigned_wrong_key_replayed_tampered(tmp_path):
     with VehicleThread(count=1, base_port=port, key=read_key_file(key_file), rate=100, aux_rate=0,
                        command_timeout=10.0) as srv:
         sock, addr = _listen(lis)
-        good = Peer(255, 191, Counters(), key=KEY, link_id=7)
+        good = Peer(255, 191, Counters(), key=KEY, link_id=1)   # link id = the vehicle's system id
         t = int(time.time() * 1e6)
         legit = _command(good, t)
         sock.sendto(legit, addr)
         assert _wait(lambda: srv.vehicles[0].commands == 1)
         sock.sendto(_command(Peer(255, 191, Counters()), t + 10), addr)                 # unsigned
-        sock.sendto(_command(Peer(255, 191, Counters(), key=WRONG, link_id=7), t + 20), addr)  # wrong key
+        sock.sendto(_command(Peer(255, 191, Counters(), key=WRONG, link_id=1), t + 20), addr)  # wrong key
         sock.sendto(legit, addr)                                                       # replayed
         tampered = bytearray(_command(good, t + 30))
         tampered[14] ^= 0x40                                                           # a control value

@@ -287,3 +287,20 @@ def test_connect_live_view_over_mavlink(tmp_path, monkeypatch):
     assert rec
     for topic, t_ns, msg in rec:
         assert json.loads(logged[(topic, t_ns)]) == msg
+
+
+def test_one_forged_time_stamp_does_not_freeze_the_swarm_view(sc, state):
+    """Audit of issue 29, 7: one feed datagram stamped far ahead set the view's time, so no later
+    (genuine) datagram was newer and the view published nothing more. A stamp is now taken only
+    within a window of the view's current time (``future`` otherwise)."""
+    view = BL.SwarmLive(sc, "127.0.0.1", 0)
+    local = ("127.0.0.1", 40000)
+    try:
+        assert view.accept(_datagram(sc, state, 1, t_ns=10**18), local) is False
+        assert view.accept(_datagram(sc, state, 1, t_ns=120_000_000), local)
+        assert view.accept(_datagram(sc, state, 2, t_ns=120_000_000 + 3600 * 10**9), local) is False
+        assert view.rejected == {"future": 2}
+        assert view.accept(_datagram(sc, state, 2, t_ns=160_000_000), local)
+        assert view.t_ns == 160_000_000 and view.received == 2
+    finally:
+        view.close()

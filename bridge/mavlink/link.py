@@ -46,7 +46,7 @@ MSG_HEARTBEAT = 0
 REJECT_REASONS = ("unsigned", "bad_signature", "replay", "wrong_system", "not_for_us",
                   "unknown_message", "stale", "out_of_order", "nan", "non_unit_quaternion",
                   "bad_frame", "bad_command", "not_commander", "future", "other_source",
-                  "wrong_address")
+                  "wrong_address", "wrong_link", "no_stream_slot", "rate_limited")
 NEW_STREAM_UNITS = 6_000_000   # pymavlink's rule: a new signing stream at most 60 s (10 µs units) behind
 LOOPBACK_HOSTS = ("localhost",)
 
@@ -232,6 +232,13 @@ class Peer:
             return False
         self._pending_sig = (stream, ts)
         return True
+
+    def fresh(self, pkt: bytes) -> bool:
+        """A signed packet's timestamp is newer than its stream's window (`_fresh`); nothing is
+        recorded and nothing is counted (a packet the caller refuses anyway)."""
+        ok = self._fresh(pkt, pkt[5], pkt[6])
+        self._pending_sig = None
+        return ok
 
     def authentic(self, pkt: bytes) -> bool:
         """Without a key always; with one: signed with it (or an allowed unsigned HEARTBEAT);
@@ -432,7 +439,10 @@ def parse_endpoint(ep: str):
 
 class UdpSocket:
     """A non-blocking UDP socket. ``udpin``: bound to HOST:PORT, replies go to whoever talked last
-    (or to an address the caller gives); ``udpout``: sends to HOST:PORT from an ephemeral port."""
+    (or to an address the caller gives); ``udpout``: sends to HOST:PORT from an ephemeral port,
+    connected to it, so that the kernel hands it datagrams from HOST:PORT only (anyone else's
+    are dropped by the kernel: a stranger cannot fill its buffer). ``connect_to`` (udpin): the
+    same for one peer's address, on a port shared with ``reuse_port``."""
 
     def __init__(self, endpoint: str, rcvbuf: int = 1 << 20, reuse_port: bool = False,
                  connect_to=None):
@@ -459,7 +469,12 @@ class UdpSocket:
                 raise
             self.remote = None
         else:
-            s.bind((addr[0] if addr[0] in ("127.0.0.1", "localhost") else "0.0.0.0", 0))
+            try:
+                s.bind((addr[0] if addr[0] in ("127.0.0.1", "localhost") else "0.0.0.0", 0))
+                s.connect(addr)
+            except OSError:
+                s.close()
+                raise
             self.remote = addr
         s.setblocking(False)
         self.sock = s
@@ -472,11 +487,17 @@ class UdpSocket:
         addr = addr or self.remote
         if addr is None:
             return False
-        try:
-            self.sock.sendto(data, addr)
-            return True
-        except OSError:
-            return False
+        for _ in range(2):
+            try:
+                self.sock.sendto(data, addr)
+                return True
+            except ConnectionRefusedError:
+                # a connected socket reports an earlier ICMP "port unreachable" (the peer was
+                # not listening yet) on the next call: this datagram was not sent, try again
+                continue
+            except OSError:
+                return False
+        return False
 
     def recv_all(self, limit: int = 4096):
         """Every datagram waiting now: [(data, addr)]."""

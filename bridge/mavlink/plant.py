@@ -17,8 +17,8 @@ from controller.errors import Se3SyncError
 from cosim import signals
 
 from .config import default_config, read_key_file
-from .link import (Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2, receive_datagrams,
-                   require_key_or_insecure)
+from .link import (IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
+                   parse_endpoint, receive_datagrams, require_key_or_insecure)
 from .signing_state import open_signing_state
 from .state import StateTracker
 from .transport import WIRE, Transport, profiles_for, wire_to_state
@@ -172,12 +172,27 @@ class MavlinkPlant:
         self.vehicles: list[_Vehicle] = []
         self._route: dict = {}       # fd -> {sysid: _Vehicle}
         self._sock_by_fd: dict = {}
+        # per-source isolation: a udpin endpoint's socket is the catch-all (first contact,
+        # strangers, junk); once a vehicle's source address is known it gets a socket of its
+        # own on the same port, connected to that address (SO_REUSEPORT), which the kernel
+        # hands that address's datagrams and nothing else: junk fills only the catch-all's
+        # buffer, never the vehicle's. {(catch-all fd, addr): [UdpSocket, {vehicle index}]}
+        self._src_socks: dict = {}
+        self._src_fds: set = set()
+        self._settle: set = set()    # catch-alls to empty once (a source socket was just opened)
+        self.source_socket_errors = 0
+        self._dead_drops = 0         # kernel drops of source sockets closed since
         try:
             by_ep: dict = {}
             for i, vs in enumerate(cfg.vehicles):
                 sock = by_ep.get(vs.endpoint)
                 if sock is None:
-                    sock = by_ep[vs.endpoint] = UdpSocket(vs.endpoint)
+                    if parse_endpoint(vs.endpoint)[0] == "udpin":
+                        UdpSocket(vs.endpoint).close()   # free? (a port in use is an error)
+                        sock = UdpSocket(vs.endpoint, reuse_port=True)
+                    else:
+                        sock = UdpSocket(vs.endpoint)    # connected to the vehicle
+                    by_ep[vs.endpoint] = sock
                     self.socks.append(sock)
                     self._sock_by_fd[sock.fileno()] = sock
                     self._route[sock.fileno()] = {}
@@ -200,15 +215,17 @@ class MavlinkPlant:
         except OSError as exc:
             self.close()
             raise Se3SyncError(f"bridge: cannot open {vs.endpoint}: {exc.strerror or exc}") from None
-        self._fds = [s.fileno() for s in self.socks]
+        self._readers: dict = {}     # other sockets serviced while waiting: fd -> callback()
+        self._refresh_fds()
         # steps between the master's checks for Ctrl-C and SIGTERM: about 0.1 s of the wall
         # clock (lockstep steps take at least a round trip, so the same count is shorter)
         self.max_block = max(1, int(round(0.1 / self.h)))
-        self._readers: dict = {}     # other sockets serviced while waiting: fd -> callback()
         # real time: read the sockets once per step at the deadline (an agent process) instead
         # of whenever a datagram arrives (latency measured on arrival, as `connect` reports it)
         self.drain_per_step = False
-        self.read_budget_s = 0.25 * self.h   # a pass over a flooded socket reads this long at most
+        self.read_budget_s = 0.25 * self.h   # a poll reads the vehicles' own sockets this long at most
+        self.junk_budget_s = 0.1 * self.h    # …and the catch-alls (first contact, junk) this long
+        self._rr = 0
         self._commanded = False      # the first command has gone out (vehicle reports printed)
         self._paced_from = None      # real time: step 0's wall-clock deadline, if fixed
         self._next_hb = 0.0
@@ -245,8 +262,10 @@ class MavlinkPlant:
                 self._send(v, v.peer.mav.heartbeat_encode(M.MAV_TYPE_ONBOARD_CONTROLLER,
                                                           M.MAV_AUTOPILOT_INVALID, 0, 0, M.MAV_STATE_ACTIVE))
 
-    def _receive(self, fd: int, now: float) -> None:
-        sock = self._sock_by_fd[fd]
+    def _receive(self, fd: int, now: float, deadline: float) -> None:
+        sock = self._sock_by_fd.get(fd)
+        if sock is None:
+            return                # a source socket closed earlier in this poll (a restart)
         route = self._route[fd]
         c = self.counters
         alive = self.cfg.link_timeout
@@ -259,11 +278,17 @@ class MavlinkPlant:
                 else:
                     c.reject("wrong_system")
                 return
+            signed = self.key is None or bool(pkt[2] & IFLAG_SIGNED)
             if v.src is not None and addr != v.src and now - v.src_t <= alive:
                 # a second process claims this vehicle while the first is alive (a leftover
-                # vehicle on the same ports, a spoofer): never used, counted, reported once
+                # vehicle on the same ports, a spoofer): never used, counted, reported once.
+                # With a key only a fresh signed packet is evidence of a second process (the
+                # refusal at connect); an unsigned HEARTBEAT or a replay proves nothing
                 if v.peer.authentic(pkt):
-                    self._other_source(v, addr)
+                    if signed and self.key is not None and not v.peer.fresh(pkt):
+                        c.reject("replay")
+                    else:
+                        self._other_source(v, addr, evidence=signed)
                 return
             n0 = c.refusals()
             if pkt[7] | (pkt[8] << 8) | (pkt[9] << 16) == ID_ODOMETRY:
@@ -277,17 +302,77 @@ class MavlinkPlant:
                 # authentic and refused by nothing (a fallback message ignored while ODOMETRY
                 # comes is not refused): its sequence number counts, its signature's window moves
                 v.peer.commit()
-                if v.src is None or addr == v.src:
-                    v.src, v.src_t = addr, now
-                elif used:   # the first source was silent for a link timeout: a restart
-                    v.src, v.src_t = addr, now
+                # with a key only a signed packet sets the vehicle's source or keeps it alive:
+                # an unsigned HEARTBEAT (allow_unsigned_heartbeat) from anyone would otherwise
+                # take the slot and lock the genuine, signed vehicle out as `other_source`
+                if not signed:
+                    pass
+                elif addr == v.src:
+                    v.src_t = now
+                elif v.src is None or used:   # new, or the first source was silent for a link
+                    old, v.src, v.src_t = v.src, addr, now    # timeout: a restart
+                    self._source_socket(v, old)
             if used:
                 self._accepted(v, addr)
 
-        receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + self.read_budget_s)
+        receive_datagrams(sock, c, on_packet, deadline=deadline)
+        if fd in self._settle:
+            # a source socket was opened while this catch-all was read: what its source sent
+            # before lies here, older than anything on the new socket: read it now, so that
+            # the next poll (the vehicles' sockets first) cannot take a newer state first
+            self._settle.discard(fd)
+            receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + 0.05)
 
-    def _other_source(self, v: _Vehicle, addr) -> None:
+    def _source_socket(self, v: _Vehicle, old) -> None:
+        """Vehicle v's source changed from ``old`` (or None) to ``v.src``: on a udpin endpoint,
+        the socket connected to its new source (shared by the vehicles that come from that
+        address, e.g. behind a router); the old one is closed when no vehicle uses it."""
+        base = v.sock
+        if base.mode != "udpin":
+            return                # udpout: the socket is connected to the vehicle already
+        bfd = base.fileno()
+        if old is not None:
+            e = self._src_socks.get((bfd, old))
+            if e is not None:
+                e[1].discard(v.i)
+                if not e[1]:
+                    del self._src_socks[(bfd, old)]
+                    self._forget(e[0])
+        e = self._src_socks.get((bfd, v.src))
+        if e is None:
+            try:
+                s = UdpSocket(f"udpin:{base.local[0]}:{base.local[1]}", reuse_port=True,
+                              connect_to=v.src)
+            except OSError:
+                self.source_socket_errors += 1    # it stays on the catch-all (still checked)
+                return
+            fd = s.fileno()
+            self._sock_by_fd[fd] = s
+            self._route[fd] = self._route[bfd]
+            self._src_fds.add(fd)
+            self._refresh_fds()
+            self._settle.add(bfd)
+            e = self._src_socks[(bfd, v.src)] = [s, set()]
+        e[1].add(v.i)
+
+    def _forget(self, s: UdpSocket) -> None:
+        fd = s.fileno()
+        self._dead_drops += s.kernel_drops() or 0
+        for d in (self._sock_by_fd, self._route):
+            d.pop(fd, None)
+        self._src_fds.discard(fd)
+        s.close()
+        self._refresh_fds()
+
+    def _refresh_fds(self) -> None:
+        self._fds = [s.fileno() for s in self.socks] + sorted(self._src_fds) + list(self._readers)
+
+    def _other_source(self, v: _Vehicle, addr, evidence: bool = True) -> None:
+        """Counts a packet from a second source; with ``evidence`` (no key, or signed) it is
+        also recorded per address (`other_sources`, the refusal at connect, the report)."""
         self.counters.reject("other_source")
+        if not evidence:
+            return
         if addr not in v.others and len(v.others) >= 16:
             addr = ("*", 0)          # many addresses (spoofed at random): counted together
         n = v.others.get(addr, 0) + 1
@@ -359,7 +444,7 @@ class MavlinkPlant:
         """Services another socket while this plant waits: ``callback()`` is called whenever
         ``fd`` is readable (an agent process reads its neighbours' link this way)."""
         self._readers[int(fd)] = callback
-        self._fds = [s.fileno() for s in self.socks] + list(self._readers)
+        self._refresh_fds()
 
     def pace_from(self, t0: float) -> None:
         """Real time: step k is due at ``t0 + k·h`` (time.monotonic()), instead of counting from
@@ -372,14 +457,25 @@ class MavlinkPlant:
         r, _, _ = select.select(self._fds, [], [], max(0.0, timeout))
         now = time.monotonic()
         called = []
+        deadline = now + self.read_budget_s
+        # the vehicles' own sockets first, then the other readers, then the catch-alls (in
+        # turn, sharing a smaller budget: junk never delays a vehicle's states)
+        src = [fd for fd in r if fd in self._src_fds]
+        catch = [fd for fd in r if fd in self._route and fd not in self._src_fds]
+        if len(catch) > 1:
+            self._rr = (self._rr + 1) % len(catch)
+            catch = catch[self._rr:] + catch[:self._rr]
+        for fd in src:
+            self._receive(fd, now, deadline)
         for fd in r:
             cb = self._readers.get(fd)
-            if cb is not None:
-                if cb not in called:     # one reader may own several sockets
-                    called.append(cb)
-                    cb()
-            else:
-                self._receive(fd, now)
+            if cb is not None and cb not in called:     # one reader may own several sockets
+                called.append(cb)
+                cb()
+        if catch:
+            junk_deadline = min(max(deadline, time.monotonic()), time.monotonic() + self.junk_budget_s)
+            for fd in catch:
+                self._receive(fd, now, junk_deadline)
         if self.signing is not None:
             self.signing.tick(now)
 
@@ -555,6 +651,12 @@ class MavlinkPlant:
         d["other_sources"] = {f"{v.i + 1}": {f"{a[0]}:{a[1]}": k for a, k in v.others.items()}
                               for v in self.vehicles if v.others}
         d["kernel_drops"] = sum(x or 0 for x in (s.kernel_drops() for s in self.socks))
+        # of them on the vehicles' own sockets (only a flood with a vehicle's forged address, or
+        # a reader far behind, fills those), counting the sockets closed since
+        own = [e[0].kernel_drops() for e in self._src_socks.values()]
+        d["kernel_drops_sources"] = self._dead_drops + sum(x or 0 for x in own)
+        d["kernel_drops"] += d["kernel_drops_sources"]
+        d["source_sockets"] = len(self._src_socks)
         return d
 
     def close(self) -> None:
@@ -563,6 +665,8 @@ class MavlinkPlant:
         self._closed = True
         for s in self.socks:
             s.close()
+        for e in getattr(self, "_src_socks", {}).values():
+            e[0].close()
         if getattr(self, "signing", None) is not None:
             self.signing.close()
         if self.tlog is not None:

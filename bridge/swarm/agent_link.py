@@ -46,6 +46,10 @@ A neighbour that restarted on another timeline stamps far back (more than 10 s o
 and keeps stamping forward from there: `RESTART_SAMPLES` consecutive complete samples of that
 kind, each newer than the one before, are taken as its restart (``restarts`` per link); one
 packet never is.
+
+The lockstep history (``history``) keeps the first pose and θ chunks of each step; a later copy
+that differs from them is never used and is counted (``conflicts``, per link and in total): two
+versions of one step's data, i.e. a forgery or a misbehaving sender (an identical resend is not).
 """
 from __future__ import annotations
 
@@ -276,6 +280,7 @@ class AgentLink:
         self._ages = {j: Counter() for j in self.neighbours}  # ages (steps) of the data used
         self.history = int(history)
         self._hist = {j: {} for j in self.neighbours}          # step -> [S or None, θ chunks]
+        self._conflicts = {j: 0 for j in self.neighbours}      # differing copies of a history entry
         self._emu = {}                                          # j -> (d, jmax, jitter, loss, rng)
         self._queue = []                                        # (release step, seq, j, data)
         self._qseq = 0
@@ -508,12 +513,18 @@ class AgentLink:
             for old in [x for x in h if x < lo]:
                 del h[old]
         # the first of a step's pose (θ chunk) is kept: a later copy (a resend, or a forgery
-        # arriving after the genuine message) never replaces what a lockstep step may have used
+        # arriving after the genuine message) never replaces what a lockstep step may have used;
+        # a copy that differs from it (a forgery, or a sender that changed its mind) is counted
+        # (``conflicts``): two versions of one step's data
         if what is None:
             if e[0] is None:
                 e[0] = value
+            elif not np.array_equal(e[0], value):
+                self._conflicts[j] += 1
         elif what not in e[1]:
             e[1][what] = value
+        elif e[1][what] != value:
+            self._conflicts[j] += 1
 
     def pose_at(self, j: int, n: int):
         """Neighbour j's row S_j of step n (scenario frames, float32-rounded values) if its pose
@@ -652,6 +663,7 @@ class AgentLink:
         # dropped by the kernel: on the catch-all socket (junk, strangers), and per neighbour
         out["kernel_drops"] = self.sock.kernel_drops()
         out["future_steps"] = self.future_steps
+        out["conflicts"] = sum(self._conflicts.values())
         out["agent"] = self.id
         out["neighbours"] = list(self.neighbours)
         links = {}
@@ -660,6 +672,7 @@ class AgentLink:
             links[str(j)] = {"sent": self._sent[j], "published": self._published[j],
                              "received": self._packets[j],
                              "samples": self._samples[j], "restarts": self._restarts[j],
+                             "conflicts": self._conflicts[j],
                              "last_step": None if held is None else held.step,
                              "age_p50_steps": _nearest_rank(self._ages[j], 50),
                              "age_p99_steps": _nearest_rank(self._ages[j], 99),

@@ -129,6 +129,7 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
                      # included: without a key anyone can name j)
                      "rejected": ln.get("rejected", 0),
                      "rejected_by_reason": ln.get("rejected_by_reason", {}),
+                     "conflicts": ln.get("conflicts", 0),
                      "age_p50_steps": ln["age_p50_steps"], "age_p99_steps": ln["age_p99_steps"],
                      "age_p50_s": None if ln["age_p50_steps"] is None else ln["age_p50_steps"] * h,
                      "age_p99_s": None if ln["age_p99_steps"] is None else ln["age_p99_steps"] * h}
@@ -602,7 +603,7 @@ def _refused_line(merged) -> str:
 
 def run_swarm_cli(args) -> int:
     """Handler of ``se3sync swarm``."""
-    early = []
+    early = [True] if signals.requested() else []   # noted while the command line loaded
     with signals.catching(lambda: early.append(True)):
         # a signal from here on still writes both outputs (run_swarm starts nothing then)
         return _swarm_cli(args, early)

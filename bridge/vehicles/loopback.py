@@ -14,6 +14,13 @@ arming, mode changes, parameter writes) only from the commander, or signed with 
 there is one; anything else of it is refused as ``not_commander`` (a COMMAND_LONG with a DENIED
 COMMAND_ACK). Replies go to the sender; the streams keep going where the commander is.
 
+Stream rates are kept per requester: the commander's SET_MESSAGE_INTERVAL sets its own streams
+(to the commander); a ground station's sets streams to its own address only (at most
+`MAX_GROUND_STATIONS` per vehicle, each dropped after `GROUND_STATION_TIMEOUT` s without a packet
+from it), so a ground station can configure only what it receives, never lower or disable what
+the commander receives. Where a ground station shares the commander's address, its request can
+only raise a rate there once the commander has been heard (before, it configures the link).
+
 Real time: the wall clock advances the physics in ticks of 1/rate. ``lockstep``: a vehicle
 advances exactly one control period per command whose time stamp (time_usec of
 SET_ACTUATOR_CONTROL_TARGET; ``confirmation`` mod 256 for COMMAND_LONG) is its current step, and
@@ -39,8 +46,8 @@ from cosim.scenario import load_scenario
 from plant_fmu.fast import FleetFMU
 
 from bridge.live import VehicleLive
-from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
-                   parse_endpoint, receive_datagrams, require_key_or_insecure)
+from bridge.mavlink.link import (DRAIN_BUDGET, IFLAG_SIGNED, SIG_LEN, Counters, Peer, TLog, UdpSocket,
+                   crc_ok, mavlink2, parse_endpoint, receive_datagrams, require_key_or_insecure)
 from bridge.mavlink.signing_state import open_signing_state
 from bridge.mavlink.mapping import FleetMapping, MappingSpec
 from bridge.mavlink.config import default_config, read_key_file
@@ -69,8 +76,25 @@ ACTUATION_COMMANDS = frozenset((*(cmd for _, cmd in PROFILE_BY_KEY if cmd is not
                                 M.MAV_CMD_COMPONENT_ARM_DISARM,
                                 M.MAV_CMD_DO_SET_MODE, M.MAV_CMD_DO_SET_SERVO,
                                 M.MAV_CMD_DO_MOTOR_TEST, M.MAV_CMD_DO_FLIGHTTERMINATION))
+MAX_GROUND_STATIONS = 4         # per vehicle: ground stations with streams of their own
+GROUND_STATION_TIMEOUT = 5.0    # s without a packet from one: its streams stop (heartbeats: 1 Hz)
+PARAM_LIST_PERIOD = 1.0         # a ground station's PARAM_REQUEST_LIST: answered once per this
+PARAM_LISTS_PER_S = 4           # long per address, and at most this many per second in all (each
+#                                 answer is six PARAM_VALUE to an address that may be forged)
 CAPABILITIES = (M.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | M.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
                 | M.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET)
+
+
+class GroundStreams:
+    """A ground station's own streams: {msgid: period (s) or None}, when each is due next, and
+    when the last packet from it came."""
+
+    __slots__ = ("interval", "due", "seen")
+
+    def __init__(self, now: float):
+        self.interval: dict = {}
+        self.due: dict = {}
+        self.seen = now
 
 
 class SimVehicle:
@@ -81,6 +105,7 @@ class SimVehicle:
         self.server = server
         self.index = index
         self.sysid = system_id
+        self.link_id = system_id & 0xFF   # the commander's signing link id for this vehicle
         self.sock = UdpSocket(endpoint)
         self.peer = Peer(system_id, 1, server.counters, key=server.key,
                          allow_unsigned_heartbeat=server.allow_unsigned_heartbeat,
@@ -106,9 +131,15 @@ class SimVehicle:
         self.gcs_seen = None
         self.last_odom = None
         now = time.monotonic()
+        # the commander's streams (to where the commander is: `destination`); changed only by
+        # the commander's own SET_MESSAGE_INTERVAL
         self.interval = {ID_HEARTBEAT: 1.0, ID_ODOMETRY: server.odom_period,
                          ID_ATTQ: server.aux_period, ID_LPOS: server.aux_period}
         self.due = {k: now for k in self.interval}
+        self.commander_heard = False    # a commander packet was accepted in full
+        # each ground station's own streams, by its address: {addr: GroundStreams}
+        self.ground: dict = {}
+        self.param_lists: dict = {}     # a ground station's address -> when its list was answered
         self.wire = np.zeros(13)
         self.S = np.zeros(layout.S_WIDTH)
         # the output profiles this vehicle decodes, by (message id, command): the two that carry
@@ -119,6 +150,7 @@ class SimVehicle:
                            actuator_index_offset=server.actuator_index_offset)
             self.profiles[prof.key()] = prof
         self._reply = None              # the sender of the packet being handled (its replies)
+        self._from_commander = False    # ... and whether it is the commander
         self._refresh()
 
     # ------------------------------------------------------------------ state
@@ -183,15 +215,15 @@ class SimVehicle:
         elif msgid == ID_HEARTBEAT:
             mode = M.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (M.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
             self.send(mav.heartbeat_encode(M.MAV_TYPE_HEXAROTOR, M.MAV_AUTOPILOT_GENERIC, mode, 0,
-                                           M.MAV_STATE_ACTIVE if self.armed else M.MAV_STATE_STANDBY))
+                                           M.MAV_STATE_ACTIVE if self.armed else M.MAV_STATE_STANDBY), addr)
         elif msgid == ID_ATTQ:
-            self.send(mav.attitude_quaternion_encode(tb, x[3], x[4], x[5], x[6], x[7], x[8], x[9]))
+            self.send(mav.attitude_quaternion_encode(tb, x[3], x[4], x[5], x[6], x[7], x[8], x[9]), addr)
         elif msgid == ID_LPOS:
             # LOCAL_POSITION_NED carries the velocity in NED: v_ned = R v_frd
             R = self.S[layout.R]
             v = x[10:13]
             vn = [R[3 * i] * v[0] + R[3 * i + 1] * v[1] + R[3 * i + 2] * v[2] for i in range(3)]
-            self.send(mav.local_position_ned_encode(tb, x[0], x[1], x[2], vn[0], vn[1], vn[2]))
+            self.send(mav.local_position_ned_encode(tb, x[0], x[1], x[2], vn[0], vn[1], vn[2]), addr)
         elif msgid == ID_ODOMETRY:
             m = mav.odometry_encode(self.time_usec(), M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_BODY_FRD,
                                     x[0], x[1], x[2], [x[3], x[4], x[5], x[6]], x[10], x[11], x[12],
@@ -240,6 +272,21 @@ class SimVehicle:
         if not self.send_param(index, addr):
             self.server.counters.reject("bad_command")   # no such parameter
 
+    def param_list_allowed(self, addr, now: float) -> bool:
+        """A ground station's PARAM_REQUEST_LIST is answered (six PARAM_VALUE to the sender's
+        address, which without a key may be forged) at most once per `PARAM_LIST_PERIOD` per
+        address and `PARAM_LISTS_PER_S` times per second in all."""
+        pl = self.param_lists
+        last = pl.get(addr)
+        if last is not None and now - last < PARAM_LIST_PERIOD:
+            return False
+        for a in [a for a, t in pl.items() if now - t >= PARAM_LIST_PERIOD]:
+            del pl[a]
+        if len(pl) >= PARAM_LISTS_PER_S:
+            return False
+        pl[addr] = now
+        return True
+
     def statustext(self, severity: int, text: str) -> None:
         self.send(self.peer.mav.statustext_encode(severity, text.encode()[:50]))
 
@@ -248,14 +295,87 @@ class SimVehicle:
         self.send(self.peer.mav.command_ack_encode(command, result, 0, 0, m.get_srcSystem(),
                                                    m.get_srcComponent()), self._reply)
 
-    def emit_due(self, now: float) -> None:
-        for msgid, period in self.interval.items():
+    # ------------------------------------------------------------------ streams
+    def destination(self):
+        """Where the commander's streams go: the commander's address (udpin, once it has
+        talked) or the udpout target; None while nobody is there."""
+        return self.gcs_addr or self.sock.remote
+
+    def stream_period(self, msgid: int, addr=None):
+        """The period (s) at which ``msgid`` goes to ``addr`` (None: the commander's
+        destination), None if it does not. At the commander's destination the commander's
+        interval holds, unless a ground station there asked otherwise: before the commander
+        has been heard its request holds, afterwards it may only raise the rate."""
+        dest = self.destination()
+        if addr is not None and addr != dest:
+            g = self.ground.get(addr)
+            return None if g is None else g.interval.get(msgid)
+        p = self.interval.get(msgid)
+        g = self.ground.get(dest) if dest is not None else None
+        if g is None or msgid not in g.interval:
+            return p
+        q = g.interval[msgid]
+        if not self.commander_heard:
+            return q
+        if not p:
+            return q
+        return p if not q else min(p, q)
+
+    def ground_request(self, mid: int, us: float, now: float) -> int:
+        """A ground station's SET_MESSAGE_INTERVAL: its own stream of ``mid`` (to the sender's
+        address); returns the COMMAND_ACK result."""
+        srv = self.server
+        addr = self._reply
+        g = self.ground.get(addr)
+        if g is None:
+            self.expire_ground(now)
+            if len(self.ground) >= MAX_GROUND_STATIONS:
+                srv.counters.reject("no_stream_slot")
+                return M.MAV_RESULT_TEMPORARILY_REJECTED
+            g = self.ground[addr] = GroundStreams(now)
+        if us < 0:
+            g.interval[mid] = None
+        else:
+            g.interval[mid] = srv.default_interval(mid) if us == 0 else us * 1e-6
+        g.due[mid] = now
+        if addr == self.destination():
+            self.due[mid] = now
+        srv.ground_requests += 1
+        return M.MAV_RESULT_ACCEPTED
+
+    def expire_ground(self, now: float) -> None:
+        for a in [a for a, g in self.ground.items() if now - g.seen > GROUND_STATION_TIMEOUT]:
+            del self.ground[a]
+
+    def emit_due(self, now: float, lockstep: bool = False) -> None:
+        """The streams due now: the commander's (lockstep: not ODOMETRY, which answers each
+        command), then each ground station's own, to its address."""
+        dest = self.destination()
+        for msgid in self.interval:
+            if lockstep and msgid == ID_ODOMETRY:
+                continue
+            period = self.stream_period(msgid)
             if period is None or period <= 0:
                 continue
             if now >= self.due[msgid]:
                 self.send_message(msgid)
                 nd = self.due[msgid] + period
-                self.due[msgid] = nd if nd > now - period else now + period
+                if lockstep:
+                    self.due[msgid] = max(nd, now)
+                else:
+                    self.due[msgid] = nd if nd > now - period else now + period
+        if not self.ground:
+            return
+        self.expire_ground(now)
+        for addr, g in self.ground.items():
+            if addr == dest:
+                continue          # merged into the commander's streams (`stream_period`)
+            for msgid, period in g.interval.items():
+                if period is None or period <= 0 or now < g.due[msgid]:
+                    continue
+                self.send_message(msgid, addr)
+                nd = g.due[msgid] + period
+                g.due[msgid] = nd if nd > now - period else now + period
 
     # ------------------------------------------------------------------ in
     def set_controls(self, c, now: float) -> bool:
@@ -285,12 +405,18 @@ class SimVehicle:
         else:
             self.server.counters.reject("bad_command")
 
-    def handle(self, m, addr, now: float, trusted: bool = True) -> None:
+    def handle(self, m, addr, now: float, trusted: bool = True, commander: bool = True) -> None:
         """A packet that passed the link. ``trusted``: from the commander, or signed with the
-        key; otherwise only telemetry configuration is obeyed (see the module docstring)."""
+        key; otherwise only telemetry configuration is obeyed (see the module docstring).
+        ``commander``: it claims the commander's ids (its SET_MESSAGE_INTERVAL sets the
+        commander's streams; anyone else's sets its own)."""
         srv = self.server
         mid = m.get_msgId()
         self._reply = addr
+        self._from_commander = commander
+        g = self.ground.get(addr)
+        if g is not None and not commander:
+            g.seen = now
         if mid == ID_HEARTBEAT:
             if trusted:
                 self.gcs_seen = now
@@ -301,6 +427,10 @@ class SimVehicle:
         if mid in (M.MAVLINK_MSG_ID_PARAM_REQUEST_LIST, M.MAVLINK_MSG_ID_PARAM_REQUEST_READ):
             if m.target_system not in (0, self.sysid):
                 srv.counters.reject("not_for_us")
+                return
+            if mid == M.MAVLINK_MSG_ID_PARAM_REQUEST_LIST and not commander \
+                    and not self.param_list_allowed(addr, now):
+                srv.counters.reject("rate_limited")
                 return
             self.param_request(m, addr)
             return
@@ -346,7 +476,8 @@ class SimVehicle:
         if c is None:
             srv.counters.reject("bad_command")   # not this vehicle's profile, or out of range
             return
-        c = np.where(np.isnan(c), self.controls, c)   # NaN: "no change" (DO_SET_ACTUATOR)
+        if prof.name == DO_SET_ACTUATOR:   # NaN: "no change" there (MAVLink's definition); in any
+            c = np.where(np.isnan(c), self.controls, c)   # other profile NaN is a bad command
         t_us = prof.time_us(m)
         if srv.lockstep:
             stamps = prof.stamps(m, self.k)
@@ -387,6 +518,9 @@ class SimVehicle:
             if mid not in STREAMABLE or not math.isfinite(us):
                 self.ack(cmd, M.MAV_RESULT_UNSUPPORTED if mid not in STREAMABLE else M.MAV_RESULT_DENIED, m)
                 return
+            if not self._from_commander:    # a ground station: its own streams only
+                self.ack(cmd, self.ground_request(mid, us, now), m)
+                return
             if us < 0:
                 self.interval[mid] = None
             elif us == 0:
@@ -413,7 +547,8 @@ class SimVehicle:
                 self.ack(cmd, M.MAV_RESULT_UNSUPPORTED, m)
                 return
             self.ack(cmd, M.MAV_RESULT_ACCEPTED, m)
-            p = self.interval[mid]
+            # what the requester receives (the commander: its own streams)
+            p = self.interval[mid] if self._from_commander else self.stream_period(mid, self._reply)
             self.send(self.peer.mav.message_interval_encode(mid, -1 if not p else int(round(p * 1e6))),
                       self._reply)
             return
@@ -477,6 +612,7 @@ class VehicleServer:
         self.tlog = TLog(tlog) if tlog else None
         self.encode_errors = 0
         self.repeats = 0
+        self.ground_requests = 0          # SET_MESSAGE_INTERVAL of ground stations (their own streams)
         self.drain_deadline_hits = 0      # receive passes cut short by the tick deadline
         self.ticks = 0                    # real time: physics ticks since the first command
         self.late_ticks = 0               # ... of them more than one tick after they were due
@@ -557,8 +693,21 @@ class VehicleServer:
                  failsafe_delay_max=max(self.failsafe_delays) if self.failsafe_delays else None,
                  failsafe_delays=[round(x, 6) for x in self.failsafe_delays[:200]],
                  failsafe_tick_delays=[round(x, 6) for x in self.failsafe_tick_delays[:200]],
-                 command_timeout=self.command_timeout, control_period=self.h)
+                 command_timeout=self.command_timeout, control_period=self.h,
+                 ground_stations={"interval_requests": self.ground_requests,
+                                  "streams": self._ground_streams()})
         return d
+
+    def _ground_streams(self) -> dict:
+        """{vehicle: {"host:port": {message: Hz (0 = off)}}}: the ground stations' own streams."""
+        out = {}
+        for v in self.vehicles:
+            if v.ground:
+                out[str(v.sysid)] = {
+                    f"{a[0]}:{a[1]}": {M.mavlink_map[k].msgname if k in M.mavlink_map else str(k):
+                                       (round(1.0 / p, 3) if p else 0.0) for k, p in g.interval.items()}
+                    for a, g in v.ground.items()}
+        return out
 
     def _receive(self, v: SimVehicle, now: float) -> None:
         c = self.counters
@@ -567,6 +716,12 @@ class VehicleServer:
 
         def on_packet(pkt, addr):
             commander = pkt[5] == csys and (not ccomp or pkt[6] == ccomp)
+            if commander and keyed and pkt[2] & IFLAG_SIGNED and pkt[-SIG_LEN] != v.link_id:
+                # the commander signs each vehicle's link on its own stream (link id = the
+                # vehicle's system id): a signed commander packet on another link id is another
+                # vehicle's, replayed here (a HEARTBEAT would move where the streams go)
+                c.reject("wrong_link")
+                return
             if not commander and not keyed and \
                     (pkt[7] | (pkt[8] << 8) | (pkt[9] << 16)) in ACTUATION_MSGS:
                 # refused before decoding (cheap): actuation from anyone but the commander
@@ -582,7 +737,7 @@ class VehicleServer:
             try:
                 # with a key, every packet that got here is signed with it (or an unsigned
                 # HEARTBEAT that allow_unsigned_heartbeat lets in, which commands nothing)
-                v.handle(m, addr, now, commander or keyed)
+                v.handle(m, addr, now, commander or keyed, commander=commander)
             except (ValueError, TypeError, OverflowError):  # e.g. int(nan) of a parameter
                 c.reject("bad_command")
                 return
@@ -598,8 +753,10 @@ class VehicleServer:
         (udpin) tell where to send the streams. With a key only a signed packet moves the
         address; udpout endpoints never move. (Its signature's replay window and sequence
         number were committed by the caller: `Peer.commit`.)"""
-        if v.sock.mode == "udpin" and (self.key is None or v.peer.last_signed):
-            v.gcs_addr = addr
+        if self.key is None or v.peer.last_signed:
+            v.commander_heard = True
+            if v.sock.mode == "udpin":
+                v.gcs_addr = addr
 
     def _drain(self, ready, deadline: float) -> float:
         """One bounded pass over the ready sockets (each gives at most DRAIN_BUDGET datagrams),
@@ -662,14 +819,7 @@ class VehicleServer:
                 if self.live is not None:   # --live (bridge/live.py): at most its rate
                     self.live(self)
                 for v in self.vehicles:
-                    if self.lockstep:
-                        for mid in (ID_HEARTBEAT, ID_ATTQ, ID_LPOS):
-                            p = v.interval[mid]
-                            if p and now >= v.due[mid]:
-                                v.send_message(mid)
-                                v.due[mid] = max(v.due[mid] + p, now)
-                    else:
-                        v.emit_due(now)
+                    v.emit_due(now, lockstep=self.lockstep)
                 next_tick += tick
                 if now - next_tick > 10 * tick:  # fell far behind (suspended?): resynchronise
                     next_tick = now + tick
