@@ -90,7 +90,7 @@ def test_link_cut_fails_safe_reports_and_recovers(tmp_path):
     d_tick, d_wall = vst["failsafe_tick_delays"], vst["failsafe_delays"]
     assert len(d_tick) == len(d_wall) == min(vst["failsafe"], 200)
     assert max(d_tick) <= 3 * h + 1e-6, d_tick
-    assert min(d_wall) > 2 * h, d_wall
+    assert min(d_wall) >= 2 * h - 1e-6, d_wall   # the stats round delays to µs
     # the bridge reported the loss and the recovery of every link
     assert ln["link_losses"] >= 6 and ln["link_recoveries"] >= 6 and ln["links_down"] == []
     assert sum("link lost" in e for e in events) >= 6 and sum("link recovered" in e for e in events) >= 6

@@ -152,7 +152,7 @@ def test_connect_ends_a_diverging_run_with_its_status(tmp_path):
     vehicles' wrench limits keep the state finite): the run stops at the first 1 s sample whose
     V̄ exceeds 100 V̄(0), exit 6, one line saying when and why, log and summary complete."""
     from cosim import guards
-    from cosim.log.mcap import read_log
+    from cosim.log.reader import read_log
 
     rc, lines, s, log = _connect_lockstep(tmp_path, ["simulation.step=0.2"], 60)
     assert rc == guards.EXIT_DIVERGED == 6, lines
