@@ -5,7 +5,7 @@ A plant holds N rigid bodies. Per communication step the master calls, in this o
 ``read()`` (the state at t_n), ``apply(u)`` (held constant over the step: zero-order hold) and
 ``advance(h)`` (t_n → t_n + h). A plant owns its time: it counts the steps it has advanced
 (t = k·h), and nothing else counts them for it. Plants are registered in
-`cosim.registry.PLANTS`; a Python plant needs no FMU (tests/test_python_plant.py shows one).
+`cosim.registry.PLANTS`; a Python plant needs no FMU (tests/cosim/test_python_plant.py shows one).
 """
 from __future__ import annotations
 

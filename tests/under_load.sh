@@ -5,7 +5,7 @@
 # Ctrl-C or SIGTERM. Prints how long the suite took.
 #
 #   tests/under_load.sh                  # from the repository root; extra arguments go to pytest
-#   LOAD_JOBS=4 PYTHON=.venv/bin/python tests/under_load.sh -x tests/test_agents.py
+#   LOAD_JOBS=4 PYTHON=.venv/bin/python tests/under_load.sh -x tests/bridge/test_agents.py
 #
 # See docs/testing.md: the real-time tests judge what their run recorded and skip, naming the
 # measured numbers, when the machine could not keep their deadline.

@@ -132,7 +132,7 @@ class MessageAppender:
     and statistics (private to mcap). The first appender of a process proves it on the installed
     mcap: a small file written both ways must come out byte for byte the same (`proven`);
     when it does not, or the writer's parts are missing (another mcap, chunking off), ``add`` is
-    the writer's own add_message. `tests/test_cosim_log.py` checks both ways on a larger file.
+    the writer's own add_message. `tests/cosim/test_cosim_log.py` checks both ways on a larger file.
 
     On the fast path the appender also finishes the writer's zstd chunks (`_finalize_chunk`,
     mcap's own steps) at zstd ``level``: mcap compresses at zstd's default level 3, and on our
