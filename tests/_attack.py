@@ -1,5 +1,5 @@
 """Helpers of the attack tests (issue 29; no tests here): UDP datagrams with a forged source
-address, free ports from the OS, and scenario files that put a swarm on them."""
+address, reserved free ports, and scenario files that put a swarm on them."""
 from __future__ import annotations
 
 import os
@@ -11,18 +11,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def os_ports(n: int) -> list:
-    """n distinct UDP ports the OS hands out as free on 127.0.0.1 (bound to port 0, then let go;
-    the tests run in their own network namespace, where nothing else takes them meanwhile)."""
-    socks = []
-    try:
-        for _ in range(n):
-            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            s.bind(("127.0.0.1", 0))
-            socks.append(s)
-        return [s.getsockname()[1] for s in socks]
-    finally:
-        for s in socks:
-            s.close()
+    """n distinct ports, free on 127.0.0.1 (UDP and TCP), for processes that must be told their
+    ports before they bind them: a block from `bridge.mavlink.link.free_base_port`, below the
+    OS's ephemeral range and reserved by a lock file. (Bound to port 0 and let go, a port could
+    be handed to any other socket of the machine before the process bound it: a run under load
+    failed so, "Address already in use", on a port of the ephemeral range.)"""
+    from bridge.mavlink.link import free_base_port
+
+    base = free_base_port(n)
+    return list(range(base, base + n))
 
 
 def swarm_scenario(tmp_path, n_agents: int = 6, extra: str = "", name: str = "swarm") -> Path:

@@ -81,6 +81,7 @@ def _assert_equal_to_float32(merged, ref):
 
 
 # ------------------------------------------------------------------------------ lockstep
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("encoding", ["json", "cdr"])
@@ -162,6 +163,7 @@ class _Forger(threading.Thread):
             raw.close()
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(300)
 def test_signed_lockstep_swarm_with_a_mid_run_jump_ignores_forged_neighbour_messages(tmp_path):
@@ -275,6 +277,7 @@ def test_an_agent_sends_only_to_its_neighbours_and_only_pose_velocity_and_its_th
 
 
 # ------------------------------------------------------------------------------ real time
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(300)
 def test_real_time_swarm_converges_and_still_does_over_lossy_delayed_links(tmp_path):
@@ -315,6 +318,7 @@ def test_real_time_swarm_converges_and_still_does_over_lossy_delayed_links(tmp_p
 
 
 # ------------------------------------------------------------------------------ an agent killed
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(300)
 def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converges(tmp_path):
@@ -530,6 +534,7 @@ def test_swarm_says_the_outcome_as_run_does(case, status, needle, capsys, monkey
 
 
 # ------------------------------------------------------------------------------ signals
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(300)
 def test_sigterm_stops_every_child_and_still_writes_the_merged_outputs(tmp_path):

@@ -4,7 +4,7 @@ replay under signing, the launcher killed with SIGKILL, a stale process on the s
 signal in the first second, and a real ground station (MAVSDK) configuring a vehicle.
 
 Load-proof: every assertion is about what the run recorded (counters, summaries, logs), not about
-how fast the machine was; ports come from the OS (`_attack.os_ports`)."""
+how fast the machine was; ports are reserved blocks (`_attack.os_ports`, `free_base_port`)."""
 from __future__ import annotations
 
 import json
@@ -67,6 +67,7 @@ def _agent(wd, i):
 
 
 # ------------------------------------------------------------------------------ 1: real time
+@pytest.mark.slow
 @pytest.mark.realtime
 @needs_spoofing
 @pytest.mark.timeout(300)
@@ -174,6 +175,7 @@ print(sent, time.monotonic() - t0)
 """
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(300)
 def test_a_flood_of_junk_starves_no_genuine_sample(tmp_path):

@@ -60,6 +60,7 @@ def _run(tmp_path, duration, loss=0.0, jitter=0.0, cut=None):
     return summary, vst, events, relay, skip_if_busy, texts
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(120)
 def test_loss_jitter_reordering_still_converges(tmp_path):
@@ -76,6 +77,7 @@ def test_loss_jitter_reordering_still_converges(tmp_path):
     assert final["rot_err"] < s["samples"][4]["rot_err"] / 2   # still falling at the nominal rate
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(120)
 def test_link_cut_fails_safe_reports_and_recovers(tmp_path):

@@ -69,6 +69,7 @@ def test_lockstep_bitwise_enu_allocation_gravity_command_long():
     assert st["saturations"] > 0  # the initial transient saturates the rotors (direction kept)
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 def test_lockstep_converges_cli_and_tlog(tmp_path):
     """`se3sync vehicle --lockstep` and `se3sync connect --lockstep` as processes, 6 vehicles, the

@@ -206,6 +206,7 @@ def _own(summaries) -> dict:
     return {i: (s["own"], s["jumps"], s["steps"]) for i, s in summaries.items()}
 
 
+@pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.root
 @pytest.mark.timeout(600)

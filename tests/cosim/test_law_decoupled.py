@@ -297,6 +297,7 @@ def test_a_law_with_only_step_state_runs_and_is_checked(monkeypatch, tmp_path):
 
 
 # ------------------------------------------------------------------------------ as agents
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_lockstep_swarm_equals_its_run_on_the_float32_plant(tmp_path):
     from test_agents import _assert_equal_to_float32, _ports, _swarm

@@ -424,6 +424,7 @@ def _handlers_installed(pid: int) -> bool:
     return False
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("extra", [0.0, 0.6])
 def test_sigterm_at_any_moment_leaves_summary_and_log(extra, tmp_path):
     """As reported: SIGTERM 0.6 s after `se3sync run … --log L --summary S` starts. Sent once

@@ -60,6 +60,7 @@ def _same_as_before(seen: set, text: str, sets: list) -> bool:
     return False
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)  # a hang fails the test here; a case's time is not asserted
 def test_scenario_fuzz(tmp_path, capsys):
     rng = random.Random(20261122)
