@@ -32,9 +32,10 @@ from collections import defaultdict
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
-from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
 from controller.errors import Se3SyncError  # noqa: E402
+
+from . import codec  # noqa: E402
 
 MAGIC_V2 = 0xFD
 MAGIC_V1 = 0xFE
@@ -334,15 +335,16 @@ class Peer:
 
 def crc_ok(pkt: bytes) -> bool | None:
     """The X.25 checksum of a framed MAVLink 2 packet is right (None: unknown message id, no
-    CRC_EXTRA to check with)."""
-    plen = pkt[1]
+    CRC_EXTRA to check with). The per-step messages' CRC_EXTRA from `bridge.mavlink.codec`'s
+    table, the others' from pymavlink's."""
     msgid = pkt[7] | (pkt[8] << 8) | (pkt[9] << 16)
-    entry = mavlink2.mavlink_map.get(msgid)
-    if entry is None:
-        return None
-    crc = x25crc(bytes(pkt[1:HEADER_LEN + plen]))
-    crc.accumulate(bytes((entry.crc_extra,)))
-    return crc.crc == (pkt[HEADER_LEN + plen] | (pkt[HEADER_LEN + plen + 1] << 8))
+    extra = codec.CRC_EXTRA.get(msgid)
+    if extra is None:
+        entry = mavlink2.mavlink_map.get(msgid)
+        if entry is None:
+            return None
+        extra = entry.crc_extra
+    return codec.crc_matches(pkt, extra)
 
 
 def is_loopback(host: str) -> bool:

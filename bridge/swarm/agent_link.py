@@ -62,7 +62,7 @@ from controller import layout
 from controller.errors import Se3SyncError
 from controller.kernels import rot_to_quat_rows
 
-from bridge.mavlink import frames
+from bridge.mavlink import codec, frames
 from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlink2, packet_ids,
                    receive_datagrams)
 from bridge.mavlink.state import QUAT_TOL
@@ -83,8 +83,11 @@ FUTURE_MIN_STEPS = 2       # …and at least this many steps (lockstep neighbour
 POLL_BUDGET = 0.25         # a poll reads the neighbours' sockets for at most this fraction of a step
 JUNK_BUDGET = 0.1          # …and the catch-all socket (strangers, junk) for at most this fraction
 NAN21 = [math.nan] + [0.0] * 20                            # covariance unknown (first element NaN)
-_TYPES = {ID_ODOMETRY: mavlink2.MAVLink_odometry_message,
-          ID_DEBUG_FLOAT_ARRAY: mavlink2.MAVLink_debug_float_array_message}
+_TYPES = {ID_ODOMETRY: codec.ODOMETRY, ID_DEBUG_FLOAT_ARRAY: codec.DEBUG_FLOAT_ARRAY}
+# ODOMETRY after the body velocity: covariances unknown, frames, reset counter, estimator, quality
+_ODO_TAIL = (*NAN21, *NAN21, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD, 0,
+             mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, 100)
+_NAN58 = (math.nan,) * THETA_PER_MESSAGE
 _ODO_FRAME = 56   # ODOMETRY's wire order: time_usec, x y z, q[4], vx vy vz, rates, 2×21 cov, frame ids
 LINK_REASONS = ("not_neighbour", "wrong_address", "bad_stamp", "future", "bad_theta",
                 "unexpected_message", "duplicate", "incomplete")
@@ -101,9 +104,10 @@ def stamp_us(n: int, h_us: int) -> int:
 
 
 def encode_sample(mav, n: int, h_us: int, S_row, theta, world: str = "ned") -> list:
-    """The message objects of one sample: ODOMETRY (unless ``S_row`` is None), then one
-    DEBUG_FLOAT_ARRAY per 58 owned θ (none if ``theta`` is empty or None). ``theta`` lists θ_k of
-    the owned edges in ascending k; ``mav`` is the sender's pymavlink MAVLink object (its system
+    """The messages of one sample: ODOMETRY (unless ``S_row`` is None), then one
+    DEBUG_FLOAT_ARRAY per 58 owned θ (none if ``theta`` is empty or None), as
+    `bridge.mavlink.codec` messages (pymavlink's bytes, without its objects). ``theta`` lists
+    θ_k of the owned edges in ascending k; ``mav`` is the sender's MAVLink object (its system
     id is the agent id)."""
     t = stamp_us(n, h_us)
     out = []
@@ -114,18 +118,15 @@ def encode_sample(mav, n: int, h_us: int, S_row, theta, world: str = "ned") -> l
         # one row, every step: the compiled conversion (numpy's per-call cost is most of it)
         q = np.empty((1, 4))
         rot_to_quat_rows(np.ascontiguousarray(S[:, layout.R]), q)
-        p, w, v, q = S[0, layout.P].tolist(), S[0, layout.OMEGA].tolist(), \
-            S[0, layout.V].tolist(), q[0].tolist()
-        out.append(mav.odometry_encode(t, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD,
-                                       p[0], p[1], p[2], q, v[0], v[1],
-                                       v[2], w[0], w[1], w[2], NAN21, NAN21, 0,
-                                       mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, 100))
+        r = S[0].tolist()
+        out.append(codec.ODOMETRY.encoded(t, *r[layout.P], *q[0].tolist(), *r[layout.V],
+                                          *r[layout.OMEGA], *_ODO_TAIL))
     theta = [float(x) for x in (theta if theta is not None else ())]
     for c in range(0, len(theta), THETA_PER_MESSAGE):
         chunk = theta[c:c + THETA_PER_MESSAGE]
-        data = chunk + [math.nan] * (THETA_PER_MESSAGE - len(chunk))
-        out.append(mav.debug_float_array_encode(t, theta_name(c // THETA_PER_MESSAGE).encode(),
-                                                mav.srcSystem, data))
+        out.append(codec.DEBUG_FLOAT_ARRAY.encoded(
+            t, mav.srcSystem, theta_name(c // THETA_PER_MESSAGE).encode(), *chunk,
+            *_NAN58[len(chunk):]))
     return out
 
 
