@@ -66,7 +66,7 @@ from bridge.mavlink import codec, frames
 from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlink2, packet_ids,
                    receive_datagrams)
 from bridge.mavlink.state import QUAT_TOL
-from bridge.mavlink.transport import f32, wire_to_state
+from bridge.mavlink.transport import wire_row_to_state
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -96,6 +96,17 @@ LINK_REASONS = ("not_neighbour", "wrong_address", "bad_stamp", "future", "bad_th
 def theta_name(chunk: int) -> str:
     """DEBUG_FLOAT_ARRAY name of θ chunk c (edges 58c … 58c+57 of the owned list)."""
     return THETA_NAME if chunk == 0 else f"{THETA_NAME}{chunk}"
+
+
+# θ chunk of a received name (a sender owns at most its graph's edges: 58 per chunk)
+_CHUNK_OF = {theta_name(i): i for i in range(1024)}
+
+
+def _finite(vals) -> bool:
+    """Every value finite, for float32 values (as MAVLink's floats decode): their sum is finite
+    exactly when each is (|x| < 3.5e38, so no sum of a few of them overflows a double; a NaN
+    or an infinity makes the sum NaN or infinite), at the cost of one sum."""
+    return math.isfinite(sum(vals))
 
 
 def stamp_us(n: int, h_us: int) -> int:
@@ -522,7 +533,7 @@ class AgentLink:
         e = self._hist[j].get(n)
         if e is None or e[0] is None:
             return None
-        return wire_to_state(f32(e[0])[None, :], self.world)[0]
+        return np.array(wire_row_to_state(e[0], self.world))   # = wire_to_state's row (float32 values)
 
     def theta_at(self, j: int, n: int):
         """{k: θ_k} of the edges neighbour j owns, as j published them for step n ({} if j owns
@@ -545,7 +556,7 @@ class AgentLink:
             return False
         # the wire row: x y z, q (w x y z), body rates, body velocity
         vals = [*f[1:8], *f[11:14], *f[8:11]]
-        if not all(math.isfinite(v) for v in vals):
+        if not _finite(vals):
             c.reject("nan")
             return False
         q = vals[3:7]
@@ -555,7 +566,7 @@ class AgentLink:
         s = self._step_of(f[0])
         if s is None:
             return False
-        wire = np.asarray(vals, float)
+        wire = vals    # float32 values (struct-unpacked): f32 leaves them as they are
         self._remember(j, s, None, wire)
         a = self._assembly(j, s)
         if a is None:
@@ -573,13 +584,13 @@ class AgentLink:
         owned = self.owned_by[j]
         n_chunks = -(-len(owned) // THETA_PER_MESSAGE)
         name = f[2].split(b"\0", 1)[0].decode("ascii", "replace")
-        chunk = next((i for i in range(n_chunks) if theta_name(i) == name), None)
-        if chunk is None or f[1] != j:
+        chunk = _CHUNK_OF.get(name)
+        if chunk is None or chunk >= n_chunks or f[1] != j:
             c.reject("bad_theta")
             return False
         count = min(THETA_PER_MESSAGE, len(owned) - THETA_PER_MESSAGE * chunk)
         vals = list(f[3:3 + count])
-        if len(vals) != count or not all(math.isfinite(v) for v in vals):
+        if len(vals) != count or not _finite(vals):
             c.reject("nan")
             return False
         s = self._step_of(f[0])
@@ -600,7 +611,9 @@ class AgentLink:
         owned = self.owned_by[j]
         if a.wire is None or len(a.chunks) < -(-len(owned) // THETA_PER_MESSAGE):
             return
-        S = wire_to_state(f32(a.wire)[None, :], self.world)[0]
+        # one row in plain floats (`wire_row_to_state`: wire_to_state's bits); the wire values
+        # are float32 values already (f32 is the identity on them)
+        S = np.array(wire_row_to_state(a.wire, self.world))
         theta_vals = [v for i in sorted(a.chunks) for v in a.chunks[i]]
         self._held[j] = NeighbourSample(a.step, S, S[layout.XI].copy(),
                                         {k: float(v) for k, v in zip(owned, theta_vals)},
