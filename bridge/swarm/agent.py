@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -523,6 +524,27 @@ def _agent_logger(path, node: AgentNode, extra_metadata: dict, encoding: str = "
     return lg
 
 
+def _process_age() -> float | None:
+    """Seconds since this process started (Linux: /proc, 10 ms resolution), or None."""
+    try:
+        with open("/proc/self/stat", encoding="ascii") as f:
+            start = int(f.read().rpartition(")")[2].split()[19])   # field 22: start time, ticks
+        with open("/proc/uptime", encoding="ascii") as f:
+            up = float(f.read().split()[0])
+        return up - start / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _max_rss_mb() -> float | None:
+    """This process's peak resident memory (MB), or None where getrusage does not say."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not POSIX
+        return None
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
 def _warm_up(node: AgentNode) -> None:
     """The compiled kernels the steps use, loaded (or compiled) now rather than while the vehicle
     and the neighbours wait for the first step."""
@@ -554,9 +576,12 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
     failed = False
     sc = scenario
     h = node.h
+    startup = {}
     try:
         _warm_up(node)
+        startup["warm_s"] = _process_age()        # imports, set-up, the compiled kernels loaded
         node.connect()
+        startup["connected_s"] = _process_age()   # …and the vehicle's first state
         if start_file is not None and not lockstep:
             start = node.wait_start(start_file)
         spl = max(1, int(round(1.0 / h)))
@@ -606,6 +631,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
         "edges": list(node.edge_ids), "owned_edges": list(node.owned),
         "first_step": node.first_step, "start": start, "duration_steps": sc.n_steps(),
         "cpu_s": cpu, "cpu_fraction": cpu / summary["wall_time_s"] if summary["wall_time_s"] else None,
+        "max_rss_mb": _max_rss_mb(), "startup": startup,
         "own": {"samples": node.own_samples, "final": own},
         "failsafe": {"steps": node.failsafe_steps, "entries": node.failsafe_entries,
                      "hold_steps": node.hold_steps,
