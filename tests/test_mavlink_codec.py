@@ -170,6 +170,29 @@ def test_outgoing_messages_quack_like_pymavlinks_for_peer_pack():
         o.pack(p.mav, force_mavlink1=True)
 
 
+def test_setup_signing_is_mavutils():
+    allow = (lambda mav, msgid: msgid == 0)   # noqa: E731
+    for ts in (None, 0, 12345):
+        a, b = _mav(), M.MAVLink(None, srcSystem=7, srcComponent=191)
+
+        class _H:
+            mav = a
+
+        mavutil.mavfile.setup_signing(_H(), KEY, sign_outgoing=True, allow_unsigned_callback=allow,
+                                      link_id=5, initial_timestamp=ts)
+        codec.setup_signing(b, KEY, link_id=5, allow_unsigned_callback=allow, initial_timestamp=ts)
+        sa, sb = a.signing, b.signing
+        assert (sa.secret_key, sa.sign_outgoing, sa.allow_unsigned_callback, sa.link_id) == \
+            (sb.secret_key, sb.sign_outgoing, sb.allow_unsigned_callback, sb.link_id)
+        assert abs(sa.timestamp - sb.timestamp) <= (0 if ts is not None else 100_000)  # ≤ 1 s
+    import subprocess
+    import sys
+    # the link (and so an agent) no longer loads mavutil
+    code = "import bridge.mavlink.link, sys; print('pymavlink.mavutil' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
 # ------------------------------------------------------------------------------ decoding
 def _pym_decode(pkt: bytes, key=None):
     rx = _mav(sysid=1, compid=1, key=key)

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import hashlib
 import struct
+import time
 
 try:
     from fastcrc.crc16 import mcrf4xx as _mcrf4xx
@@ -38,7 +39,8 @@ except ImportError:  # pragma: no cover - fastcrc is a dependency of the mavlink
     _mcrf4xx = None
 
 __all__ = ["Message", "Outgoing", "CodecError", "MESSAGES", "BY_ID", "CRC_EXTRA", "frame", "decode",
-           "crc_x25", "crc_matches", "signature", "HEADER_LEN", "SIG_LEN", "MAGIC_V2"]
+           "crc_x25", "crc_matches", "signature", "setup_signing", "HEADER_LEN", "SIG_LEN",
+           "MAGIC_V2"]
 
 MAGIC_V2 = 0xFD
 HEADER_LEN = 10
@@ -160,6 +162,25 @@ class Outgoing:
         return self.msg.id
 
 
+EPOCH_2015 = 1420070400   # signing timestamps count 10 µs from 2015-01-01 00:00 UTC
+
+
+def setup_signing(mav, key: bytes, *, link_id: int = 0, allow_unsigned_callback=None,
+                  initial_timestamp: int | None = None) -> None:
+    """pymavlink's ``mavutil.mavfile.setup_signing`` for one MAVLink object (sign outgoing with
+    ``key`` on ``link_id``, own timestamp = now), without importing mavutil (11 MB and a
+    quarter of a second of serial-port and log-reader modules an agent never uses)."""
+    sg = mav.signing
+    sg.secret_key = key
+    sg.sign_outgoing = True
+    sg.allow_unsigned_callback = allow_unsigned_callback
+    sg.link_id = link_id
+    if initial_timestamp is None:
+        now = max(time.time(), EPOCH_2015)
+        initial_timestamp = int((now - EPOCH_2015) * 100 * 1000)
+    sg.timestamp = initial_timestamp
+
+
 def signature(key: bytes, signed_part) -> bytes:
     """The 6 signature bytes of a packet whose bytes up to and including its timestamp are
     ``signed_part``."""
@@ -192,11 +213,16 @@ def frame(mav, msg: Message, payload: bytes) -> bytes:
     return body + hashlib.sha256(sg.secret_key + body).digest()[:6]
 
 
+_EXTRA_BYTE = [bytes((i,)) for i in range(256)]
+
+
 def crc_matches(pkt, crc_extra: int) -> bool:
     """The checksum of a framed MAVLink 2 packet (signed or not) is right for ``crc_extra``."""
-    plen = pkt[1]
-    end = HEADER_LEN + plen
-    crc = crc_x25(bytes((crc_extra,)), crc_x25(memoryview(pkt)[1:end]))
+    end = HEADER_LEN + pkt[1]
+    if _mcrf4xx is None:  # pragma: no cover
+        crc = _crc_slow(_EXTRA_BYTE[crc_extra], _crc_slow(pkt[1:end]))
+    else:
+        crc = _mcrf4xx(_EXTRA_BYTE[crc_extra], _mcrf4xx(pkt[1:end]))
     return crc == (pkt[end] | (pkt[end + 1] << 8))
 
 
