@@ -1,7 +1,7 @@
 """The CPU one agent process spends per control step, by phase, independent of pacing.
 
     python benchmarks/bench_agent_step.py [--steps N] [--repeats R] [--agent I] [--signed]
-                                          [--against DIR]
+                                          [--against DIR [--label NAME]]
 
 Agent I (default 2: three neighbours, two owned edges) of hil_6uav in real-time mode, driven by
 `cosim.master.Master` as `se3sync agent` drives it, but flat out: its timeline starts in the
@@ -183,9 +183,11 @@ def main(argv=None) -> None:
     ap.add_argument("--against", metavar="DIR", type=Path,
                     help="also the code of another checkout of se3sync (its packages in DIR), "
                          "the two alternating, one process per measurement")
+    ap.add_argument("--label", help="what to call the --against code in the output (default DIR)")
     _markdown.add_option(ap)
     a = ap.parse_args(argv)
-    trees = {"this tree": ROOT, **({str(a.against): a.against.resolve()} if a.against else {})}
+    other = a.label or str(a.against)
+    trees = {"this tree": ROOT, **({other: a.against.resolve()} if a.against else {})}
     rows = []
     with _markdown.Report(a.markdown) as rep:
         for name, signed in (("unsigned", False),) + ((("signed", True),) if a.signed else ()):
@@ -205,10 +207,9 @@ def main(argv=None) -> None:
                              f"{med['total'] / 10000:.3f}"))
             if a.against:
                 tot = {t: statistics.median(r["total"] for r in runs[t]) for t in trees}
-                ratio = tot["this tree"] / tot[str(a.against)]
-                print(f"{name}: this tree / {a.against} = {ratio:.2f}")
-                rep.note(f"{name}: this tree's CPU per step is {ratio:.2f} × that of "
-                         f"`{a.against}`")
+                ratio = tot["this tree"] / tot[other]
+                print(f"{name}: this tree / {other} = {ratio:.2f}")
+                rep.note(f"{name}: this tree's CPU per step is {ratio:.2f} × that of {other}")
         rep.table(["code", "links", "µs per step", "read", "step (law + publish)",
                    "apply (command)", "poll (decode + checks)", "master", "core at 250 Hz",
                    "core at 100 Hz"], rows,
