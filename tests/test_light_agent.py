@@ -78,3 +78,63 @@ def test_one_vehicles_controls_are_the_fleet_paths_bits(world, gravity):
     assert one.mapping.saturations == one.mapping.saturated_vehicles[0] \
         == two.mapping.saturated_vehicles[0] > 0
     assert one.nan_commands == two.nan_commands > 0
+
+
+@pytest.mark.parametrize("encoding", ["json", "cdr"])
+def test_the_agents_block_encoded_log_is_the_per_record_log(tmp_path, encoding):
+    """The agent's log buffers records and encodes them in blocks (off the per-step path): it
+    holds the messages the per-record logger wrote, value for value and in each topic's order,
+    with NaN μ (the edges it does not own), jumps and link statistics in between."""
+    from bridge.mavlink.link import free_base_port
+    from bridge.swarm.agent import NEIGHBOURS, AgentNode, _agent_logger
+    from cosim.log.reader import read_log
+    from cosim.log.writer import McapLogger
+    from cosim.scenario import load_scenario
+
+    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    sc = load_scenario(root / "scenarios" / "hil_6uav.toml",
+                       [f"network.base_port={free_base_port(6)}",
+                        f"bridge.base_port={free_base_port(6)}"])
+    node = AgentNode(sc, 2, on_event=lambda s: None)
+    try:
+        loc = node.local
+        N, M = loc.graph.n, loc.graph.M
+        got = _agent_logger(tmp_path / "block.mcap", node, {}, encoding, block=7)
+        ref = McapLogger(tmp_path / "ref.mcap", loc, controller=node.law, agent_ids=node.agents,
+                         edge_ids=node.edge_ids, encoding=encoding)
+        ref.add_channel("/neighbours", NEIGHBOURS)
+        rng = np.random.default_rng(3)
+        for r in range(40):
+            t_ns = r * 20_000_000
+            S = rng.normal(size=(N, layout.S_WIDTH))
+            args = (S, rng.normal(size=(N, 6)), rng.normal(size=M),
+                    np.where(rng.random(M) < 0.5, np.nan, rng.random(M)), rng.random(M) < 0.1,
+                    rng.random(M), rng.random(M), rng.random(M), rng.normal(size=(N, 4)),
+                    float(rng.random()), float(rng.random()))
+            node.used = {j: (r - 1, 1) for j in node.neighbours}
+            node._state = {j: ("fresh", "hold", "failsafe")[(r + j) % 3] for j in node.neighbours}
+            node.failsafe = r % 4 == 0
+            if r in (5, 23):
+                for lg in (got, ref):
+                    lg.jump(t_ns, t_ns * 1e-9, 1, 0.1, 0.2, 0.3)
+            if r % 10 == 0:
+                for lg in (got, ref):
+                    lg.link_stats(t_ns, {"sent": r})
+            got.record(t_ns, *args)
+            ref.record(t_ns, *args)
+            ref.message("/neighbours", t_ns, {"agent": node.i, "failsafe": node.failsafe,
+                                              "neighbours": [{"agent": j, "sample_step": r - 1,
+                                                              "age_steps": 1,
+                                                              "state": node._state[j]}
+                                                             for j in node.neighbours]})
+            S[:] = 0.0     # the master reuses its arrays: the buffer holds copies
+        got.close()
+        ref.close()
+        a, b = read_log(tmp_path / "block.mcap"), read_log(tmp_path / "ref.mcap")
+        assert set(a["messages"]) == set(b["messages"])
+        same = __import__("json").dumps   # NaN (CDR's μ) compares equal as text
+        for topic, msgs in b["messages"].items():
+            assert same(a["messages"][topic], sort_keys=True) == same(msgs, sort_keys=True), topic
+        assert len(a["messages"]["/tf"]) == 40 and len(a["messages"]["/jumps"]) == 2
+    finally:
+        node.close()

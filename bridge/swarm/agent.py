@@ -504,19 +504,73 @@ NEIGHBOURS = {
 }
 
 
-def _agent_logger(path, node: AgentNode, extra_metadata: dict, encoding: str = "json"):
+LOG_BLOCK = 50   # records per block (1 s at hil_6uav's 50 Hz log rate)
+
+
+def _agent_logger(path, node: AgentNode, extra_metadata: dict, encoding: str = "json",
+                  block: int = LOG_BLOCK):
     """The neighbourhood's McapLogger (the swarm's numbers) with a /neighbours channel written
-    at every record: the sample of each neighbour used, its age and the age rule's verdict."""
+    at every record: the sample of each neighbour used, its age and the age rule's verdict.
+
+    Off the control path (issue 31): a record is copied into a buffer at its step and the
+    buffer is encoded ``block`` records at a time by `McapLogger.record_block` (the compiled
+    co-simulation's block encoder), at the latest before a jump, link statistics or the end
+    are written, so that each topic keeps its time order and the scene sees the jumps when it
+    did; the messages are those `record` writes, value for value."""
     class AgentLogger(McapLogger):
-        def record(self, t_ns, *args):
-            super().record(t_ns, *args)
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            self._block = []
+            self._flushing = False
+
+        def record(self, t_ns, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U):
+            if self._flushing:   # the block encoder's own fallback (a non-finite row)
+                return McapLogger.record(self, t_ns, S, u, theta, mu, jumped, rot_err, pos_err,
+                                         U, quat, V, kX_U)
             nb = []
             for j in node.neighbours:
                 s, age = node.used[j]
-                state = node._state[j]
-                nb.append({"agent": j, "sample_step": s, "age_steps": age, "state": state})
-            self.message("/neighbours", t_ns, {"agent": node.i, "failsafe": node.failsafe,
-                                               "neighbours": nb})
+                nb.append({"agent": j, "sample_step": s, "age_steps": age,
+                           "state": node._state[j]})
+            self._block.append((t_ns, np.array(S), np.array(u), np.array(theta), np.array(mu),
+                                np.array(jumped), np.array(rot_err), np.array(pos_err),
+                                np.array(U), np.array(quat), float(V), float(kX_U),
+                                {"agent": node.i, "failsafe": node.failsafe, "neighbours": nb}))
+            if len(self._block) >= block:
+                self.flush()
+
+        def flush(self) -> None:
+            """Encodes the buffered records (and their /neighbours messages)."""
+            rows, self._block = self._block, []
+            if not rows:
+                return
+            cols = list(zip(*rows))
+            self._flushing = True
+            try:
+                McapLogger.record_block(self, list(cols[0]), *(np.stack(c) for c in cols[1:10]),
+                                        np.array(cols[10]), np.array(cols[11]),
+                                        finite_only=False)
+            finally:
+                self._flushing = False
+            for t_ns, nbs in zip(cols[0], cols[12]):
+                self.message("/neighbours", t_ns, nbs)
+
+        def jump(self, *a, **kw):
+            self.flush()
+            super().jump(*a, **kw)
+
+        def link_stats(self, *a, **kw):
+            self.flush()
+            super().link_stats(*a, **kw)
+
+        def outcome(self, *a, **kw):
+            self.flush()
+            super().outcome(*a, **kw)
+
+        def close(self, discard: bool = False):
+            if not discard and not self._closed:
+                self.flush()
+            super().close(discard=discard)
 
     lg = AgentLogger(path, node.local, controller=node.law, agent_ids=node.agents,
                      edge_ids=node.edge_ids, extra_metadata=extra_metadata, encoding=encoding)
