@@ -5,7 +5,7 @@ message to every peer that ever talked to it, it writes no tlog for UDP, and its
 across datagrams. Instead each link is a plain non-blocking socket, every datagram is framed on
 its own (UDP carries whole packets), and each peer gets its own
 ``pymavlink.dialects.v20.common.MAVLink`` object for encoding and decoding. Signing uses
-pymavlink's ``setup_signing`` (called on a tiny holder of the MAVLink object) and pymavlink's own
+pymavlink's ``setup_signing`` (as `bridge.mavlink.codec.setup_signing`) and pymavlink's own
 signing state (its per-stream timestamps and own timestamp, ``mav.signing``), but the checks are
 ours: we verify the HMAC first, so that (a) a bad signature can be told from a replay in the
 counters and (b) a forged packet never touches a replay window (pymavlink's ``check_signature``
@@ -30,11 +30,11 @@ import time
 from collections import defaultdict
 
 os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
-from pymavlink.generator.mavcrc import x25crc  # noqa: E402
 
 from controller.errors import Se3SyncError  # noqa: E402
+
+from . import codec  # noqa: E402
 
 MAGIC_V2 = 0xFD
 MAGIC_V1 = 0xFE
@@ -116,11 +116,6 @@ class TLog:
             self.f = None
 
 
-class _Holder:  # what mavutil.mavfile.setup_signing needs: an object with .mav
-    def __init__(self, mav):
-        self.mav = mav
-
-
 def split_datagram(data: bytes):
     """Frames a datagram into MAVLink 2 packets. Returns (packets, error) where error is None or
     a short reason; on error the packets framed before the bad bytes are still returned."""
@@ -169,8 +164,7 @@ class Peer:
         self._last_seq: dict = {}
         if key is not None:
             allow = (lambda mav, msgid: msgid == MSG_HEARTBEAT) if allow_unsigned_heartbeat else None
-            mavutil.mavfile.setup_signing(_Holder(self.mav), key, sign_outgoing=True,
-                                          allow_unsigned_callback=allow, link_id=link_id)
+            codec.setup_signing(self.mav, key, allow_unsigned_callback=allow, link_id=link_id)
             if signing_state is not None:
                 signing_state.attach(self.mav)
         self.rx_errors: dict = defaultdict(int)
@@ -341,15 +335,16 @@ class Peer:
 
 def crc_ok(pkt: bytes) -> bool | None:
     """The X.25 checksum of a framed MAVLink 2 packet is right (None: unknown message id, no
-    CRC_EXTRA to check with)."""
-    plen = pkt[1]
+    CRC_EXTRA to check with). The per-step messages' CRC_EXTRA from `bridge.mavlink.codec`'s
+    table, the others' from pymavlink's."""
     msgid = pkt[7] | (pkt[8] << 8) | (pkt[9] << 16)
-    entry = mavlink2.mavlink_map.get(msgid)
-    if entry is None:
-        return None
-    crc = x25crc(bytes(pkt[1:HEADER_LEN + plen]))
-    crc.accumulate(bytes((entry.crc_extra,)))
-    return crc.crc == (pkt[HEADER_LEN + plen] | (pkt[HEADER_LEN + plen + 1] << 8))
+    extra = codec.CRC_EXTRA.get(msgid)
+    if extra is None:
+        entry = mavlink2.mavlink_map.get(msgid)
+        if entry is None:
+            return None
+        extra = entry.crc_extra
+    return codec.crc_matches(pkt, extra)
 
 
 def is_loopback(host: str) -> bool:

@@ -92,6 +92,9 @@ class FleetMapping:
                 self.lo[i] = -1.0 if s.allocation.reversible else 0.0
         self.saturations = 0          # control steps at which at least one vehicle saturated
         self.saturated_vehicles = np.zeros(n, dtype=np.int64)
+        # one vehicle with the direct mapping (an agent's): `encode_row` in plain floats
+        self.one_direct = n == 1 and self.direct.size == 1
+        self._mw = self.max_wrench[0].tolist()
 
     def subset(self, idx) -> "FleetMapping":
         return FleetMapping([self.specs[i] for i in np.atleast_1d(idx)])
@@ -130,6 +133,25 @@ class FleetMapping:
             self.saturations += 1
             self.saturated_vehicles += sat
         self.last_saturated = sat
+        return c
+
+    def encode_row(self, w: list, base: list | None = None) -> list:
+        """`encode` for one vehicle with the ``direct`` mapping (``one_direct``), the wrench and
+        baseline as lists of 6 floats: the same operations on the same floats (so the same
+        bits), without numpy's per-call cost on a one-row array. Updates the counters."""
+        mw = self._mw
+        c = [0.0] * 6
+        sat = False
+        for i in range(6):
+            x = (w[i] if base is None else w[i] + base[i]) / mw[i]
+            if abs(x) > 1.0:
+                sat = True
+            # np.clip: NaN stays NaN
+            c[i] = -1.0 if x < -1.0 else 1.0 if x > 1.0 else x
+        if sat:
+            self.saturations += 1
+            self.saturated_vehicles[0] += 1
+        self.last_saturated = np.array([sat])
         return c
 
     # ------------------------------------------------------------------ controls -> wrench

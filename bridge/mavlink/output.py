@@ -59,6 +59,7 @@ import time
 
 import numpy as np
 
+from . import codec
 from .link import mavlink2
 
 M = mavlink2
@@ -275,7 +276,9 @@ class OutputProfile:
         return None
 
     def message(self, mav, c, *, target: int, k: int, lockstep: bool, wire=None):
-        """The MAVLink message for controls c (6,) at step k (wire: the state the bridge used)."""
+        """The MAVLink message for controls c (6,) at step k (wire: the state the bridge used), as
+        a `bridge.mavlink.codec.Outgoing` (``pack(mav)`` frames it as pymavlink would; ``mav``
+        is kept for profiles that need pymavlink)."""
         raise NotImplementedError
 
     def decode(self, m, wire=None) -> np.ndarray | None:
@@ -304,8 +307,8 @@ class ActuatorControlTarget(OutputProfile):
 
     def message(self, mav, c, *, target, k, lockstep, wire=None):
         t_us = k * self.h_us if lockstep else int(time.time() * 1e6)
-        return mav.set_actuator_control_target_encode(t_us, self.group_mlx, target, 1,
-                                                      [c[0], c[1], c[2], c[3], c[4], c[5], 0.0, 0.0])
+        return codec.SET_ACTUATOR_CONTROL_TARGET.encoded(
+            t_us, c[0], c[1], c[2], c[3], c[4], c[5], 0.0, 0.0, self.group_mlx, target, 1)
 
     def decode(self, m, wire=None):
         if m.group_mlx != self.group_mlx:
@@ -325,8 +328,10 @@ class DoSetActuator(OutputProfile):
         return m.confirmation == self.stamp(k), m.confirmation == self.stamp(k - 1)
 
     def message(self, mav, c, *, target, k, lockstep, wire=None):
-        return mav.command_long_encode(target, 1, M.MAV_CMD_DO_SET_ACTUATOR, k & 0xFF if lockstep else 0,
-                                       c[0], c[1], c[2], c[3], c[4], c[5], float(self.actuator_index_offset))
+        return codec.COMMAND_LONG.encoded(c[0], c[1], c[2], c[3], c[4], c[5],
+                                          float(self.actuator_index_offset),
+                                          M.MAV_CMD_DO_SET_ACTUATOR, target, 1,
+                                          k & 0xFF if lockstep else 0)
 
     def decode(self, m, wire=None):
         if int(m.param7) != self.actuator_index_offset:
@@ -346,7 +351,8 @@ class ArduSubManualControl(OutputProfile):
 
     def message(self, mav, c, *, target, k, lockstep, wire=None):
         x, y, z, r, s, t = manual_control_axes(c)
-        return mav.manual_control_encode(target, x, y, z, r, 0, 0, MANUAL_EXTENSIONS, s, t)
+        return codec.MANUAL_CONTROL.encoded(x, y, z, r, 0, target, 0, MANUAL_EXTENSIONS, s, t,
+                                            0, 0, 0, 0, 0, 0)
 
     def decode(self, m, wire=None):
         if not (0 <= m.z <= 1000 and all(-1000 <= v <= 1000 for v in (m.x, m.y, m.r, m.s, m.t))):
@@ -382,7 +388,9 @@ class Px4AttitudeThrust(OutputProfile):
         q_d, tb = self.att.encode(c, wire)
         tb_ms = (k * self.h_ms) & 0xFFFFFFFF if lockstep else \
             int(time.monotonic() * 1000) & 0xFFFFFFFF
-        return AttitudeTargetMessage(tb_ms, target, 1, PX4_TYPE_MASK, list(q_d), list(tb))
+        return codec.SET_ATTITUDE_TARGET.encoded(tb_ms, q_d[0], q_d[1], q_d[2], q_d[3], 0.0, 0.0,
+                                                 0.0, 0.0, target, 1, PX4_TYPE_MASK, tb[0], tb[1],
+                                                 tb[2])
 
     def decode(self, m, wire=None):
         q = m.q

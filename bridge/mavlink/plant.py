@@ -16,6 +16,7 @@ import numpy as np
 from controller.errors import Se3SyncError
 from cosim import signals
 
+from . import codec
 from .config import default_config, read_key_file
 from .link import (IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
                    parse_endpoint, receive_datagrams, require_key_or_insecure)
@@ -30,7 +31,7 @@ ID_ATTQ = M.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 ID_LPOS = M.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 ID_ACK = M.MAVLINK_MSG_ID_COMMAND_ACK
 ID_STATUSTEXT = M.MAVLINK_MSG_ID_STATUSTEXT
-_ODOMETRY = {ID_ODOMETRY: M.MAVLink_odometry_message}
+_ODOMETRY = {ID_ODOMETRY: codec.ODOMETRY}   # its struct layout (bridge.mavlink.codec)
 
 
 class _Odometry:

@@ -14,10 +14,14 @@ The "wire" state of a vehicle is 13 numbers: [x, y, z, qw, qx, qy, qz, ωx, ωy,
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from controller import layout
 from plant_fmu.fast import FleetFMU
+
+from controller.se3 import quat_to_rot_row
 
 from . import frames
 from .config import default_config
@@ -42,9 +46,25 @@ def state_to_wire(S_ned: np.ndarray, q: np.ndarray) -> np.ndarray:
     return f32(out)
 
 
+def wire_row_to_state(w, world: str) -> list:
+    """`wire_to_state` of one wire row (13 floats) as a list of 18 floats: the same operations in
+    the same order (`quat_to_rot_row`; the frame change only permutes and negates), so the same
+    bits, without numpy's per-call cost (a vehicle's state and each neighbour's, every step)."""
+    w = [float(x) for x in w]
+    R = quat_to_rot_row(w[3], w[4], w[5], w[6])
+    if world == "ned":
+        return w[0:3] + R + w[7:13]
+    # ENU/FLU: p = P_W p, R = P_W R P_B (rows 1, 0, −2; then columns 1, 2 negated), ξ = P_B ξ
+    return [w[1], w[0], -w[2],
+            R[3], -R[4], -R[5], R[0], -R[1], -R[2], -R[6], R[7], R[8],
+            w[7], -w[8], -w[9], w[10], -w[11], -w[12]]
+
+
 def wire_to_state(wire: np.ndarray, world: str) -> np.ndarray:
     """The bridge side: (n,13) wire values -> (n,18) [p, R, ξ] in the scenario's frames."""
     wire = np.asarray(wire, dtype=np.float64)
+    if wire.shape[0] == 1:
+        return np.array([wire_row_to_state(wire[0].tolist(), world)])
     S = np.empty((wire.shape[0], layout.S_WIDTH))
     S[:, layout.P] = wire[:, 0:3]
     S[:, layout.R] = frames.quat_to_rot(wire[:, 3:7])
@@ -77,6 +97,8 @@ class Transport:
     def controls(self, u: np.ndarray, S: np.ndarray) -> np.ndarray:
         """Controller wrench u (n,6) [τ; f] in the scenario body frame, at state S (scenario
         frames) -> actuator controls (n,6), float64 (the wire rounds them to float32)."""
+        if self.mapping.one_direct:
+            return np.array([self._controls_row(u, S)])
         u = np.asarray(u, dtype=np.float64)
         if not np.all(np.isfinite(u)):
             self.nan_commands += 1
@@ -88,6 +110,26 @@ class Transport:
             ff[:, 3:6] = gravity_feedforward(S, self.masses, self.gravity)
             base = frames.body_to_frd(ff, self.world)
         return self.mapping.encode(w, base)
+
+    def _controls_row(self, u, S) -> list:
+        """`controls` of one vehicle with the direct mapping, in plain floats (the same
+        operations in the same order as the fleet's numpy path, so the same bits)."""
+        u = np.asarray(u, dtype=np.float64).reshape(6).tolist()
+        if not all(math.isfinite(x) for x in u):
+            self.nan_commands += 1
+            u = [x if math.isfinite(x) else 0.0 for x in u]
+        enu = self.world != "ned"
+        if enu:   # body_to_frd: P_B on each group of 3
+            u = [u[0], -u[1], -u[2], u[3], -u[4], -u[5]]
+        base = None
+        if self.gravity_compensation:
+            R = np.asarray(S, dtype=np.float64).reshape(-1)[layout.R].tolist()
+            m = float(self.masses[0])
+            g0, g1, g2 = self.gravity.tolist()
+            f = [-m * (R[i] * g0 + R[3 + i] * g1 + R[6 + i] * g2) for i in range(3)]
+            # body_to_frd of [0, f] (P_B negates the zero torque too: −0.0, as numpy does)
+            base = [0.0, -0.0, -0.0, f[0], -f[1], -f[2]] if enu else [0.0, 0.0, 0.0, *f]
+        return self.mapping.encode_row(u, base)
 
     def wrench_frd(self, controls: np.ndarray) -> np.ndarray:
         """Vehicle side: controls (n,6) as received (float32 values) -> FRD wrench."""

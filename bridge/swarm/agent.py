@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -504,24 +505,99 @@ NEIGHBOURS = {
 }
 
 
-def _agent_logger(path, node: AgentNode, extra_metadata: dict, encoding: str = "json"):
+LOG_BLOCK = 50   # records per block (1 s at hil_6uav's 50 Hz log rate)
+
+
+def _agent_logger(path, node: AgentNode, extra_metadata: dict, encoding: str = "json",
+                  block: int = LOG_BLOCK):
     """The neighbourhood's McapLogger (the swarm's numbers) with a /neighbours channel written
-    at every record: the sample of each neighbour used, its age and the age rule's verdict."""
+    at every record: the sample of each neighbour used, its age and the age rule's verdict.
+
+    Off the control path (issue 31): a record is copied into a buffer at its step and the
+    buffer is encoded ``block`` records at a time by `McapLogger.record_block` (the compiled
+    co-simulation's block encoder), at the latest before a jump, link statistics or the end
+    are written, so that each topic keeps its time order and the scene sees the jumps when it
+    did; the messages are those `record` writes, value for value."""
     class AgentLogger(McapLogger):
-        def record(self, t_ns, *args):
-            super().record(t_ns, *args)
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            self._block = []
+            self._flushing = False
+
+        def record(self, t_ns, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U):
+            if self._flushing:   # the block encoder's own fallback (a non-finite row)
+                return McapLogger.record(self, t_ns, S, u, theta, mu, jumped, rot_err, pos_err,
+                                         U, quat, V, kX_U)
             nb = []
             for j in node.neighbours:
                 s, age = node.used[j]
-                state = node._state[j]
-                nb.append({"agent": j, "sample_step": s, "age_steps": age, "state": state})
-            self.message("/neighbours", t_ns, {"agent": node.i, "failsafe": node.failsafe,
-                                               "neighbours": nb})
+                nb.append({"agent": j, "sample_step": s, "age_steps": age,
+                           "state": node._state[j]})
+            self._block.append((t_ns, np.array(S), np.array(u), np.array(theta), np.array(mu),
+                                np.array(jumped), np.array(rot_err), np.array(pos_err),
+                                np.array(U), np.array(quat), float(V), float(kX_U),
+                                {"agent": node.i, "failsafe": node.failsafe, "neighbours": nb}))
+            if len(self._block) >= block:
+                self.flush()
+
+        def flush(self) -> None:
+            """Encodes the buffered records (and their /neighbours messages)."""
+            rows, self._block = self._block, []
+            if not rows:
+                return
+            cols = list(zip(*rows))
+            self._flushing = True
+            try:
+                McapLogger.record_block(self, list(cols[0]), *(np.stack(c) for c in cols[1:10]),
+                                        np.array(cols[10]), np.array(cols[11]),
+                                        finite_only=False)
+            finally:
+                self._flushing = False
+            for t_ns, nbs in zip(cols[0], cols[12]):
+                self.message("/neighbours", t_ns, nbs)
+
+        def jump(self, *a, **kw):
+            self.flush()
+            super().jump(*a, **kw)
+
+        def link_stats(self, *a, **kw):
+            self.flush()
+            super().link_stats(*a, **kw)
+
+        def outcome(self, *a, **kw):
+            self.flush()
+            super().outcome(*a, **kw)
+
+        def close(self, discard: bool = False):
+            if not discard and not self._closed:
+                self.flush()
+            super().close(discard=discard)
 
     lg = AgentLogger(path, node.local, controller=node.law, agent_ids=node.agents,
                      edge_ids=node.edge_ids, extra_metadata=extra_metadata, encoding=encoding)
     lg.add_channel("/neighbours", NEIGHBOURS)
     return lg
+
+
+def _process_age() -> float | None:
+    """Seconds since this process started (Linux: /proc, 10 ms resolution), or None."""
+    try:
+        with open("/proc/self/stat", encoding="ascii") as f:
+            start = int(f.read().rpartition(")")[2].split()[19])   # field 22: start time, ticks
+        with open("/proc/uptime", encoding="ascii") as f:
+            up = float(f.read().split()[0])
+        return up - start / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _max_rss_mb() -> float | None:
+    """This process's peak resident memory (MB), or None where getrusage does not say."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not POSIX
+        return None
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def _warm_up(node: AgentNode) -> None:
@@ -556,9 +632,12 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
     failed = False
     sc = scenario
     h = node.h
+    startup = {}
     try:
         _warm_up(node)
+        startup["warm_s"] = _process_age()        # imports, set-up, the compiled kernels loaded
         node.connect()
+        startup["connected_s"] = _process_age()   # …and the vehicle's first state
         if start_file is not None and not lockstep:
             start = node.wait_start(start_file)
         spl = max(1, int(round(1.0 / h)))
@@ -608,6 +687,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
         "edges": list(node.edge_ids), "owned_edges": list(node.owned),
         "first_step": node.first_step, "start": start, "duration_steps": sc.n_steps(),
         "cpu_s": cpu, "cpu_fraction": cpu / summary["wall_time_s"] if summary["wall_time_s"] else None,
+        "max_rss_mb": _max_rss_mb(), "startup": startup,
         "own": {"samples": node.own_samples, "final": own},
         "failsafe": {"steps": node.failsafe_steps, "entries": node.failsafe_entries,
                      "hold_steps": node.hold_steps,

@@ -66,11 +66,11 @@ from controller import layout
 from controller.errors import Se3SyncError
 from controller.kernels import rot_to_quat_rows
 
-from bridge.mavlink import frames
+from bridge.mavlink import codec, frames
 from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlink2, packet_ids,
                    receive_datagrams)
 from bridge.mavlink.state import QUAT_TOL
-from bridge.mavlink.transport import f32, wire_to_state
+from bridge.mavlink.transport import wire_row_to_state
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -87,8 +87,11 @@ FUTURE_MIN_STEPS = 2       # …and at least this many steps (lockstep neighbour
 POLL_BUDGET = 0.25         # a poll reads the neighbours' sockets for at most this fraction of a step
 JUNK_BUDGET = 0.1          # …and the catch-all socket (strangers, junk) for at most this fraction
 NAN21 = [math.nan] + [0.0] * 20                            # covariance unknown (first element NaN)
-_TYPES = {ID_ODOMETRY: mavlink2.MAVLink_odometry_message,
-          ID_DEBUG_FLOAT_ARRAY: mavlink2.MAVLink_debug_float_array_message}
+_TYPES = {ID_ODOMETRY: codec.ODOMETRY, ID_DEBUG_FLOAT_ARRAY: codec.DEBUG_FLOAT_ARRAY}
+# ODOMETRY after the body velocity: covariances unknown, frames, reset counter, estimator, quality
+_ODO_TAIL = (*NAN21, *NAN21, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD, 0,
+             mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, 100)
+_NAN58 = (math.nan,) * THETA_PER_MESSAGE
 _ODO_FRAME = 56   # ODOMETRY's wire order: time_usec, x y z, q[4], vx vy vz, rates, 2×21 cov, frame ids
 LINK_REASONS = ("not_neighbour", "wrong_address", "bad_stamp", "future", "bad_theta",
                 "unexpected_message", "duplicate", "incomplete")
@@ -99,15 +102,27 @@ def theta_name(chunk: int) -> str:
     return THETA_NAME if chunk == 0 else f"{THETA_NAME}{chunk}"
 
 
+# θ chunk of a received name (a sender owns at most its graph's edges: 58 per chunk)
+_CHUNK_OF = {theta_name(i): i for i in range(1024)}
+
+
+def _finite(vals) -> bool:
+    """Every value finite, for float32 values (as MAVLink's floats decode): their sum is finite
+    exactly when each is (|x| < 3.5e38, so no sum of a few of them overflows a double; a NaN
+    or an infinity makes the sum NaN or infinite), at the cost of one sum."""
+    return math.isfinite(sum(vals))
+
+
 def stamp_us(n: int, h_us: int) -> int:
     """time_usec of sample step n."""
     return int(n) * h_us
 
 
 def encode_sample(mav, n: int, h_us: int, S_row, theta, world: str = "ned") -> list:
-    """The message objects of one sample: ODOMETRY (unless ``S_row`` is None), then one
-    DEBUG_FLOAT_ARRAY per 58 owned θ (none if ``theta`` is empty or None). ``theta`` lists θ_k of
-    the owned edges in ascending k; ``mav`` is the sender's pymavlink MAVLink object (its system
+    """The messages of one sample: ODOMETRY (unless ``S_row`` is None), then one
+    DEBUG_FLOAT_ARRAY per 58 owned θ (none if ``theta`` is empty or None), as
+    `bridge.mavlink.codec` messages (pymavlink's bytes, without its objects). ``theta`` lists
+    θ_k of the owned edges in ascending k; ``mav`` is the sender's MAVLink object (its system
     id is the agent id)."""
     t = stamp_us(n, h_us)
     out = []
@@ -118,18 +133,15 @@ def encode_sample(mav, n: int, h_us: int, S_row, theta, world: str = "ned") -> l
         # one row, every step: the compiled conversion (numpy's per-call cost is most of it)
         q = np.empty((1, 4))
         rot_to_quat_rows(np.ascontiguousarray(S[:, layout.R]), q)
-        p, w, v, q = S[0, layout.P].tolist(), S[0, layout.OMEGA].tolist(), \
-            S[0, layout.V].tolist(), q[0].tolist()
-        out.append(mav.odometry_encode(t, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD,
-                                       p[0], p[1], p[2], q, v[0], v[1],
-                                       v[2], w[0], w[1], w[2], NAN21, NAN21, 0,
-                                       mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, 100))
+        r = S[0].tolist()
+        out.append(codec.ODOMETRY.encoded(t, *r[layout.P], *q[0].tolist(), *r[layout.V],
+                                          *r[layout.OMEGA], *_ODO_TAIL))
     theta = [float(x) for x in (theta if theta is not None else ())]
     for c in range(0, len(theta), THETA_PER_MESSAGE):
         chunk = theta[c:c + THETA_PER_MESSAGE]
-        data = chunk + [math.nan] * (THETA_PER_MESSAGE - len(chunk))
-        out.append(mav.debug_float_array_encode(t, theta_name(c // THETA_PER_MESSAGE).encode(),
-                                                mav.srcSystem, data))
+        out.append(codec.DEBUG_FLOAT_ARRAY.encoded(
+            t, mav.srcSystem, theta_name(c // THETA_PER_MESSAGE).encode(), *chunk,
+            *_NAN58[len(chunk):]))
     return out
 
 
@@ -532,7 +544,7 @@ class AgentLink:
         e = self._hist[j].get(n)
         if e is None or e[0] is None:
             return None
-        return wire_to_state(f32(e[0])[None, :], self.world)[0]
+        return np.array(wire_row_to_state(e[0], self.world))   # = wire_to_state's row (float32 values)
 
     def theta_at(self, j: int, n: int):
         """{k: θ_k} of the edges neighbour j owns, as j published them for step n ({} if j owns
@@ -555,7 +567,7 @@ class AgentLink:
             return False
         # the wire row: x y z, q (w x y z), body rates, body velocity
         vals = [*f[1:8], *f[11:14], *f[8:11]]
-        if not all(math.isfinite(v) for v in vals):
+        if not _finite(vals):
             c.reject("nan")
             return False
         q = vals[3:7]
@@ -565,7 +577,7 @@ class AgentLink:
         s = self._step_of(f[0])
         if s is None:
             return False
-        wire = np.asarray(vals, float)
+        wire = vals    # float32 values (struct-unpacked): f32 leaves them as they are
         self._remember(j, s, None, wire)
         a = self._assembly(j, s)
         if a is None:
@@ -583,13 +595,13 @@ class AgentLink:
         owned = self.owned_by[j]
         n_chunks = -(-len(owned) // THETA_PER_MESSAGE)
         name = f[2].split(b"\0", 1)[0].decode("ascii", "replace")
-        chunk = next((i for i in range(n_chunks) if theta_name(i) == name), None)
-        if chunk is None or f[1] != j:
+        chunk = _CHUNK_OF.get(name)
+        if chunk is None or chunk >= n_chunks or f[1] != j:
             c.reject("bad_theta")
             return False
         count = min(THETA_PER_MESSAGE, len(owned) - THETA_PER_MESSAGE * chunk)
         vals = list(f[3:3 + count])
-        if len(vals) != count or not all(math.isfinite(v) for v in vals):
+        if len(vals) != count or not _finite(vals):
             c.reject("nan")
             return False
         s = self._step_of(f[0])
@@ -610,7 +622,9 @@ class AgentLink:
         owned = self.owned_by[j]
         if a.wire is None or len(a.chunks) < -(-len(owned) // THETA_PER_MESSAGE):
             return
-        S = wire_to_state(f32(a.wire)[None, :], self.world)[0]
+        # one row in plain floats (`wire_row_to_state`: wire_to_state's bits); the wire values
+        # are float32 values already (f32 is the identity on them)
+        S = np.array(wire_row_to_state(a.wire, self.world))
         theta_vals = [v for i in sorted(a.chunks) for v in a.chunks[i]]
         self._held[j] = NeighbourSample(a.step, S, S[layout.XI].copy(),
                                         {k: float(v) for k, v in zip(owned, theta_vals)},

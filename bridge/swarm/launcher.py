@@ -149,7 +149,8 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
         al = ln.get("agent_link", {})
         agents.append({"agent": i, "steps": s["steps"], "first_step": s.get("first_step", 0),
                        "interrupted": s["interrupted"], "wall_time_s": s["wall_time_s"],
-                       "cpu_fraction": s.get("cpu_fraction"), "failsafe": s["failsafe"],
+                       "cpu_fraction": s.get("cpu_fraction"), "max_rss_mb": s.get("max_rss_mb"),
+                       "startup": s.get("startup"), "failsafe": s["failsafe"],
                        "late_steps": ln.get("late_steps"),
                        "vehicle_latency_ms_p99": ln.get("latency_ms_p99"),
                        "vehicle_failsafes": ln.get("vehicle_failsafes"),

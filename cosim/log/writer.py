@@ -423,10 +423,13 @@ class McapLogger:
                                           "theta_before": theta_before,
                                           "theta_after": theta_after, "mu": mu}))
 
-    def record_block(self, t_ns, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U):
+    def record_block(self, t_ns, S, u, theta, mu, jumped, rot_err, pos_err, U, quat, V, kX_U,
+                     finite_only: bool = True):
         """`record_fast` for R consecutive records at once (t_ns a list of R ints, every other
         argument stacked on a first axis of length R): one orjson call per channel for the
-        whole block. Rows with a non-finite value go through `record`."""
+        whole block. Rows with a non-finite value go through `record`, unless ``finite_only``
+        is false: orjson writes them as `record` does, null (an agent's log has μ = NaN on
+        every edge it does not own, at every record)."""
         R = len(t_ns)
         if R == 0:
             return
@@ -442,8 +445,9 @@ class McapLogger:
         ed_v = np.stack((theta, mu, rot_err, pos_err, U), axis=2)
         ag_v = np.concatenate((S[:, :, layout.XI], u), axis=2)
         plain = np.ones(R, np.bool_)
-        for v in (tf_v, ed_v, ag_v):
-            plain &= np.isfinite(v).all(axis=(1, 2))
+        if finite_only:
+            for v in (tf_v, ed_v, ag_v):
+                plain &= np.isfinite(v).all(axis=(1, 2))
         any_jump = jumped.any(axis=1).tolist()
         tb = self._bytes_templates()
         opt = _orjson.OPT_SERIALIZE_NUMPY
