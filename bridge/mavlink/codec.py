@@ -10,7 +10,7 @@ the payload's trailing zeros dropped, the X.25 checksum with the message's CRC_E
 key the 13-byte signature: link id, 48-bit timestamp, the first 6 bytes of
 SHA-256(key + header + payload + checksum + link id + timestamp)), and decoded as pymavlink's
 ``MAVLink.decode`` decodes them (a short payload zero-extended, a longer one cut to the layout).
-`tests/test_mavlink_codec.py` checks both byte for byte against pymavlink, signed and unsigned.
+`tests/bridge/test_mavlink_codec.py` checks both byte for byte against pymavlink, signed and unsigned.
 
 It imports neither pymavlink nor numpy. The state a frame needs (sequence number, system and
 component id, signing: key, link id, own timestamp) is read from and written to a pymavlink-like
@@ -252,7 +252,7 @@ def decode(pkt, messages: dict | None = None, key: bytes | None = None):
 
 
 # ------------------------------------------------------------------------------ the layouts
-# From the common dialect (common.xml), fields in wire order; tests/test_mavlink_codec.py checks
+# From the common dialect (common.xml), fields in wire order; tests/bridge/test_mavlink_codec.py checks
 # each against pymavlink's class (id, CRC_EXTRA, struct format, field order).
 HEARTBEAT = Message("HEARTBEAT", 0, 50, (
     ("custom_mode", "I", 1), ("type", "B", 1), ("autopilot", "B", 1), ("base_mode", "B", 1),

@@ -91,7 +91,7 @@ def test_the_agents_block_encoded_log_is_the_per_record_log(tmp_path, encoding):
     from cosim.log.writer import McapLogger
     from cosim.scenario import load_scenario
 
-    root = __import__("pathlib").Path(__file__).resolve().parents[1]
+    root = __import__("pathlib").Path(__file__).resolve().parents[2]
     sc = load_scenario(root / "scenarios" / "hil_6uav.toml",
                        [f"network.base_port={free_base_port(6)}",
                         f"bridge.base_port={free_base_port(6)}"])
