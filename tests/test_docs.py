@@ -26,7 +26,7 @@ def test_cli_reference_covers_every_command():
 
 
 def test_docs_site_builds_strictly(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-q",
+    r = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict",
                         "-f", str(ROOT / "mkdocs.yml"), "-d", str(tmp_path / "site")],
                        capture_output=True, text=True, env={"NO_MKDOCS_2_WARNING": "1",
                                                             "PATH": "/usr/bin:/bin"})
