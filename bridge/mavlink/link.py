@@ -305,6 +305,19 @@ class Peer:
         self._accepted(pkt, seq, sysid, compid, signed)
         return msgid, fields
 
+    def took(self, sysid: int, compid: int, seqs) -> None:
+        """Packets of (sysid, compid) with sequence numbers ``seqs`` were checked and accepted in
+        full by the application without `accept_fields` (a compiled decoder on an unsigned link
+        without a tlog, `bridge.swarm.sample_scan`): counted as `accept_fields` and `commit`
+        count them, one after the other."""
+        if self.key is not None or self.tlog is not None:
+            raise Se3SyncError("Peer.took: only for an unsigned link without a tlog")
+        self._pending_seq = self._pending_sig = None
+        self.last_signed = False
+        self.counters.received += len(seqs)
+        for seq in seqs:
+            self._count_seq(sysid, compid, seq)
+
     def accept(self, pkt: bytes):
         """A framed packet -> message, or None (counted: rejected by reason, or malformed)."""
         c = self.counters
@@ -375,7 +388,7 @@ DRAIN_BUDGET = 64   # datagrams per socket per pass; the caller's timer runs bet
 
 
 def receive_datagrams(sock, counters, on_packet, limit: int = DRAIN_BUDGET,
-                      deadline: float | None = None, accept_from=None) -> int:
+                      deadline: float | None = None, accept_from=None, fast=None) -> int:
     """Read pending datagrams on sock, split each into MAVLink 2 frames and hand each frame to
     on_packet(pkt, addr). Network input is untrusted: a datagram that does not frame, or whose
     frames break their handler, is counted once as malformed and dropped, never raised.
@@ -388,7 +401,10 @@ def receive_datagrams(sock, counters, on_packet, limit: int = DRAIN_BUDGET,
 
     Cheap refusals before any parsing: a first byte that is not MAVLink 2's magic (``malformed``)
     and, with ``accept_from`` (a predicate of the sender's address), a sender it refuses
-    (counted ``wrong_address``). Returns the number of datagrams read."""
+    (counted ``wrong_address``). ``fast(data, addr) -> bool``, if given, may take a datagram
+    whole before it is framed (a compiled decoder of the common case, `bridge.swarm.sample_scan`):
+    True means it did everything ``on_packet`` would have done with its frames, False hands the
+    datagram on unchanged. Returns the number of datagrams read."""
     c = counters
     total = 0
     while True:
@@ -404,6 +420,8 @@ def receive_datagrams(sock, counters, on_packet, limit: int = DRAIN_BUDGET,
                 continue
             if accept_from is not None and not accept_from(addr):
                 c.reject("wrong_address")
+                continue
+            if fast is not None and fast(data, addr):
                 continue
             try:
                 pkts, err = split_datagram(data)

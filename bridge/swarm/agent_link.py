@@ -72,6 +72,8 @@ from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlin
 from bridge.mavlink.state import QUAT_TOL
 from bridge.mavlink.transport import wire_row_to_state
 
+from .sample_scan import SCAN_WIDTH, scan_sample
+
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
 
@@ -210,12 +212,17 @@ class AgentLink:
     table's delay, jitter and loss of each outgoing link on the sending side (seeded per directed
     link from ``network.seed``): a message of step n leaves at step n + d + J (`release`) or is
     dropped, as in the co-simulation, on top of what the real network does.
+
+    ``compiled`` (default) takes the common case of an unsigned real-time link, one neighbour's
+    whole sample in one datagram, through a compiled decoder (`bridge.swarm.sample_scan`) that
+    leaves every other datagram to the reference path; ``compiled=False`` is the reference path
+    alone (the tests compare the two).
     """
 
     def __init__(self, agent_id: int, network, graph, *, step: float, key: bytes | None = None,
                  counters: Counters | None = None, world: str = "ned",
                  drain_budget: int = DRAIN_BUDGET, signing_state=None, clock=time.monotonic,
-                 history: int = 0, emulate: bool = False):
+                 history: int = 0, emulate: bool = False, compiled: bool = True):
         n = graph.n
         if isinstance(agent_id, bool) or not isinstance(agent_id, (int, np.integer)) \
                 or not 1 <= agent_id <= n:
@@ -305,6 +312,18 @@ class AgentLink:
                     rng = np.random.default_rng(streams[(self.id - 1) * n + (j - 1)])
                     self._emu[j] = (_steps(spec.delay, h), _steps(spec.jitter, h), spec.jitter,
                                     spec.loss, rng)
+        # the compiled common case: unsigned (a signature and its replay window stay with
+        # `Peer`), real time (the lockstep history keeps every message: the reference path's),
+        # at most one θ chunk per sample
+        self._scan = None
+        self.scanned = 0            # samples the compiled path took
+        if compiled and key is None and not self.history and self.peer.tlog is None:
+            self._scan_nt = {j: len(o) for j, o in self.owned_by.items()
+                             if len(o) <= THETA_PER_MESSAGE}
+            self._scratch = np.zeros(256, np.uint8)
+            self._scan_out = np.zeros(SCAN_WIDTH)
+            self._scan_seqs = np.zeros(2, np.int64)
+            self._scan = self._take_sample
 
     @classmethod
     def from_scenario(cls, scenario, agent_id: int, **kw) -> "AgentLink":
@@ -419,12 +438,12 @@ class AgentLink:
         n = 0
         for s in self._nsock.values():          # the neighbours first: never behind junk
             n += receive_datagrams(s, self.counters, self._on_packet, lim, deadline=deadline,
-                                   accept_from=self._accept_from)
+                                   accept_from=self._accept_from, fast=self._scan)
         # the catch-all: what is left of its budget (the rest of a flood waits, then the kernel
         # drops it and `kernel_drops` says how much)
         return n + receive_datagrams(self.sock, self.counters, self._on_packet, lim,
                                      deadline=min(deadline, time.monotonic() + self.junk_budget_s),
-                                     accept_from=self._accept_from)
+                                     accept_from=self._accept_from, fast=self._scan)
 
     def fds(self) -> list:
         """The sockets to wait on (select) before a `poll`."""
@@ -434,6 +453,34 @@ class AgentLink:
 
     def _accept_from(self, addr) -> bool:
         return addr in self._from or addr[1] in self._from_port
+
+    def _take_sample(self, data, addr) -> bool:
+        """The compiled common case (`sample_scan`): a neighbour's whole sample, newer than what
+        is held, nothing in assembly. Does what `_on_packet` does with its two packets (the
+        counts, the sequence numbers, the held sample); False leaves the datagram to it."""
+        j = self._from.get(addr)
+        if j is None:
+            j = self._from_port.get(addr[1])
+        nt = self._scan_nt.get(j)
+        if nt is None or self._asm[j] is not None:
+            return False
+        out = self._scan_out
+        s = scan_sample(np.frombuffer(data, np.uint8), len(data), j, nt, self.h_us, self._limit,
+                        self._scratch, out, self._scan_seqs)
+        held = self._held[j]
+        if s < 0 or (held is not None and s <= held.step):
+            return False
+        npk = 2 if nt else 1
+        self.peer.took(j, AGENT_COMPONENT, self._scan_seqs[:npk].tolist())
+        self._packets[j] += npk
+        self._back[j] = None
+        S = np.array(wire_row_to_state(out[:13].tolist(), self.world))
+        self._held[j] = NeighbourSample(s, S, S[layout.XI].copy(),
+                                        dict(zip(self.owned_by[j], out[13:13 + nt].tolist())),
+                                        self.clock())
+        self._samples[j] += 1
+        self.scanned += 1
+        return True
 
     def _on_packet(self, pkt, addr) -> None:
         c = self.counters

@@ -1,0 +1,230 @@
+"""The compiled receive path of the inter-agent link (bridge/swarm/sample_scan.py) against the
+reference path (`AgentLink(compiled=False)`): the same datagrams, sent to a link of each kind,
+leave the same held samples (every bit), the same counters and refusals, and the same sequence
+bookkeeping — over honest traffic and over every kind of irregular datagram the reference path
+refuses or treats specially. Plus the decoder against pymavlink's own decoding."""
+import math
+import socket
+
+import numpy as np
+import pytest
+
+from bridge.mavlink.link import Counters, Peer, mavlink2
+from bridge.swarm.agent_link import AgentLink, encode_sample
+from bridge.swarm.sample_scan import SCAN_WIDTH, scan_sample
+from controller import layout
+from test_agent_link import H_US, drain_raw, endpoint, random_row, scenario
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _pair(receiver, world="ned"):
+    """(compiled link, reference link, senders) for agent ``receiver``: one scenario (ports)
+    each, and per neighbour j a socket at j's endpoint in each scenario."""
+    out = []
+    for compiled in (True, False):
+        sc = scenario(world)
+        link = AgentLink.from_scenario(sc, receiver, compiled=compiled)
+        link.set_step(0)
+        socks = {}
+        for j in link.neighbours:
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(endpoint(sc, j))
+            socks[j] = s
+        out.append((sc, link, socks))
+    return out
+
+
+def _send_both(pair, receiver, j, data):
+    for sc, _, socks in pair:
+        socks[j].sendto(data, endpoint(sc, receiver))
+
+
+def _poll_both(pair, expected):
+    import time
+
+    for _, link, _ in pair:
+        end = time.monotonic() + 5.0
+        while link.counters.datagrams < expected and time.monotonic() < end:
+            link.poll()
+    assert [p[1].counters.datagrams for p in pair] == [expected, expected]
+
+
+def _state(link):
+    held = {}
+    for j in link.neighbours:
+        h = link.neighbour(j)
+        held[j] = None if h is None else (h.step, h.S.tobytes(), h.xi.tobytes(),
+                                          sorted(h.theta.items()))
+    st = link.stats()
+    st.pop("kernel_drops", None)
+    for v in st["links"].values():
+        v.pop("kernel_drops", None)
+    return held, st, link.peer._last_seq, link.peer.last_signed
+
+
+class _Neighbour:
+    """Neighbour j's MAVLink sender, and the datagrams it (or someone claiming it) may send."""
+
+    def __init__(self, link, j, rng):
+        self.j = j
+        self.owned = link.owned_by[j]
+        self.peer = Peer(j, 191, Counters())
+        self.rng = rng
+
+    def msgs(self, s, S=None, theta=None, h_us=H_US):
+        S = random_row(self.rng) if S is None else S
+        theta = list(self.rng.normal(size=len(self.owned))) if theta is None else theta
+        return [bytes(self.peer.pack(m)) for m in
+                encode_sample(self.peer.mav, s, h_us, S, theta)]
+
+    def honest(self, s):
+        return b"".join(self.msgs(s))
+
+    def irregular(self, s):
+        """One of the datagrams the reference path refuses or handles specially."""
+        rng = self.rng
+        kind = int(rng.integers(16))
+        if kind == 0:                                  # θ first, then the pose
+            return b"".join(self.msgs(s)[::-1])
+        if kind == 1:                                  # pose and θ in separate datagrams
+            return self.msgs(s)[0]
+        if kind == 2:                                  # a bit flipped (checksum)
+            d = bytearray(self.honest(s))
+            d[int(rng.integers(10, len(d)))] ^= 1 << int(rng.integers(8))
+            return bytes(d)
+        if kind == 3:                                  # NaN in the pose
+            S = random_row(rng)
+            S[layout.P.start] = math.nan
+            return b"".join(self.msgs(s, S))
+        if kind == 4:                                  # |q| − 1 just inside / outside 1e-3
+            q = rng.normal(size=4)
+            q *= (1.0 + float(rng.choice([0.999e-3, 1.001e-3, 1e-3, 2e-3, -1.001e-3]))) \
+                / np.linalg.norm(q)
+            m = self.peer.mav.odometry_encode(
+                s * H_US, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BODY_FRD, 1, 2, 3,
+                q.tolist(), 0, 0, 0, 0, 0, 0, [math.nan] + [0.0] * 20,
+                [math.nan] + [0.0] * 20, 0, 0, 100)
+            return bytes(self.peer.pack(m)) + b"".join(self.msgs(s)[1:])
+        if kind == 5:                                  # from the future
+            return self.honest(s + 10_000)
+        if kind == 6:                                  # not a whole step
+            return b"".join(self.msgs(s, h_us=H_US + 1))
+        if kind == 7:                                  # an old one
+            return self.honest(max(0, s - int(rng.integers(1, 5))))
+        if kind == 8:                                  # far back (a restart, if in a run)
+            return self.honest(max(0, s - 5000))
+        if kind == 9:                                  # truncated
+            d = self.honest(s)
+            return d[:int(rng.integers(1, len(d)))]
+        if kind == 10:                                 # claims another system
+            other = Peer(self.j % 6 + 1, 191, Counters())
+            return b"".join(bytes(other.pack(m)) for m in
+                            encode_sample(other.mav, s, H_US, random_row(rng), [0.1] * len(self.owned)))
+        if kind == 11 and self.owned:                  # a wrong θ name or array id
+            m = self.peer.mav.debug_float_array_encode(s * H_US, b"thetaX" if rng.random() < 0.5
+                                                       else b"theta", self.j + 1,
+                                                       [0.5] * 58)
+            return self.msgs(s)[0] + bytes(self.peer.pack(m))
+        if kind == 12:                                 # θ NaN
+            th = [math.nan] * len(self.owned)
+            return b"".join(self.msgs(s, theta=th))
+        if kind == 13:                                 # the same sample again
+            return self.honest(s)
+        if kind == 14:                                 # a pose with another frame id
+            m = self.peer.mav.odometry_encode(
+                s * H_US, mavlink2.MAV_FRAME_LOCAL_FRD, mavlink2.MAV_FRAME_BODY_FRD, 0, 0, 0,
+                [1, 0, 0, 0], 0, 0, 0, 0, 0, 0, [math.nan] + [0.0] * 20,
+                [math.nan] + [0.0] * 20, 0, 0, 100)
+            return bytes(self.peer.pack(m)) + b"".join(self.msgs(s)[1:])
+        return self.honest(s) + b"\xfd"               # trailing junk
+
+
+@pytest.mark.parametrize("receiver,world", [(2, "ned"), (3, "enu"), (1, "ned")])
+def test_compiled_receive_path_equals_the_reference(receiver, world):
+    rng = np.random.default_rng(receiver)
+    pair = _pair(receiver, world)
+    try:
+        ref = pair[1][1]
+        nbs = [_Neighbour(ref, j, np.random.default_rng(10 * receiver + j)) for j in ref.neighbours]
+        sent = 0
+        for n in range(300):
+            for _, link, _ in pair:
+                link.set_step(n)
+            for nb in nbs:
+                r = rng.random()
+                if r < 0.1:
+                    continue                          # lost
+                data = nb.honest(n) if r < 0.6 else nb.irregular(n)
+                _send_both(pair, receiver, nb.j, data)
+                sent += 1
+            _poll_both(pair, sent)
+            assert _state(pair[0][1]) == _state(pair[1][1]), n
+        comp, ref = pair[0][1], pair[1][1]
+        # both paths were taken, and every kind of refusal was met
+        assert comp.scanned > 100 and ref.scanned == 0
+        st = ref.stats()
+        assert st["malformed"] > 0 and {"out_of_order", "future", "bad_stamp", "nan",
+                                        "non_unit_quaternion", "not_neighbour",
+                                        "duplicate"} <= set(st["rejected_by_reason"])
+    finally:
+        for _, link, socks in pair:
+            link.close()
+            for s in socks.values():
+                s.close()
+
+
+def test_restart_runs_and_held_samples_agree():
+    """A neighbour that restarts (stamps far back, RESTART_SAMPLES in a row): the compiled path
+    hands those to the reference path, and what is held afterwards is the same."""
+    pair = _pair(2)
+    try:
+        ref = pair[1][1]
+        nb = _Neighbour(ref, 1, np.random.default_rng(7))
+        sent = 0
+        steps = list(range(3000, 3010)) + list(range(5, 20))
+        for k, s in enumerate(steps):
+            for _, link, _ in pair:
+                link.set_step(3010 + k)
+            _send_both(pair, 2, 1, nb.honest(s))
+            sent += 1
+            _poll_both(pair, sent)
+            assert _state(pair[0][1]) == _state(pair[1][1]), s
+        assert ref.stats()["links"]["1"]["restarts"] == 1
+        assert pair[0][1].scanned > 10
+    finally:
+        for _, link, socks in pair:
+            link.close()
+            for s in socks.values():
+                s.close()
+
+
+@pytest.mark.parametrize("n_theta", [0, 1, 2, 58])
+def test_decoder_reads_what_pymavlink_reads(n_theta):
+    """Random samples: the decoder's values are pymavlink's decoded fields (float32 widened)."""
+    rng = np.random.default_rng(n_theta)
+    peer = Peer(4, 191, Counters())
+    dec = mavlink2.MAVLink(None)
+    scratch = np.zeros(256, np.uint8)
+    out = np.zeros(SCAN_WIDTH)
+    seqs = np.zeros(2, np.int64)
+    for _ in range(200):
+        s = int(rng.integers(0, 1 << 40))
+        theta = list(rng.normal(size=n_theta) * 10.0 ** rng.integers(-30, 30))
+        S = random_row(rng)
+        S[layout.XI] *= 10.0 ** rng.integers(-30, 30)
+        bufs = [bytes(peer.pack(m)) for m in encode_sample(peer.mav, s, H_US, S, theta)]
+        data = b"".join(bufs)
+        got = scan_sample(np.frombuffer(data, np.uint8), len(data), 4, n_theta, H_US, 1 << 60,
+                          scratch, out, seqs)
+        assert got == s
+        msgs = [dec.decode(bytearray(b)) for b in bufs]
+        o = msgs[0]
+        want = [o.x, o.y, o.z, *o.q, o.rollspeed, o.pitchspeed, o.yawspeed, o.vx, o.vy, o.vz]
+        assert out[:13].tolist() == want
+        if n_theta:
+            assert out[13:13 + n_theta].tolist() == list(msgs[1].data[:n_theta])
+        assert seqs[:len(bufs)].tolist() == [m.get_seq() for m in msgs]
+        # the receiver's limit: one step short refuses it
+        assert scan_sample(np.frombuffer(data, np.uint8), len(data), 4, n_theta, H_US, s - 1,
+                           scratch, out, seqs) == -1
