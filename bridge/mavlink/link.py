@@ -308,7 +308,7 @@ class Peer:
     def took(self, sysid: int, compid: int, seqs) -> None:
         """Packets of (sysid, compid) with sequence numbers ``seqs`` were checked and accepted in
         full by the application without `accept_fields` (a compiled decoder on an unsigned link
-        without a tlog, `bridge.swarm.sample_scan`): counted as `accept_fields` and `commit`
+        without a tlog, `bridge.swarm.sample_wire`): counted as `accept_fields` and `commit`
         count them, one after the other."""
         if self.key is not None or self.tlog is not None:
             raise Se3SyncError("Peer.took: only for an unsigned link without a tlog")
@@ -402,7 +402,7 @@ def receive_datagrams(sock, counters, on_packet, limit: int = DRAIN_BUDGET,
     Cheap refusals before any parsing: a first byte that is not MAVLink 2's magic (``malformed``)
     and, with ``accept_from`` (a predicate of the sender's address), a sender it refuses
     (counted ``wrong_address``). ``fast(data, addr) -> bool``, if given, may take a datagram
-    whole before it is framed (a compiled decoder of the common case, `bridge.swarm.sample_scan`):
+    whole before it is framed (a compiled decoder of the common case, `bridge.swarm.sample_wire`):
     True means it did everything ``on_packet`` would have done with its frames, False hands the
     datagram on unchanged. Returns the number of datagrams read."""
     c = counters

@@ -72,7 +72,7 @@ from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlin
 from bridge.mavlink.state import QUAT_TOL
 from bridge.mavlink.transport import wire_row_to_state
 
-from .sample_scan import SCAN_WIDTH, scan_sample
+from .sample_wire import SCAN_WIDTH, scan_sample
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -214,7 +214,7 @@ class AgentLink:
     dropped, as in the co-simulation, on top of what the real network does.
 
     ``compiled`` (default) takes the common case of an unsigned real-time link, one neighbour's
-    whole sample in one datagram, through a compiled decoder (`bridge.swarm.sample_scan`) that
+    whole sample in one datagram, through a compiled decoder (`bridge.swarm.sample_wire`) that
     leaves every other datagram to the reference path; ``compiled=False`` is the reference path
     alone (the tests compare the two).
     """
@@ -455,7 +455,7 @@ class AgentLink:
         return addr in self._from or addr[1] in self._from_port
 
     def _take_sample(self, data, addr) -> bool:
-        """The compiled common case (`sample_scan`): a neighbour's whole sample, newer than what
+        """The compiled common case (`sample_wire`): a neighbour's whole sample, newer than what
         is held, nothing in assembly. Does what `_on_packet` does with its two packets (the
         counts, the sequence numbers, the held sample); False leaves the datagram to it."""
         j = self._from.get(addr)

@@ -1,4 +1,4 @@
-"""The compiled receive path of the inter-agent link (bridge/swarm/sample_scan.py) against the
+"""The compiled receive path of the inter-agent link (bridge/swarm/sample_wire.py) against the
 reference path (`AgentLink(compiled=False)`): the same datagrams, sent to a link of each kind,
 leave the same held samples (every bit), the same counters and refusals, and the same sequence
 bookkeeping — over honest traffic and over every kind of irregular datagram the reference path
@@ -11,7 +11,7 @@ import pytest
 
 from bridge.mavlink.link import Counters, Peer, mavlink2
 from bridge.swarm.agent_link import AgentLink, encode_sample
-from bridge.swarm.sample_scan import SCAN_WIDTH, scan_sample
+from bridge.swarm.sample_wire import SCAN_WIDTH, scan_sample
 from controller import layout
 from test_agent_link import H_US, drain_raw, endpoint, random_row, scenario
 
@@ -228,3 +228,4 @@ def test_decoder_reads_what_pymavlink_reads(n_theta):
         # the receiver's limit: one step short refuses it
         assert scan_sample(np.frombuffer(data, np.uint8), len(data), 4, n_theta, H_US, s - 1,
                            scratch, out, seqs) == -1
+

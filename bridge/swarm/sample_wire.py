@@ -140,3 +140,4 @@ def scan_sample(buf, n, sysid, n_theta, h_us, limit, scratch, out, seqs):
             return -1
         out[13 + k] = d[k]
     return s
+
