@@ -306,17 +306,60 @@ class Peer:
         return msgid, fields
 
     def took(self, sysid: int, compid: int, seqs) -> None:
-        """Packets of (sysid, compid) with sequence numbers ``seqs`` were checked and accepted in
-        full by the application without `accept_fields` (a compiled decoder on an unsigned link
-        without a tlog, `bridge.swarm.sample_wire`): counted as `accept_fields` and `commit`
-        count them, one after the other."""
+        """Unsigned packets of (sysid, compid) with sequence numbers ``seqs`` were checked and
+        accepted in full by the application without `accept_fields` (a compiled decoder,
+        `bridge.swarm.sample_wire`, on a link without a key or a tlog): counted as
+        `accept_fields` and `commit` count them, one after the other."""
         if self.key is not None or self.tlog is not None:
-            raise Se3SyncError("Peer.took: only for an unsigned link without a tlog")
+            raise Se3SyncError("Peer.took: only for a link without a key or a tlog")
         self._pending_seq = self._pending_sig = None
         self.last_signed = False
         self.counters.received += len(seqs)
         for seq in seqs:
             self._count_seq(sysid, compid, seq)
+
+    def take_signed(self, data: bytes, ends, sysid: int, compid: int) -> bool:
+        """`took` for signed packets: the packets data[0:ends[0]], data[ends[0]:ends[1]], …
+        (found and checked but for their signatures by a compiled decoder) are taken if each is
+        signed with the key and newer than its stream's window as the windows stand after the
+        ones before it, exactly as `accept_fields` and `commit` would take them one after the
+        other; then counted and committed (True). Otherwise nothing changes (False) and the
+        caller hands the packets to `accept_fields`, which counts the refusal."""
+        if self.key is None or self.tlog is not None:
+            raise Se3SyncError("Peer.take_signed: only for a link with a key and without a tlog")
+        sig = self.mav.signing
+        windows = sig.stream_timestamps
+        own = sig.timestamp
+        moved = {}
+        seqs = []
+        start = 0
+        for end in ends:
+            pkt = data[start:end]
+            start = end
+            h = hashlib.sha256(self.key)
+            h.update(pkt[:-6])
+            if h.digest()[:6] != pkt[-6:]:
+                return False
+            stream = (pkt[-13], sysid, compid)
+            ts = int.from_bytes(pkt[-12:-6], "little")
+            last = moved.get(stream, windows.get(stream))
+            if last is not None:
+                if ts <= last:
+                    return False
+            elif ts + NEW_STREAM_UNITS < own:
+                return False
+            moved[stream] = ts
+            if ts > own:
+                own = ts
+            seqs.append(pkt[4])
+        self._pending_seq = self._pending_sig = None
+        self.last_signed = True
+        self.counters.received += len(seqs)
+        for seq in seqs:
+            self._count_seq(sysid, compid, seq)
+        windows.update(moved)
+        sig.timestamp = own
+        return True
 
     def accept(self, pkt: bytes):
         """A framed packet -> message, or None (counted: rejected by reason, or malformed)."""

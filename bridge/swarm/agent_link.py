@@ -213,8 +213,8 @@ class AgentLink:
     link from ``network.seed``): a message of step n leaves at step n + d + J (`release`) or is
     dropped, as in the co-simulation, on top of what the real network does.
 
-    ``compiled`` (default) takes the common case of an unsigned real-time link, one neighbour's
-    whole sample in one datagram, through a compiled decoder (`bridge.swarm.sample_wire`) that
+    ``compiled`` (default) takes the common case of a real-time link, one neighbour's whole
+    sample in one datagram, through a compiled decoder (`bridge.swarm.sample_wire`) that
     leaves every other datagram to the reference path; ``compiled=False`` is the reference path
     alone (the tests compare the two).
     """
@@ -312,17 +312,18 @@ class AgentLink:
                     rng = np.random.default_rng(streams[(self.id - 1) * n + (j - 1)])
                     self._emu[j] = (_steps(spec.delay, h), _steps(spec.jitter, h), spec.jitter,
                                     spec.loss, rng)
-        # the compiled common case: unsigned (a signature and its replay window stay with
-        # `Peer`), real time (the lockstep history keeps every message: the reference path's),
-        # at most one θ chunk per sample
+        # the compiled common case: real time (the lockstep history keeps every message: the
+        # reference path's), at most one θ chunk per sample; a signature and its replay window
+        # stay with `Peer`
         self._scan = None
         self.scanned = 0            # samples the compiled path took
-        if compiled and key is None and not self.history and self.peer.tlog is None:
+        if compiled and not self.history and self.peer.tlog is None:
             self._scan_nt = {j: len(o) for j, o in self.owned_by.items()
                              if len(o) <= THETA_PER_MESSAGE}
             self._scratch = np.zeros(256, np.uint8)
             self._scan_out = np.zeros(SCAN_WIDTH)
-            self._scan_seqs = np.zeros(2, np.int64)
+            self._scan_seqs = np.zeros(4, np.int64)
+            self._signed = int(key is not None)
             self._scan = self._take_sample
 
     @classmethod
@@ -465,13 +466,18 @@ class AgentLink:
         if nt is None or self._asm[j] is not None:
             return False
         out = self._scan_out
-        s = scan_sample(np.frombuffer(data, np.uint8), len(data), j, nt, self.h_us, self._limit,
-                        self._scratch, out, self._scan_seqs)
+        seqs = self._scan_seqs
+        s = scan_sample(np.frombuffer(data, np.uint8), len(data), self._signed, j, nt, self.h_us,
+                        self._limit, self._scratch, out, seqs)
         held = self._held[j]
         if s < 0 or (held is not None and s <= held.step):
             return False
         npk = 2 if nt else 1
-        self.peer.took(j, AGENT_COMPONENT, self._scan_seqs[:npk].tolist())
+        if self._signed:
+            if not self.peer.take_signed(data, seqs[2:2 + npk].tolist(), j, AGENT_COMPONENT):
+                return False
+        else:
+            self.peer.took(j, AGENT_COMPONENT, seqs[:npk].tolist())
         self._packets[j] += npk
         self._back[j] = None
         S = np.array(wire_row_to_state(out[:13].tolist(), self.world))

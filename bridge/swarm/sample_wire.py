@@ -1,19 +1,21 @@
 """A neighbour's sample datagram checked and decoded by compiled code (issue 31): the receive
 path's common case at the cost of its bytes.
 
-`scan_sample` takes one datagram that is exactly what an honest neighbour j sends once per step
-on an unsigned link, ODOMETRY then (if j owns edges) one DEBUG_FLOAT_ARRAY "theta", and makes
-every check `bridge.swarm.agent_link` makes of it: framing, system and component, message ids,
-checksums with CRC_EXTRA, frame ids, finite values, a unit quaternion, a whole-step stamp not
-past the receiver's limit, the θ name, array id and values, and both stamps equal. It returns
-the sample's step and its values (the wire row in `agent_link`'s order, then θ), or −1 for
-anything else, which the link then hands to its reference path (`AgentLink._on_packet`): so
-every refusal, every rare case (signed, reordered, duplicated, split across datagrams, a
-quaternion near the tolerance) has one implementation, and this one only ever says "the
-reference path would take this sample whole". The values are the float32 fields widened to
-float64, exactly what `struct.unpack` gives the reference path; nothing is computed from them
-here except the decisions, and a decision that rounding could tip (the quaternion's norm near
-the tolerance) is left to the reference path.
+`scan_sample` takes one datagram that is exactly what an honest neighbour j sends once per
+step, ODOMETRY then (if j owns edges) one DEBUG_FLOAT_ARRAY "theta", signed or not as the link
+is, and makes every check `bridge.swarm.agent_link` makes of it but the signature's: framing,
+system and component, message ids, checksums with CRC_EXTRA, frame ids, finite values, a unit
+quaternion, a whole-step stamp not past the receiver's limit, the θ name, array id and values,
+and both stamps equal. It returns the sample's step and its values (the wire row in
+`agent_link`'s order, then θ), or −1 for anything else, which the link then hands to its
+reference path (`AgentLink._on_packet`). So every refusal and every rare case (reordered,
+duplicated, split across datagrams, a quaternion near the tolerance) has one implementation,
+and this one only ever says "the reference path would take this sample whole"; signatures and
+replay windows stay with `bridge.mavlink.link.Peer`, which checks them on the packets found
+here. The values are the float32 fields widened to float64, exactly what `struct.unpack` gives
+the reference path; nothing is computed from them here except the decisions, and a decision
+that rounding could tip (the quaternion's norm near the tolerance) is left to the reference
+path.
 """
 from __future__ import annotations
 
@@ -35,6 +37,7 @@ ODOMETRY_SIZE = 233                   # the payload with its extensions (wire or
 THETA_SIZE = 252
 FRAME_LOCAL_NED = 1
 FRAME_BODY_FRD = 12
+SIG_LEN = 13
 THETA_NAME = np.frombuffer(b"theta\0", np.uint8).copy()
 SCAN_WIDTH = 13 + 58                  # wire row, then at most one chunk of θ
 # the norm test is left to the reference path this close to the tolerance (a double's rounding
@@ -55,13 +58,14 @@ def _crc(buf, start, end, extra):
 
 
 @njit(cache=True, nogil=True)
-def _packet(buf, i, n, sysid, msgid, extra, size, payload):
-    """The packet at buf[i:]: unsigned, from (sysid, COMPONENT), id msgid, checksum right, its
-    payload (zero-extended to ``size``) copied to ``payload``. Returns its end, or −1."""
-    if n - i < 12 or buf[i] != MAGIC or buf[i + 2] != 0:
+def _packet(buf, i, n, signed, sysid, msgid, extra, size, payload):
+    """The packet at buf[i:]: signed if ``signed`` else not (its signature is the caller's to
+    verify), from (sysid, COMPONENT), id msgid, checksum right, its payload (zero-extended to
+    ``size``) copied to ``payload``. Returns its end, or −1."""
+    if n - i < 12 or buf[i] != MAGIC or buf[i + 2] != signed:
         return -1
     plen = np.int64(buf[i + 1])
-    end = i + 12 + plen
+    end = i + 12 + plen + SIG_LEN * signed
     if end > n or plen > size:
         return -1
     if buf[i + 5] != sysid or buf[i + 6] != COMPONENT:
@@ -87,16 +91,19 @@ def _u64(p, o):
 
 
 @njit(cache=True, nogil=True)
-def scan_sample(buf, n, sysid, n_theta, h_us, limit, scratch, out, seqs):
+def scan_sample(buf, n, signed, sysid, n_theta, h_us, limit, scratch, out, seqs):
     """Step s of the sample in datagram buf[:n] from neighbour ``sysid`` (owning ``n_theta`` ≤ 58
-    edges), or −1 (see the module docstring). On success out[0:13] holds the wire row (x y z,
-    q w x y z, body rates, body velocity), out[13:13 + n_theta] θ, seqs the packets' sequence
-    numbers. ``limit``: the newest step the receiver takes; ``scratch``: ≥ 252 bytes."""
+    edges), or −1 (see the module docstring). ``signed`` (0 or 1): the link's packets carry
+    signatures, which the caller verifies (`bridge.mavlink.link.Peer.take_signed`). On success
+    out[0:13] holds the wire row (x y z, q w x y z, body rates, body velocity),
+    out[13:13 + n_theta] θ, seqs[0:2] the packets' sequence numbers and seqs[2:4] their ends.
+    ``limit``: the newest step the receiver takes; ``scratch``: ≥ 252 bytes."""
     odo = scratch[0:ODOMETRY_SIZE]
-    e = _packet(buf, 0, n, sysid, ID_ODOMETRY, EXTRA_ODOMETRY, ODOMETRY_SIZE, odo)
+    e = _packet(buf, 0, n, signed, sysid, ID_ODOMETRY, EXTRA_ODOMETRY, ODOMETRY_SIZE, odo)
     if e < 0:
         return -1
     seqs[0] = buf[4]
+    seqs[2] = e
     if odo[228] != FRAME_LOCAL_NED or odo[229] != FRAME_BODY_FRD:
         return -1
     f = odo[8:60].view(np.float32)          # x y z, q[4], vx vy vz, rates
@@ -125,10 +132,11 @@ def scan_sample(buf, n, sysid, n_theta, h_us, limit, scratch, out, seqs):
     if n_theta == 0:
         return s if e == n else -1
     th = scratch[0:THETA_SIZE]
-    e2 = _packet(buf, e, n, sysid, ID_THETA, EXTRA_THETA, THETA_SIZE, th)
+    e2 = _packet(buf, e, n, signed, sysid, ID_THETA, EXTRA_THETA, THETA_SIZE, th)
     if e2 != n:
         return -1
     seqs[1] = buf[e + 4]
+    seqs[3] = e2
     if np.int64(_u64(th, 0)) != t or (np.int64(th[8]) | (np.int64(th[9]) << 8)) != sysid:
         return -1
     for k in range(6):

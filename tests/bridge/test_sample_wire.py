@@ -18,13 +18,13 @@ from test_agent_link import H_US, drain_raw, endpoint, random_row, scenario
 pytestmark = pytest.mark.timeout(120)
 
 
-def _pair(receiver, world="ned"):
+def _pair(receiver, world="ned", key=None):
     """(compiled link, reference link, senders) for agent ``receiver``: one scenario (ports)
     each, and per neighbour j a socket at j's endpoint in each scenario."""
     out = []
     for compiled in (True, False):
         sc = scenario(world)
-        link = AgentLink.from_scenario(sc, receiver, compiled=compiled)
+        link = AgentLink.from_scenario(sc, receiver, compiled=compiled, key=key)
         link.set_step(0)
         socks = {}
         for j in link.neighbours:
@@ -60,17 +60,21 @@ def _state(link):
     st.pop("kernel_drops", None)
     for v in st["links"].values():
         v.pop("kernel_drops", None)
-    return held, st, link.peer._last_seq, link.peer.last_signed
+    sig = link.peer.mav.signing
+    return (held, st, link.peer._last_seq, link.peer.last_signed,
+            (dict(sig.stream_timestamps), sig.timestamp) if link.peer.key is not None else None)
 
 
 class _Neighbour:
     """Neighbour j's MAVLink sender, and the datagrams it (or someone claiming it) may send."""
 
-    def __init__(self, link, j, rng):
+    def __init__(self, link, j, rng, key=None):
         self.j = j
         self.owned = link.owned_by[j]
-        self.peer = Peer(j, 191, Counters())
+        self.key = key
+        self.peer = Peer(j, 191, Counters(), key=key)
         self.rng = rng
+        self.sent = []
 
     def msgs(self, s, S=None, theta=None, h_us=H_US):
         S = random_row(self.rng) if S is None else S
@@ -79,12 +83,23 @@ class _Neighbour:
                 encode_sample(self.peer.mav, s, h_us, S, theta)]
 
     def honest(self, s):
-        return b"".join(self.msgs(s))
+        d = b"".join(self.msgs(s))
+        self.sent.append(d)
+        return d
 
     def irregular(self, s):
         """One of the datagrams the reference path refuses or handles specially."""
         rng = self.rng
-        kind = int(rng.integers(16))
+        kind = int(rng.integers(19 if self.key is not None else 16))
+        if kind == 16:                                 # a replay of an earlier datagram
+            return self.sent[int(rng.integers(len(self.sent)))] if self.sent else b"\xfd"
+        if kind == 17:                                 # signed with another key, or not at all
+            other = Peer(self.j, 191, Counters(), key=bytes(32) if rng.random() < 0.5 else None)
+            return b"".join(bytes(other.pack(m)) for m in
+                            encode_sample(other.mav, s, H_US, random_row(rng), [0.1] * len(self.owned)))
+        if kind == 18 and self.owned:                  # a fresh pose with a replayed θ
+            old = self.sent[-1] if self.sent else self.honest(s)
+            return self.msgs(s)[0] + old[len(self.msgs(s)[0]):]
         if kind == 0:                                  # θ first, then the pose
             return b"".join(self.msgs(s)[::-1])
         if kind == 1:                                  # pose and θ in separate datagrams
@@ -140,13 +155,19 @@ class _Neighbour:
         return self.honest(s) + b"\xfd"               # trailing junk
 
 
-@pytest.mark.parametrize("receiver,world", [(2, "ned"), (3, "enu"), (1, "ned")])
-def test_compiled_receive_path_equals_the_reference(receiver, world):
+KEY = bytes(range(32))
+
+
+@pytest.mark.parametrize("receiver,world,key", [(2, "ned", None), (3, "enu", None),
+                                                (1, "ned", None), (2, "enu", KEY),
+                                                (3, "ned", KEY)])
+def test_compiled_receive_path_equals_the_reference(receiver, world, key):
     rng = np.random.default_rng(receiver)
-    pair = _pair(receiver, world)
+    pair = _pair(receiver, world, key)
     try:
         ref = pair[1][1]
-        nbs = [_Neighbour(ref, j, np.random.default_rng(10 * receiver + j)) for j in ref.neighbours]
+        nbs = [_Neighbour(ref, j, np.random.default_rng(10 * receiver + j), key)
+               for j in ref.neighbours]
         sent = 0
         for n in range(300):
             for _, link, _ in pair:
@@ -167,6 +188,8 @@ def test_compiled_receive_path_equals_the_reference(receiver, world):
         assert st["malformed"] > 0 and {"out_of_order", "future", "bad_stamp", "nan",
                                         "non_unit_quaternion", "not_neighbour",
                                         "duplicate"} <= set(st["rejected_by_reason"])
+        if key is not None:
+            assert {"replay", "unsigned", "bad_signature"} <= set(st["rejected_by_reason"])
     finally:
         for _, link, socks in pair:
             link.close()
@@ -207,7 +230,7 @@ def test_decoder_reads_what_pymavlink_reads(n_theta):
     dec = mavlink2.MAVLink(None)
     scratch = np.zeros(256, np.uint8)
     out = np.zeros(SCAN_WIDTH)
-    seqs = np.zeros(2, np.int64)
+    seqs = np.zeros(4, np.int64)
     for _ in range(200):
         s = int(rng.integers(0, 1 << 40))
         theta = list(rng.normal(size=n_theta) * 10.0 ** rng.integers(-30, 30))
@@ -215,7 +238,7 @@ def test_decoder_reads_what_pymavlink_reads(n_theta):
         S[layout.XI] *= 10.0 ** rng.integers(-30, 30)
         bufs = [bytes(peer.pack(m)) for m in encode_sample(peer.mav, s, H_US, S, theta)]
         data = b"".join(bufs)
-        got = scan_sample(np.frombuffer(data, np.uint8), len(data), 4, n_theta, H_US, 1 << 60,
+        got = scan_sample(np.frombuffer(data, np.uint8), len(data), 0, 4, n_theta, H_US, 1 << 60,
                           scratch, out, seqs)
         assert got == s
         msgs = [dec.decode(bytearray(b)) for b in bufs]
@@ -226,6 +249,68 @@ def test_decoder_reads_what_pymavlink_reads(n_theta):
             assert out[13:13 + n_theta].tolist() == list(msgs[1].data[:n_theta])
         assert seqs[:len(bufs)].tolist() == [m.get_seq() for m in msgs]
         # the receiver's limit: one step short refuses it
-        assert scan_sample(np.frombuffer(data, np.uint8), len(data), 4, n_theta, H_US, s - 1,
+        assert scan_sample(np.frombuffer(data, np.uint8), len(data), 0, 4, n_theta, H_US, s - 1,
+                           scratch, out, seqs) == -1
+        # an unsigned packet where signed ones are due is not a sample
+        assert scan_sample(np.frombuffer(data, np.uint8), len(data), 1, 4, n_theta, H_US, 1 << 60,
                            scratch, out, seqs) == -1
 
+
+
+def test_take_signed_is_accept_fields_and_commit_packet_by_packet():
+    """`Peer.take_signed` against the reference (`accept_fields` then `commit`, packet after
+    packet) on pairs of signed packets whose signing timestamps go forward, repeat, go back,
+    come from a new stream a minute behind, or carry a wrong signature: it takes a pair exactly
+    when the reference takes both packets, leaving the same windows and counts, and changes
+    nothing when it does not."""
+    import copy
+
+    from bridge.swarm.agent_link import _TYPES
+
+    rng = np.random.default_rng(11)
+    taker, ref = Peer(2, 191, Counters(), key=KEY), Peer(2, 191, Counters(), key=KEY)
+    sender = Peer(1, 191, Counters(), key=KEY)
+    sg = sender.mav.signing
+    taken = refused = 0
+    T = sg.timestamp
+    for i in range(400):
+        T += 10
+        before = copy.deepcopy((taker.mav.signing.stream_timestamps, taker.mav.signing.timestamp,
+                                taker._last_seq, taker.counters.received))
+        pkts = []
+        for _ in range(2):
+            r = rng.random()
+            sg.timestamp = T + int(rng.integers(0, 3))
+            if r < 0.15:
+                sg.timestamp = T - int(rng.integers(1, 50))          # back in time
+            elif r < 0.2:
+                sg.timestamp = T - 7_000_000                         # a minute and more
+            sg.link_id = int(rng.integers(2)) if rng.random() < 0.2 else 0
+            p = bytearray(sender.pack(encode_sample(sender.mav, i, H_US, random_row(rng), [])[0]))
+            if rng.random() < 0.05:
+                p[-1] ^= 1                                           # signature broken
+            pkts.append(bytes(p))
+        data = b"".join(pkts)
+        ends = [len(pkts[0]), len(data)]
+        ok = taker.take_signed(data, ends, 1, 191)
+        both = True
+        for p in pkts:
+            if ref.accept_fields(p, _TYPES) is None:
+                both = False
+                break
+            ref.commit()
+        if ok:
+            taken += 1
+            assert both
+        else:
+            refused += 1
+            assert copy.deepcopy((taker.mav.signing.stream_timestamps, taker.mav.signing.timestamp,
+                                  taker._last_seq, taker.counters.received)) == before
+        # from the reference's state after each pair the two start alike again
+        taker.mav.signing.stream_timestamps = dict(ref.mav.signing.stream_timestamps)
+        taker.mav.signing.timestamp = ref.mav.signing.timestamp
+        taker._last_seq = dict(ref._last_seq)
+        if ok:
+            assert taker.counters.received == ref.counters.received
+        taker.counters.received = ref.counters.received
+    assert taken > 100 and refused > 50
