@@ -95,9 +95,11 @@ def once(steps: int, agent: int, key: bytes | None) -> dict:
                 [float(sc.theta0[k - 1]) for k in sc.graph.M_plus(j)]))
                 for j in node.neighbours})
         vaddr, naddr = ("127.0.0.1", vport), ("127.0.0.1", nb + agent - 1)
+        _warm_up(node)
+        # the first state after the warm-up: sent before a compile of seconds, it would set the
+        # vehicle's clock offset seconds off, and every later state would be refused as future
         for d in vehicle_packets(0):
             vs.sendto(d, vaddr)
-        _warm_up(node)
         node.connect()
         node.n_steps = steps
         node.vehicle.pace_from(time.monotonic() - 1e6)   # every step already due: no sleep
