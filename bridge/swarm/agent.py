@@ -740,10 +740,11 @@ def _max_rss_mb() -> float | None:
 def _warm_up(node: AgentNode) -> None:
     """The compiled kernels the steps use, loaded (or compiled) now rather than while the vehicle
     and the neighbours wait for the first step."""
-    agent_view(node.law, node.sc, node.i).wrench(
-        {k: node._rel(node.local.S0, k) for k in node.edge_ids}, np.zeros(6),
-        {j: np.zeros(6) for j in node.neighbours}, {k: 0.0 for k in node.edge_ids})
-    if node.compiled:   # on copies: the node's state stays as it is
+    if not node.compiled:
+        agent_view(node.law, node.sc, node.i).wrench(
+            {k: node._rel(node.local.S0, k) for k in node.edge_ids}, np.zeros(6),
+            {j: np.zeros(6) for j in node.neighbours}, {k: 0.0 for k in node.edge_ids})
+    else:   # on copies: the node's state stays as it is
         ctl = node.controller
         agent_step(node.local.S0.copy(), node._ea, node._eb, node._owned_mask, node._nbr,
                    node._mode.copy(), node.stepper.hybrid, node.stepper.P, node.h, 3, False,
