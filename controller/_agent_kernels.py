@@ -7,8 +7,9 @@ Both evaluate every float through the cores below (and the network view's `prepa
 the kernels are compiled without fastmath, and LLVM neither reorders nor fuses (FMA) floating-point
 operations without it, whatever the caller they are inlined into.
 
-Edge k = (a, b), a its positive end: its part of u_a is −k_X ψ̄_∇(X̄_k, θ_k) − k_e(ξ_a − ξ_b), its
-part of u_b is k_X Ad⁻ᵀ_{X̄_k} ψ̄_∇(X̄_k, θ_k) + k_e(ξ_a − ξ_b) (`hybridcontroller`, B̄ of `Bt_def`).
+Edge k = (a, b), a its positive end: its part of u_a is −k_X ψ̄_∇(X̄_k, θ_k) − k_e(ξ_a − ξ_b),
+its part of u_b is k_X Ad⁻ᵀ_{X̄_k} ψ̄_∇(X̄_k, θ_k) + k_e(ξ_a − ξ_b) (`hybridcontroller`, B̄ of
+`Bt_def`).
 """
 from __future__ import annotations
 

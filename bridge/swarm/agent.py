@@ -238,7 +238,8 @@ class AgentNode:
         self.controller = _AgentLaw(self)
         if self.compiled:
             th = self.controller.theta
-            for k, r in self._own_rows:   # the owned θ live in the controller's θ from now on
+            # the owned θ live in the controller's θ from now on (the stepper's stay at θ(0))
+            for k, r in self._own_rows:
                 th[r] = self.stepper.theta[k]
             self._calls = self._agent_step_calls(self._S, self.h)
         self.sample_every = None
@@ -257,7 +258,7 @@ class AgentNode:
         self._termbuf = np.zeros((E, 6))
         self._relrows = np.zeros((E, 12))
         self._own_rows = tuple((k, r) for r, k in enumerate(self.edge_ids) if k in self.owned)
-        # per neighbour q: (j, its row, ((k, r) of the edges it owns in the neighbourhood))
+        # per neighbour q: (j, ((k, r) of the neighbourhood's edges j owns: their θ is received))
         self._rx_rows = tuple((j, tuple((k, r) for r, k in enumerate(self.edge_ids)
                                         if k not in self.owned and self.ends[k][0] == j))
                               for j in self.neighbours)

@@ -122,12 +122,13 @@ def vehicle_commands(captured, lockstep: bool) -> list:
 
 def run_feed(agent: int, steps: int, *, law: str = "hybrid", lockstep: bool = False,
              withhold=None, overrides=(), scenario=HIL, node_kwargs=None) -> dict:
-    """Agent ``agent`` for ``steps`` steps on the feed (see the module docstring); ``withhold``:
-    (n, j) -> True to leave out neighbour j's sample of step n (real time only; default
-    `default_withhold`, None-equivalent ``False`` to send everything); ``node_kwargs`` go to
-    `AgentNode`. Returns {"vehicle": [(step, datagram)], "neighbours": {j: [(step, datagram)]},
-    "steps": [per-step controller outputs], "summary", "node" (age-rule counters, own samples
-    and final θ), "events" (the node's fail-safe and rejoin events), "sent" (what was fed)}."""
+    """Agent ``agent`` for ``steps`` steps on the feed (see the module docstring). ``withhold``:
+    (n, j) -> True to leave out neighbour j's sample of step n (real time only), None for
+    `default_withhold`, False to send every sample; ``overrides``: the scenario's (`AGE_RULE`
+    makes the age rule's steps short); ``node_kwargs`` go to `AgentNode`. Returns {"vehicle":
+    [(step, datagram)], "neighbours": {j: [(step, datagram)]}, "steps": [per-step controller
+    outputs], "summary", "node" (age-rule counters, own samples and final θ), "events" (the
+    node's fail-safe and rejoin events), "sent" (what was fed)}."""
     nb, bb = free_base_port(6), free_base_port(6)
     sc = load_scenario(scenario, [f"network.base_port={nb}", f"bridge.base_port={bb}",
                                   "simulation.duration=100000", *overrides])

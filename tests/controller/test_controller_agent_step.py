@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import controller as C
-from controller import layout
+from controller import layout, se3
 from controller.kernels import FRESH, agent_step, relative_pose
-from test_controller_law import paper_setup, random_state
+from test_controller_law import paper_setup
 
 
 class Reference:
@@ -72,8 +72,8 @@ def test_agent_step_is_agent_stepper_bit_for_bit(agent, hybrid, split):
     h = 4e-3
     n_jumps = n_stale = n_fs = 0
     for n in range(150):
-        X, xi = random_state(len(rows), 2.0)
-        S = C.pack_state(X, xi)
+        S = C.pack_state(se3.random_pose(rng, len(rows), scale=2.0),
+                         rng.standard_normal((len(rows), 6)))
         stale = rng.random(len(nbrs)) < 0.3
         mode[:] = np.where(stale, FRESH + 1, FRESH)
         failsafe = bool(stale.any() and rng.random() < 0.5)
