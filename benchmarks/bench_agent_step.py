@@ -1,7 +1,7 @@
 """The CPU one agent process spends per control step, by phase, independent of pacing.
 
     python benchmarks/bench_agent_step.py [--steps N] [--repeats R] [--agent I] [--signed]
-                                          [--against DIR [--label NAME]]
+                                          [--publish] [--against DIR [--label NAME]]
 
 Agent I (default 2: three neighbours, two owned edges) of hil_6uav in real-time mode, driven by
 `cosim.master.Master` as `se3sync agent` drives it, but flat out: its timeline starts in the
@@ -14,6 +14,8 @@ neighbours' newest samples), the step (`controller.step_state`: the age rule, th
 publish to the neighbours, the law, the flow), the command (`plant.apply`: mapping, encode,
 send) and the poll (`plant.advance`: the vehicle's and the neighbours' datagrams decoded and
 checked), the total, and the share of one core at 250 Hz and 100 Hz. Medians of the repeats.
+``--publish`` also times the step's publish to the neighbours (`AgentLink.publish`: encode and
+one send per neighbour), part of the step (its timer adds a little to the step's figure).
 """
 from __future__ import annotations
 
@@ -44,7 +46,7 @@ HIL = ROOT / "scenarios" / "hil_6uav.toml"
 PHASES = ("read", "step", "apply", "poll")
 
 
-def once(steps: int, agent: int, key: bytes | None) -> dict:
+def once(steps: int, agent: int, key: bytes | None, publish: bool = False) -> dict:
     from bridge.mavlink.link import mavlink2 as M
 
     nb, bb = free_base_port(6), free_base_port(6)
@@ -95,9 +97,11 @@ def once(steps: int, agent: int, key: bytes | None) -> dict:
                 [float(sc.theta0[k - 1]) for k in sc.graph.M_plus(j)]))
                 for j in node.neighbours})
         vaddr, naddr = ("127.0.0.1", vport), ("127.0.0.1", nb + agent - 1)
+        _warm_up(node)
+        # the first state after the warm-up: sent before a compile of seconds, it would set the
+        # vehicle's clock offset seconds off, and every later state would be refused as future
         for d in vehicle_packets(0):
             vs.sendto(d, vaddr)
-        _warm_up(node)
         node.connect()
         node.n_steps = steps
         node.vehicle.pace_from(time.monotonic() - 1e6)   # every step already due: no sleep
@@ -136,6 +140,9 @@ def once(steps: int, agent: int, key: bytes | None) -> dict:
         plant.apply = timed("apply", plant.apply)
         plant.advance = advance
         ctl.step_state = timed("step", ctl.step_state)
+        if publish:
+            acc["publish"] = 0.0
+            node.link.publish = timed("publish", node.link.publish)
         master = Master(node.local, plant, ctl, None)
         c0 = clock()
         master.run(steps)
@@ -152,6 +159,8 @@ def once(steps: int, agent: int, key: bytes | None) -> dict:
         out = {k: acc[k] / steps * 1e6 for k in PHASES}
         out["total"] = total / steps * 1e6
         out["other"] = out["total"] - sum(out[k] for k in PHASES)   # the master's own share
+        if publish:
+            out["publish"] = acc["publish"] / steps * 1e6
         return out
     finally:
         node.close()
@@ -159,27 +168,30 @@ def once(steps: int, agent: int, key: bytes | None) -> dict:
             s.close()
 
 
-def _worker(tree: Path, steps: int, agent: int, signed: bool) -> dict:
+def _worker(tree: Path, steps: int, agent: int, signed: bool, publish: bool = False) -> dict:
     """`once` in a process running the code of ``tree`` (this script, that tree's packages)."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", str(steps),
-                          str(agent), "1" if signed else "0"], env=env, capture_output=True,
-                         text=True, cwd=tree)
+                          str(agent), "1" if signed else "0", "1" if publish else "0"], env=env,
+                         capture_output=True, text=True, cwd=tree)
     if out.returncode:
         raise RuntimeError(f"{tree}: {out.stderr.strip().splitlines()[-1:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
 def main(argv=None) -> None:
-    if argv is None and len(sys.argv) == 5 and sys.argv[1] == "--worker":
+    if argv is None and len(sys.argv) == 6 and sys.argv[1] == "--worker":
         steps, agent, signed = int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1"
-        print(json.dumps(once(steps, agent, bytes(range(32)) if signed else None)))
+        print(json.dumps(once(steps, agent, bytes(range(32)) if signed else None,
+                              publish=sys.argv[5] == "1")))
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=5000)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--agent", type=int, default=2)
     ap.add_argument("--signed", action="store_true", help="also with signed links (--key)")
+    ap.add_argument("--publish", action="store_true",
+                    help="also the step's publish to the neighbours (part of the step)")
     ap.add_argument("--against", metavar="DIR", type=Path,
                     help="also the code of another checkout of se3sync (its packages in DIR), "
                          "the two alternating, one process per measurement")
@@ -194,15 +206,18 @@ def main(argv=None) -> None:
             runs = {t: [] for t in trees}
             for _ in range(a.repeats):
                 for t, d in trees.items():
-                    runs[t].append(_worker(d, a.steps, a.agent, signed))
+                    runs[t].append(_worker(d, a.steps, a.agent, signed, a.publish))
             for t in trees:
                 med = {k: statistics.median(r[k] for r in runs[t]) for k in runs[t][0]}
+                pub = f" of which publish {med['publish']:.1f}" if a.publish else ""
                 print(f"{t}: agent {a.agent}, {name}: {med['total']:.1f} µs CPU per step (read "
-                      f"{med['read']:.1f}, step {med['step']:.1f}, apply {med['apply']:.1f}, poll "
-                      f"{med['poll']:.1f}, master {med['other']:.1f}) = {med['total'] / 4000:.4f} "
+                      f"{med['read']:.1f}, step {med['step']:.1f}{pub}, apply "
+                      f"{med['apply']:.1f}, poll {med['poll']:.1f}, master {med['other']:.1f}) = {med['total'] / 4000:.4f} "
                       f"of a core at 250 Hz, {med['total'] / 10000:.4f} at 100 Hz")
                 rows.append((t, name, f"{med['total']:.0f}", f"{med['read']:.0f}",
-                             f"{med['step']:.0f}", f"{med['apply']:.0f}", f"{med['poll']:.0f}",
+                             f"{med['step']:.0f}",
+                             *((f"{med['publish']:.0f}",) if a.publish else ()),
+                             f"{med['apply']:.0f}", f"{med['poll']:.0f}",
                              f"{med['other']:.0f}", f"{med['total'] / 4000:.3f}",
                              f"{med['total'] / 10000:.3f}"))
             if a.against:
@@ -211,8 +226,8 @@ def main(argv=None) -> None:
                 print(f"{name}: this tree / {other} = {ratio:.2f}")
                 rep.note(f"{name}: this tree's CPU per step is {ratio:.2f} × that of {other}")
         rep.table(["code", "links", "µs per step", "read", "step (law + publish)",
-                   "apply (command)", "poll (decode + checks)", "master", "core at 250 Hz",
-                   "core at 100 Hz"], rows,
+                   *(("of which publish",) if a.publish else ()), "apply (command)",
+                   "poll (decode + checks)", "master", "core at 250 Hz", "core at 100 Hz"], rows,
                   caption=f"agent {a.agent} of hil_6uav, {a.steps} steps flat out, CPU of its "
                           f"thread (the harness's sends left out), medians of {a.repeats}")
 

@@ -16,14 +16,21 @@ the caller: ``rel_pose_rows(A, i, B, j)`` (X̄ as (R̄ 9-tuple, p̄ 3-tuple)), `
 ``gradient_core(R̄, p̄, θ, P, R_a, R_g)`` and ``Ad_inv_T(R̄, p̄, g)``; ``P_KX``, ``P_KXI``,
 ``P_KE`` are the offsets of k_X, k_ξ, k_e in P.
 
+The per-agent view (`controller._agent_kernels`): ``agent_step(S, ea, eb, owned, nbr, mode,
+hybrid, P, h, stages, failsafe, theta, theta_rx, theta_prev, theta_jump, mu, jumped, term, rel,
+u)``, agent i's law over its neighbourhood's edges at one communication point (the agent
+process's step; ``FRESH`` is the age rule's verdict it computes with), and the one-edge pieces
+`AgentStepper` calls, from the same cores: ``edge_term``, ``edge_flow``, ``wrench_sum``.
+
 ``P`` is ``LawParameters.P``; S follows `controller.layout`; ``edges`` is ``Graph.edges``
 (0-based, (M, 2)). All arrays are C-contiguous float64 (edges int64) and outputs are written in
 place, so a caller can keep its buffers across calls.
 """
+from ._agent_kernels import FRESH, agent_step, edge_flow, edge_term, wrench_sum
 from ._kernels import (P_KE, P_KX, P_KXI, Ad_inv_T, edge_update, gradient_core, metrics,
                        network_step, network_U, prepare, rel_pose_rows, relative_pose,
                        rot_to_quat_rows)
 
 __all__ = ["network_step", "network_U", "metrics", "rot_to_quat_rows", "relative_pose",
            "rel_pose_rows", "edge_update", "prepare", "gradient_core", "Ad_inv_T", "P_KX",
-           "P_KXI", "P_KE"]
+           "P_KXI", "P_KE", "agent_step", "FRESH", "edge_term", "edge_flow", "wrench_sum"]

@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from . import _agent_kernels as AK
 from . import _kernels as K
 from .design import SynergyDesign, WeightingMatrix
 from .errors import Se3SyncError
@@ -189,8 +190,6 @@ class AgentStepper:
         self.params = LawParameters.of(weighting, design, gains)
         self.P = self.params.P
         self.theta = {k: float((theta0 or {}).get(k, 0.0)) if self.hybrid else 0.0 for k in self.owned}
-        self._g = np.empty(6)
-        self._gn = np.empty(6)
 
     @property
     def theta_owned(self) -> dict:
@@ -225,7 +224,8 @@ class AgentStepper:
     def terms(self, rel: dict, xi_i, xi_nbrs: dict, theta_nbrs: dict, edges=None) -> dict:
         """Edge k's part of u_i, {k: (6,)}, for k in ``edges`` (default all of 𝓜_i):
         −k_X ψ̄_∇(X̄_k, θ_k) − k_e(ξ_i − ξ_j) at the positive end, k_X Ad⁻ᵀ_{X̄_k} ψ̄_∇ + k_e(ξ_j − ξ_i)
-        at the negative end, θ_k being the neighbour's (``theta_nbrs``) for k ∈ 𝓜_i⁻."""
+        at the negative end, θ_k being the neighbour's (``theta_nbrs``) for k ∈ 𝓜_i⁻
+        (`kernels.edge_term`, the agent process's compiled step's arithmetic)."""
         P = self.P
         xi_i = np.asarray(xi_i, float)
         out = {}
@@ -233,28 +233,22 @@ class AgentStepper:
             if edges is not None and k not in edges:
                 continue
             Rb, pb = self._split(rel[k])
+            t = np.empty(6)
             if a == self.agent:
-                th = self.theta[k]
-                other = b
+                AK.edge_term(Rb, pb, self.theta[k], xi_i, np.asarray(xi_nbrs[b], float), True,
+                             P, t)
             else:
                 th = float(theta_nbrs[k]) if self.hybrid else 0.0
-                other = a
-            K.edge_gradient(Rb, pb, th, P, self._g)
-            xi_j = np.asarray(xi_nbrs[other], float)
-            if a == self.agent:
-                dxi = xi_i - xi_j
-                out[k] = -P[K.P_KX] * self._g - P[K.P_KE] * dxi
-            else:
-                K.Ad_inv_T_apply(Rb, pb, self._g, self._gn)
-                dxi = xi_j - xi_i
-                out[k] = P[K.P_KX] * self._gn + P[K.P_KE] * dxi
+                AK.edge_term(Rb, pb, th, np.asarray(xi_nbrs[a], float), xi_i, False, P, t)
+            out[k] = t
         return out
 
     def wrench_of(self, xi_i, terms: dict) -> np.ndarray:
-        """u_i = −k_ξ ξ_i + Σ_k term_k, summed in ascending k (the network view's order)."""
-        u = -self.P[K.P_KXI] * np.asarray(xi_i, float)
-        for k in sorted(terms):
-            u = u + terms[k]
+        """u_i = −k_ξ ξ_i + Σ_k term_k, summed in ascending k (the network view's order;
+        `kernels.wrench_sum`)."""
+        T = np.array([terms[k] for k in sorted(terms)], dtype=float).reshape(-1, 6)
+        u = np.empty(6)
+        AK.wrench_sum(np.asarray(xi_i, float), T, self.P, u)
         return u
 
     def wrench(self, rel: dict, xi_i, xi_nbrs: dict, theta_nbrs: dict) -> np.ndarray:
@@ -267,8 +261,7 @@ class AgentStepper:
             return
         for k in (self.owned if edges is None else [k for k in self.owned if k in edges]):
             Rb, pb = self._split(rel[k])
-            grad = K.edge_gradient(Rb, pb, self.theta[k], self.P, self._g)
-            self.theta[k] = self.theta[k] - h * self.P[K.P_KTH] * grad
+            self.theta[k] = float(AK.edge_flow(Rb, pb, self.theta[k], self.P, float(h)))
 
     def step(self, rel, xi_i, xi_nbrs, theta_nbrs, h):
         events = self.jump(rel)

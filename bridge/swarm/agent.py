@@ -38,9 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
-from controller import JumpEvent, LawParameters, layout
+from controller import AgentStepper, JumpEvent, LawParameters, layout
 from controller.errors import Se3SyncError
-from controller.kernels import metrics, network_U, relative_pose
+from controller.kernels import FRESH, agent_step, metrics, network_U, relative_pose
 from cosim import signals
 from cosim.controllers import EdgeState, agent_view
 from cosim.log.writer import McapLogger
@@ -116,6 +116,7 @@ class _AgentLaw:
         self.mu = np.full(M, np.nan)
         self.jumped = np.zeros(M, dtype=bool)
         self.u = np.zeros((len(node.agents), 6))
+        self._step = node._step_compiled if node.compiled else node._step
 
     @property
     def edge_state(self) -> EdgeState:
@@ -123,7 +124,7 @@ class _AgentLaw:
         return EdgeState(self.theta, self.theta_prev, self.theta_jump, self.mu, self.jumped)
 
     def step_state(self, S, h: float):
-        return self.node._step(S, float(h))
+        return self._step(S, float(h))
 
     def reset(self, theta0=None) -> None:
         raise Se3SyncError("an agent process cannot restart its run (start a new process)")
@@ -133,16 +134,22 @@ class AgentNode:
     """Agent ``agent_id`` of ``scenario`` (see the module docstring).
 
     ``AgentNode(scenario, i, law="hybrid", lockstep=False, key_file=None, insecure=False,
-    vehicle=None, connect_timeout=None, signing_state=None, tlog=None, on_event=None)``; then
-    ``connect()``, then drive ``plant`` and ``controller`` with `cosim.master.Master` (``run``
-    does it all), then ``close()``. ``vehicle`` overrides the vehicle's bridge-side endpoint
-    (default: vehicle i of the scenario's ``[bridge]`` table).
+    vehicle=None, connect_timeout=None, signing_state=None, tlog=None, on_event=None,
+    compiled=True)``; then ``connect()``, then drive ``plant`` and ``controller`` with
+    `cosim.master.Master` (``run`` does it all), then ``close()``. ``vehicle`` overrides the
+    vehicle's bridge-side endpoint (default: vehicle i of the scenario's ``[bridge]`` table).
+
+    ``compiled``: the law's arithmetic of a step in one compiled call over preallocated arrays
+    (`controller.kernels.agent_step`; two in lockstep, θ's publish between them), with the same
+    kernels as the reference, ``compiled=False``: `AgentStepper`'s calls per edge on dicts
+    (`_step`). A law whose per-agent view is not `AgentStepper` (``decoupled``) always runs the
+    reference (``self.compiled`` says which runs).
     """
 
     def __init__(self, scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = False,
                  key_file=None, insecure: bool = False, vehicle: str | None = None,
                  connect_timeout: float | None = None, signing_state=None, tlog=None,
-                 on_event=None):
+                 on_event=None, compiled: bool = True):
         sc = scenario
         N = sc.graph.n
         if isinstance(agent_id, bool) or not isinstance(agent_id, (int, np.integer)) \
@@ -224,10 +231,39 @@ class AgentNode:
         self.transitions: list = []        # (step, neighbour, new verdict of the age rule)
         self.used: dict = {j: (None, None) for j in self.neighbours}   # (sample step, age)
         self.own_samples: list = []
+        self.compiled = bool(compiled) and type(self.stepper) is AgentStepper
+        if self.compiled:
+            self._tables()
         self.plant = _NeighbourhoodPlant(self)
         self.controller = _AgentLaw(self)
+        if self.compiled:
+            th = self.controller.theta
+            # the owned θ live in the controller's θ from now on (the stepper's stay at θ(0))
+            for k, r in self._own_rows:
+                th[r] = self.stepper.theta[k]
+            self._calls = self._agent_step_calls(self._S, self.h)
         self.sample_every = None
         self._closed = False
+
+    def _tables(self) -> None:
+        """The compiled step's index tables and buffers (rows r of the edges in ascending k)."""
+        E = len(self.edge_ids)
+        nb = {j: q for q, j in enumerate(self.neighbours)}
+        self._ea = np.array([self.row[self.ends[k][0]] for k in self.edge_ids], dtype=np.int64)
+        self._eb = np.array([self.row[self.ends[k][1]] for k in self.edge_ids], dtype=np.int64)
+        self._owned_mask = np.array([k in self.owned for k in self.edge_ids], dtype=np.bool_)
+        self._nbr = np.array([nb[self.other[k]] for k in self.edge_ids], dtype=np.int64)
+        self._mode = np.zeros(len(self.neighbours), dtype=np.int64)   # FRESH, or stale
+        self._rx = np.array([self._theta_rx.get(k, 0.0) for k in self.edge_ids])
+        self._termbuf = np.zeros((E, 6))
+        self._relrows = np.zeros((E, 12))
+        self._own_rows = tuple((k, r) for r, k in enumerate(self.edge_ids) if k in self.owned)
+        # per neighbour q: (j, ((k, r) of the neighbourhood's edges j owns: their θ is received))
+        self._rx_rows = tuple((j, tuple((k, r) for r, k in enumerate(self.edge_ids)
+                                        if k not in self.owned and self.ends[k][0] == j))
+                              for j in self.neighbours)
+        self._seen = [None] * len(self.neighbours)   # the sample θ was last taken from
+        self._pub = {k: 0.0 for k in self.owned}     # θ after the jump, as published
 
     # ------------------------------------------------------------------ set-up
     @property
@@ -239,6 +275,14 @@ class AgentNode:
     def n(self) -> int:
         """The swarm's step number of the current step."""
         return self.first_step + self.vehicle.k
+
+    @property
+    def theta_owned(self) -> dict:
+        """{k: θ_k} of the owned edges now (after the last step's flow)."""
+        if self.compiled:
+            th = self.controller.theta
+            return {k: float(th[r]) for k, r in self._own_rows}
+        return self.stepper.theta_owned
 
     def connect(self) -> "AgentNode":
         """Waits for the vehicle (HEARTBEAT and a first state; lockstep: the state at t = 0)."""
@@ -274,7 +318,7 @@ class AgentNode:
                                     f"neighbour(s) {missing} within {timeout:g} s")
                 if now >= next_pub:
                     n_now = max(0, int((time.time() - start) / self.h))
-                    self.link.publish(n_now, self.vehicle.read()[0], self.stepper.theta_owned)
+                    self.link.publish(n_now, self.vehicle.read()[0], self.theta_owned)
                     next_pub = now + self.h
                 self._check_stop()
                 self.vehicle.poll(min(0.01, self.h))
@@ -460,6 +504,100 @@ class AgentNode:
         return u, tuple(JumpEvent(r_of[e.edge] + 1, e.theta_before, e.theta_after, e.mu)
                         for e in events)
 
+    def _agent_step_calls(self, S, h: float) -> tuple:
+        """`agent_step`'s arguments for (stage 1, stage 2, stages 1–2, stages 1–2 in fail-safe)."""
+        ctl = self.controller
+        head = (S, self._ea, self._eb, self._owned_mask, self._nbr, self._mode,
+                self.stepper.hybrid, self.stepper.P, float(h))
+        out = (ctl.theta, self._rx, ctl.theta_prev, ctl.theta_jump, ctl.mu, ctl.jumped,
+               self._termbuf, self._relrows, ctl.u)
+        return tuple((*head, stages, fs, *out) for stages, fs in ((1, False), (2, False),
+                                                                  (3, False), (3, True)))
+
+    def _step_compiled(self, S, h: float):
+        """`_step` with the law's arithmetic in `agent_step` (same kernels, same numbers): the
+        age rule and θ received per neighbour in Python, the rest over the index tables."""
+        n = self.n
+        ctl = self.controller
+        link = self.link
+        mode = self._mode
+        rx = self._rx
+        fs = hold = False
+        if not self.lockstep:
+            state = self._state
+            q = 0
+            for j, pairs in self._rx_rows:
+                age = link.age_steps(j, n)
+                smp = link.neighbour(j)
+                self.used[j] = (None if smp is None else smp.step, n if age is None else age)
+                m = link.freshness(j, n)
+                if m != state[j]:
+                    state[j] = m
+                    self.transitions.append((n, j, m))
+                    if len(self.transitions) > 1000:
+                        del self.transitions[:500]
+                if m == "fresh":
+                    mode[q] = FRESH
+                else:
+                    mode[q] = FRESH + 1
+                    if m == "failsafe":
+                        fs = True
+                    else:
+                        hold = True
+                if smp is not None and smp is not self._seen[q]:
+                    self._seen[q] = smp
+                    th = smp.theta
+                    for k, r in pairs:
+                        rx[r] = th[k]
+                q += 1
+        call = self._calls if S is self._S and h == self.h else self._agent_step_calls(S, h)
+        pub = self._pub
+        if self.lockstep:
+            n_jumps = agent_step(*call[0])
+            for k, r in self._own_rows:
+                pub[k] = float(ctl.theta_jump[r])
+            self._last_theta = (n, pub)
+            if self.owned:
+                link.publish(n, None, pub)
+
+            def ready(j=None):
+                js = self.neighbours if j is None else (j,)
+                return all(link.theta_at(x, n) is not None for x in js)
+
+            self._wait(ready, "θ", lambda: (self._resend_theta(),
+                                           link.publish(n, S[0], None)))
+            for j, pairs in self._rx_rows:
+                th = link.theta_at(j, n)
+                for k, r in pairs:
+                    rx[r] = th[k]
+                link.age_steps(j, n)   # 0 in lockstep: counted for the link statistics
+            agent_step(*call[1])
+        else:
+            n_jumps = agent_step(*call[3 if fs else 2])
+            for k, r in self._own_rows:
+                pub[k] = float(ctl.theta_jump[r])
+            link.publish(n, S[0], pub)
+        if fs:
+            self.failsafe_steps += 1
+            if not self.failsafe:
+                self.failsafe_entries += 1
+                self.on_event(f"fail-safe at step {n}: no fresh data from neighbour(s) "
+                              f"{[j for j in self.neighbours if self._state[j] == 'failsafe']}")
+        elif self.failsafe:
+            self.on_event(f"rejoined at step {n}: fresh data from every neighbour")
+        self.failsafe = fs
+        if hold:
+            self.hold_steps += 1
+        if self.sample_every and self.k % self.sample_every == 0:
+            self.own_samples.append({"step": n, "S": S[0].tolist(),
+                                     "theta": {str(k): float(ctl.theta_jump[r])
+                                               for k, r in self._own_rows}})
+        if not n_jumps:
+            return ctl.u, ()
+        return ctl.u, tuple(JumpEvent(r + 1, float(ctl.theta_prev[r]), float(ctl.theta_jump[r]),
+                                      float(ctl.mu[r]))
+                            for k, r in self._own_rows if ctl.jumped[r])
+
     def _advance(self, h: float) -> None:
         self.vehicle.advance(h)
 
@@ -473,7 +611,7 @@ class AgentNode:
     def own_final(self) -> dict:
         """The agent's own row and θ of its owned edges at the end (what the swarm merges)."""
         return {"step": self.n, "S": self.vehicle.read()[0].tolist(),
-                "theta": {str(k): v for k, v in self.stepper.theta_owned.items()}}
+                "theta": {str(k): v for k, v in self.theta_owned.items()}}
 
     def close(self) -> None:
         if self._closed:
@@ -603,9 +741,17 @@ def _max_rss_mb() -> float | None:
 def _warm_up(node: AgentNode) -> None:
     """The compiled kernels the steps use, loaded (or compiled) now rather than while the vehicle
     and the neighbours wait for the first step."""
-    agent_view(node.law, node.sc, node.i).wrench(
-        {k: node._rel(node.local.S0, k) for k in node.edge_ids}, np.zeros(6),
-        {j: np.zeros(6) for j in node.neighbours}, {k: 0.0 for k in node.edge_ids})
+    if not node.compiled:
+        agent_view(node.law, node.sc, node.i).wrench(
+            {k: node._rel(node.local.S0, k) for k in node.edge_ids}, np.zeros(6),
+            {j: np.zeros(6) for j in node.neighbours}, {k: 0.0 for k in node.edge_ids})
+    else:   # on copies: the node's state stays as it is
+        ctl = node.controller
+        agent_step(node.local.S0.copy(), node._ea, node._eb, node._owned_mask, node._nbr,
+                   node._mode.copy(), node.stepper.hybrid, node.stepper.P, node.h, 3, False,
+                   ctl.theta.copy(), node._rx.copy(), ctl.theta_prev.copy(),
+                   ctl.theta_jump.copy(), ctl.mu.copy(), ctl.jumped.copy(), node._termbuf.copy(),
+                   node._relrows.copy(), ctl.u.copy())
     loc = node.local
     N, M = loc.graph.n, loc.graph.M
     U = np.zeros(M)
