@@ -150,7 +150,8 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
         agents.append({"agent": i, "steps": s["steps"], "first_step": s.get("first_step", 0),
                        "interrupted": s["interrupted"], "wall_time_s": s["wall_time_s"],
                        "cpu_fraction": s.get("cpu_fraction"), "max_rss_mb": s.get("max_rss_mb"),
-                       "startup": s.get("startup"), "failsafe": s["failsafe"],
+                       "memory": s.get("memory"), "startup": s.get("startup"),
+                       "failsafe": s["failsafe"],
                        "late_steps": ln.get("late_steps"),
                        "vehicle_latency_ms_p99": ln.get("latency_ms_p99"),
                        "vehicle_failsafes": ln.get("vehicle_failsafes"),
@@ -383,6 +384,18 @@ class _Children:
         return lines[-1] if lines else ""
 
 
+def vehicle_argv(py, sc, scenario_path, sets: list, wd: Path, lockstep: bool, sec: list) -> list:
+    """The loopback vehicles' command line: one `se3sync vehicle` process for the scenario's
+    vehicles, ticking (physics and ODOMETRY) at the swarm's control rate 1/h: each agent steps
+    once per h and reads one state per step, so a faster stream would only be decoded and
+    dropped (at 250 Hz, 64 vehicles cost that process twice the CPU of 100 Hz, and every agent
+    2.5 ODOMETRY per step), and with a tick of h the vehicle holds each wrench for one control
+    period, as `run`'s plant does."""
+    return [py, "-m", "cosim.cli", "vehicle", "--scenario", str(Path(scenario_path)), *sets,
+            "--rate", repr(1.0 / float(sc.step)), "--aux-rate", "0",
+            "--stats", str(wd / "vehicle.json"), *(["--lockstep"] if lockstep else []), *sec]
+
+
 def check_ports(sc, vehicles: str, listen: float = PORT_LISTEN_S) -> None:
     """Start-up: every endpoint the swarm will bind must be free, and none may already receive
     traffic (something that is not part of this swarm, e.g. a vehicle or agent left over from an
@@ -480,10 +493,7 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                 interrupted = True
                 say("stopped (signal) before any process started")
             elif vehicles == "loopback":
-                kids.start("vehicle", [py, "-m", "cosim.cli", "vehicle", "--scenario",
-                                       str(Path(scenario_path)), *sets,
-                                       "--aux-rate", "0", "--stats", str(wd / "vehicle.json"),
-                                       *(["--lockstep"] if lockstep else []), *sec],
+                kids.start("vehicle", vehicle_argv(py, sc, scenario_path, sets, wd, lockstep, sec),
                            wd / "vehicle.err")
             start = None
             start_file = wd / "start"
@@ -569,7 +579,10 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
         vst = json.loads((wd / "vehicle.json").read_text(encoding="utf-8"))
         merged["vehicles"] = {k: vst.get(k) for k in (
             "received", "datagrams", "malformed", "rejected", "rejected_by_reason", "failsafe",
-            "commands", "dropped", "commander")}
+            "commands", "dropped", "commander",
+            # its deadlines and its cost (real time; ticks counted from the first command)
+            "tick_s", "ticks", "late_ticks", "resyncs", "cpu_s", "wall_s", "ticking_cpu_s",
+            "ticking_s")}
     except (OSError, ValueError):
         pass
     if log_path is not None:
