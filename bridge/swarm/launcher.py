@@ -319,6 +319,7 @@ def merge_logs(scenario, logs: dict, out_path, *, law: str = "hybrid",
 # ------------------------------------------------------------------------------ launching
 READY_TIMEOUT_S = 120.0   # every agent imports, loads its kernels and connects before the start
 START_LEAD_S = 1.0        # from "all ready" to step 0: the start file reaches every agent
+LOOPBACK_CONNECT_S = 120.0   # an agent's wait for a loopback vehicle the launcher started
 
 
 PR_SET_PDEATHSIG = 1      # linux/prctl.h
@@ -476,6 +477,12 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
     if duration is not None:
         common += ["--duration", repr(float(duration))]
     sec = (["--key", str(key_file)] if key_file else []) + (["--insecure"] if insecure else [])
+    # loopback: the vehicle process starts with the agents and comes up when they do; started
+    # with 64 agents importing numba on two cores it came up 43 s later, and an agent that had
+    # loaded its kernels at 36 s waited 7.4 s of bridge.connect_timeout's 10 s for it
+    wait = [] if vehicles != "loopback" else [
+        "--connect-timeout", repr(max(LOOPBACK_CONNECT_S, float(
+            (sc.bridge or default_config(sc.n_agents)).connect_timeout)))]
     kids = _Children()
     view = None
     if live is not None:   # the merged live view; each agent feeds it its own row
@@ -506,7 +513,7 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                     *(["--log", str(wd / f"agent_{i}.mcap"), "--log-encoding", log_encoding]
                       if log_path is not None else []),
                     *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec,
-                    *feed],
+                    *wait, *feed],
                     wd / f"agent_{i}.err")
             agents = [a for a in (f"agent {i}" for i in range(1, N + 1)) if a in kids.procs]
             if agents:

@@ -609,6 +609,40 @@ def test_swarm_loopback_vehicles_tick_at_the_control_rate(tmp_path, step):
     assert not args.lockstep
 
 
+_FAKE_PYTHON = """#!/bin/sh
+# stands in for python: "-m cosim.cli vehicle|agent ..." (the launcher's children)
+case "$3" in
+vehicle) echo "se3sync vehicle: 6 vehicle(s) (real time, 250 Hz)" >&2; exec sleep 60 ;;
+agent) echo "$@" >> {log}/agents ;;
+esac
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="a /bin/sh stand-in for python")
+@pytest.mark.parametrize("vehicles", ["loopback", "external"])
+def test_swarm_agents_wait_for_loopback_vehicles_started_with_them(tmp_path, vehicles):
+    """The loopback vehicle process starts with the agents (64 of them importing numba on two
+    cores held it back 43 s): the launcher gives each agent --connect-timeout
+    LOOPBACK_CONNECT_S for it; with external vehicles the scenario's connect_timeout stands
+    (the processes are a stand-in for python that records each agent's arguments)."""
+    from bridge.swarm.launcher import LOOPBACK_CONNECT_S, run_swarm
+    from cosim.cli import build_parser
+
+    fake = tmp_path / "python"
+    fake.write_text(_FAKE_PYTHON.format(log=tmp_path))
+    fake.chmod(0o755)
+    sets, _, _ = _ports()
+    merged, rc = run_swarm(HIL, sets, vehicles=vehicles, duration=0.1,
+                           workdir=tmp_path / "work", python=str(fake), on_event=lambda s: None)
+    assert rc == 0 and merged["agents_missing"] == [1, 2, 3, 4, 5, 6]
+    lines = (tmp_path / "agents").read_text().splitlines()
+    assert len(lines) == 6
+    for line in lines:
+        args = build_parser().parse_args(line.split()[2:])
+        assert args.func.__name__ == "_cmd_agent"
+        assert args.connect_timeout == (LOOPBACK_CONNECT_S if vehicles == "loopback" else None)
+
+
 @pytest.mark.skipif(not _PROC, reason="Linux /proc (smaps_rollup) only")
 @pytest.mark.realtime
 @pytest.mark.timeout(120)
