@@ -1,6 +1,6 @@
 """Start-up time of the command line: `se3sync --help`, `se3sync check` on the paper scenario and
 `se3sync run` of its first 0.01 s (analysis, 100 compiled steps, the log), optionally against another revision in the same run (interleaved, so load affects both alike).
-Then an agent process's start-up and memory (issue 31).
+With ``--sections agent``, an agent process's start-up and memory instead (issue 31).
 
     python benchmarks/bench_startup.py [--against REV] [--repeat K] [--sections commands,agent]
 
@@ -182,8 +182,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--against", metavar="REV", help="also time this revision (git worktree)")
     ap.add_argument("--repeat", type=int, default=7)
-    ap.add_argument("--sections", default="commands,agent",
-                    help="commands (the CLI's start-up), agent (an agent process), or both")
+    ap.add_argument("--sections", default="commands",
+                    help="commands (the CLI's start-up, the default), agent (an agent process), "
+                         "or commands,agent")
     _markdown.add_option(ap)
     args = ap.parse_args()
     sections = set(args.sections.split(","))
