@@ -1,15 +1,30 @@
 """The per-vehicle agent processes (`se3sync swarm`) in real time: CPU per agent process, the age
-of the neighbour data used, losses, and the loop's outcome.
+of the neighbour data used, losses, the loopback vehicle process's deadlines, memory, start-up
+and the loop's outcome against `se3sync run`.
 
-    python benchmarks/bench_agents.py [--duration S] [--cases 6x250,32x100]
+    python benchmarks/bench_agents.py [--duration S] [--cases 6x250,64x100] [--keep DIR]
 
-Cases: NxRATE = N agents (hil_6uav's gains; for N ≠ 6 a chain 1-2-…-N with the same bodies and
-the "paper" start) at RATE Hz, each with its own loopback vehicle (one `se3sync vehicle` process
-serves them all), no logs. Per case one swarm run; reported: the CPU of each agent process while
-it stepped (share of one core, median and max over the agents), its late steps, the inter-agent
-data age p50/p99 (steps) and the losses over every directed link, the final errors, each agent
-process's peak resident memory and its start-up (seconds from its start to its compiled kernels
-loaded, ``warm_s``; the vehicle's first state comes after that, once the vehicle process is up).
+Cases: ``NxRATE`` = N agents at RATE Hz: N = 6 is hil_6uav itself; any other N a random tree of
+seed 0 (`cosim.analysis.stability_cases.tree_scenario_text`: hil_6uav's vehicles, weighting and
+gains, each agent k ≥ 2 joined to a random earlier one, a random start of seed 1, and
+hil_6uav's [bridge] table); ``NxRATEsK`` the random tree of seed K (also for N = 6),
+``NxRATEchain`` the chain 1-2-…-N. Each agent has its own loopback vehicle (one `se3sync
+vehicle` process serves them all, ticking at RATE), no logs. Per case one swarm run; reported:
+- per agent process: its CPU while it stepped (share of one core, median and max over the
+  agents), its late steps (share of its steps that ended after their deadline: median, max), the
+  inter-agent data age p50/p99 (steps) and the losses over every directed link;
+- the vehicle process: its CPU from the first command to its end (share of one core), its late
+  ticks (a physics tick more than one tick after it was due) of all ticks, and its resyncs (it
+  fell 10 ticks behind and skipped them);
+- the machine: the CPU of the case's processes and of other work meanwhile (cores, /proc/stat),
+  the load average at the start and at the end;
+- memory per agent process at its end (`bridge.swarm.agent._memory`: VmHWM, RssAnon, RssFile,
+  PSS; median and max) and Σ PSS over the agents (what they hold together: the shared libraries
+  counted once); start-up in seconds of process age (kernels loaded ``warm_s``, ready to step
+  ``ready_s``, first step ``first_step_s``: that one waits for the slowest agent of the swarm);
+- V̄ at the 1 s samples of the merged summary and of `se3sync run` of the same scenario on the
+  float32 reference plant (tests/bridge/test_agents.py's reference), final V̄ / V̄(0) of both and
+  how many samples rose; the final rot_err of both.
 Numbers from one machine at one time: compare them with each other, not across machines; with
 other work on the machine the CPU figures include what sharing the cores costs (caches).
 """
@@ -17,9 +32,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
+import resource
 import statistics
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import _markdown
@@ -28,88 +47,229 @@ ROOT = Path(__file__).resolve().parents[1]
 HIL = ROOT / "scenarios" / "hil_6uav.toml"
 
 
-def scenario_for(n: int, rate: float, tmp: Path) -> tuple[Path, list]:
+def parse_case(case: str) -> tuple:
+    """``NxRATE`` (N = 6: hil_6uav itself; else a random tree of seed 0 with hil_6uav's
+    vehicles, weighting and gains), ``NxRATEsK`` (the random tree of seed K, also for N = 6),
+    ``NxRATEchain`` (the chain 1-2-…-N) -> (N, rate, tree kind or None, seed)."""
+    m = re.fullmatch(r"(\d+)x([0-9.]+)(?:(chain)|s(\d+))?", case.strip())
+    if not m:
+        raise SystemExit(f"--cases: {case!r} is not NxRATE, NxRATEsSEED or NxRATEchain")
+    n, rate = int(m.group(1)), float(m.group(2))
+    if m.group(3):
+        return n, rate, "chain", 0
+    if m.group(4) is None and n == 6:
+        return n, rate, None, 0
+    return n, rate, "random", int(m.group(4) or 0)
+
+
+def scenario_for(n: int, rate: float, tmp: Path, kind=None, seed: int = 0) -> tuple[Path, list]:
+    """The scenario file and the --set overrides of a case: hil_6uav itself (kind None), or
+    `cosim.analysis.stability_cases.tree_scenario_text` (hil_6uav's vehicles, weighting, gains
+    and [bridge] table on a chain or a seeded random tree, a random start of seed 1)."""
     from bridge.mavlink.link import free_base_port
+    from cosim.analysis.stability_cases import tree_scenario_text
 
-    sets = [f"simulation.step={1.0 / rate!r}", f"bridge.base_port={free_base_port(n)}"]
-    nb = free_base_port(n)
-    sets.append(f"network.base_port={nb}")
-    if n == 6:
+    sets = [f"simulation.step={1.0 / rate!r}", f"bridge.base_port={free_base_port(n)}",
+            f"network.base_port={free_base_port(n)}"]
+    if kind is None:
         return HIL, sets
-    chain = ", ".join(f"[{i}, {i + 1}]" for i in range(1, n))
-    return HIL, sets + [f"agents.count={n}", f"graph.edges=[{chain}]"]
+    text = tree_scenario_text(n, kind, seed)   # drops [bridge]: hil_6uav's is put back
+    text += "[bridge]" + HIL.read_text(encoding="utf-8").split("[bridge]", 1)[1]
+    path = tmp / f"{kind}{n}_s{seed}.toml" if kind == "random" else tmp / f"chain{n}.toml"
+    path.write_text(text, encoding="utf-8")
+    return path, sets
 
 
-def run_case(n: int, rate: float, duration: float) -> dict:
+def _busy_seconds():
+    """CPU seconds the machine has spent busy since boot (every core; /proc/stat), or None."""
+    try:
+        with open("/proc/stat") as f:
+            v = [int(x) for x in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    return (sum(v) - v[3] - v[4]) / os.sysconf("SC_CLK_TCK")
+
+
+def _children_seconds() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _med(xs):
+    xs = [x for x in xs if x is not None]
+    return statistics.median(xs) if xs else None
+
+
+def _max(xs):
+    return max((x for x in xs if x is not None), default=None)
+
+
+def reference(path, sets, duration) -> dict:
+    """`se3sync run` of the same scenario on the float32 reference plant (what MAVLink carries),
+    as tests/bridge/test_agents.py's lockstep tests make it."""
+    from bridge.mavlink.transport import QuantizedPlant
+    from cosim.run import run_scenario
+    from cosim.scenario import load_scenario
+
+    sc = load_scenario(path, sets, duration=duration)
+    plant = QuantizedPlant(sc)
+    try:
+        return run_scenario(sc, plant=plant)
+    finally:
+        plant.close()
+
+
+def v_bar(summary) -> dict:
+    """V̄ at the 1 s samples: the values, the final one over V̄(0), and how many samples rose."""
+    vs = [s["V"] for s in summary.get("samples") or []]
+    if not vs:
+        return {"V": [], "ratio": None, "rises": None}
+    return {"V": vs, "ratio": vs[-1] / vs[0] if vs[0] else None,
+            "rises": sum(1 for a, b in zip(vs, vs[1:]) if b > a)}
+
+
+def run_case(case: str, duration: float, keep=None) -> dict:
     from bridge.swarm.launcher import run_swarm
 
+    n, rate, kind, seed = parse_case(case)
+    load0 = os.getloadavg()
     with tempfile.TemporaryDirectory() as d:
-        path, sets = scenario_for(n, rate, Path(d))
+        wd = Path(keep) / case if keep else Path(d)
+        wd.mkdir(parents=True, exist_ok=True)
+        path, sets = scenario_for(n, rate, wd, kind, seed)
+        busy0, own0, t0 = _busy_seconds(), _children_seconds(), time.monotonic()
         merged, rc = run_swarm(path, sets, vehicles="loopback", duration=duration,
-                               workdir=Path(d) / "work", on_event=lambda s: None)
-    cpu = [a["cpu_fraction"] for a in merged["agents"] if a.get("cpu_fraction") is not None]
-    late = [a["late_steps"] for a in merged["agents"] if a.get("late_steps") is not None]
+                               workdir=wd / "work", on_event=lambda s: None)
+        wall = time.monotonic() - t0
+        busy1, own = _busy_seconds(), (_children_seconds() - own0) / wall
+        other = None if busy0 is None or busy1 is None else max(0.0, (busy1 - busy0) / wall - own)
+        load1 = os.getloadavg()
+        ref = reference(path, sets, duration)
+    ag = [a for a in merged["agents"] if a.get("steps") is not None]
+    late = [a["late_steps"] / a["steps"] for a in ag if a.get("late_steps") is not None
+            and a["steps"]]
     links = merged["links"]
-    p50 = [ln["age_p50_steps"] for ln in links if ln["age_p50_steps"] is not None]
-    p99 = [ln["age_p99_steps"] for ln in links if ln["age_p99_steps"] is not None]
-    rss = [a["max_rss_mb"] for a in merged["agents"] if a.get("max_rss_mb") is not None]
-    warm = [a["startup"]["warm_s"] for a in merged["agents"]
-            if (a.get("startup") or {}).get("warm_s") is not None]
-    return {"agents": n, "rate_hz": rate, "exit": rc, "steps": merged["steps"],
-            "cpu_median": statistics.median(cpu) if cpu else None, "cpu_max": max(cpu, default=None),
-            "late_steps_median": statistics.median(late) if late else None,
-            "age_p50_steps_max": max(p50, default=None), "age_p99_steps_median":
-                statistics.median(p99) if p99 else None, "age_p99_steps_max": max(p99, default=None),
-            "rss_mb_median": statistics.median(rss) if rss else None, "rss_mb_max": max(rss, default=None),
-            "warm_s_median": statistics.median(warm) if warm else None,
-            "warm_s_max": max(warm, default=None),
+    mem = {f: [((a.get("memory") or {}).get(f)) for a in ag]
+           for f in ("vm_hwm_mb", "rss_anon_mb", "rss_file_mb", "pss_mb", "uss_mb")}
+    st = {f: [((a.get("startup") or {}).get(f)) for a in ag]
+          for f in ("warm_s", "connected_s", "ready_s", "first_step_s")}
+    veh = merged.get("vehicles") or {}
+    vcpu = (veh["ticking_cpu_s"] / veh["ticking_s"]) if veh.get("ticking_s") else None
+    vb, vr = v_bar(merged), v_bar(ref)
+    pss = [x for x in mem["pss_mb"] if x is not None]
+    return {"case": case, "agents": n, "rate_hz": rate, "tree": kind or "hil_6uav", "seed": seed,
+            "scenario": str(path.name), "exit": rc, "steps": merged["steps"],
+            "wall_s": wall, "load_start": load0, "load_end": load1,
+            "own_cores": own, "other_cores": other,
+            "cpu_median": _med(a.get("cpu_fraction") for a in ag),
+            "cpu_max": _max(a.get("cpu_fraction") for a in ag),
+            "late_frac_median": _med(late), "late_frac_max": _max(late),
+            "first_steps": sorted({a.get("first_step", 0) for a in ag}),
+            "age_p50_steps_max": _max(ln["age_p50_steps"] for ln in links),
+            "age_p99_steps_median": _med(ln["age_p99_steps"] for ln in links),
+            "age_p99_steps_max": _max(ln["age_p99_steps"] for ln in links),
             "sent": merged["link_total"]["sent"], "lost": merged["link_total"]["lost"],
-            "final": merged["final"], "missing": merged["agents_missing"]}
+            "rss_mb_median": _med(a.get("max_rss_mb") for a in ag),
+            "rss_mb_max": _max(a.get("max_rss_mb") for a in ag),
+            "memory": {f: {"median": _med(v), "max": _max(v)} for f, v in mem.items()},
+            "pss_total_mb": sum(pss) if len(pss) == len(ag) and pss else None,
+            "startup": {f: {"median": _med(v), "max": _max(v)} for f, v in st.items()},
+            "vehicle": {"tick_s": veh.get("tick_s"), "ticks": veh.get("ticks"),
+                        "late_ticks": veh.get("late_ticks"), "resyncs": veh.get("resyncs"),
+                        "cpu": vcpu, "cpu_s": veh.get("cpu_s"), "wall_s": veh.get("wall_s"),
+                        "failsafe": veh.get("failsafe")},
+            "V_swarm": vb, "V_run": vr,
+            "final": merged["final"], "final_run": ref.get("final"),
+            "missing": merged["agents_missing"]}
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--cases", default="6x250,32x100")
+    ap.add_argument("--keep", metavar="DIR", help="keep each case's scenario and work directory "
+                    "(the agents' summaries and stderr, the vehicle's stats) in DIR/CASE")
     _markdown.add_option(ap)
     a = ap.parse_args(argv)
     with _markdown.Report(a.markdown) as rep:
         rows = bench(a)
-        rep.table(["case", "CPU per agent process (share of a core)", "late steps (median)",
-                   "data age p50 / p99 (steps)", "lost", "peak RSS per agent (MB)",
-                   "start-up to kernels loaded (s)", "final rot_err", "exit"], rows,
-                  caption=f"one swarm run per case, {a.duration:g} s, loopback vehicles, no logs")
+        cap = f"one swarm run per case, {a.duration:g} s, loopback vehicles, no logs"
+        rep.table(["case", "CPU per agent process (share of a core)",
+                   "late steps (median / max over agents)", "data age p50 / p99 (steps)", "lost",
+                   "vehicle process: CPU (share of a core), late ticks, resyncs",
+                   "machine: this case / other work (cores), load", "exit"],
+                  [r[0] for r in rows], caption=cap)
+        rep.table(["case", "peak RSS per agent, VmHWM (MB)", "RssAnon / RssFile at the end (MB)",
+                   "PSS per agent (MB)", "Σ PSS of the agents (MB)",
+                   "start-up: kernels loaded / ready / first step (s of process age)"],
+                  [r[1] for r in rows], caption="memory and start-up per agent process: median, "
+                  "max over the agents (PSS counts a page shared by k processes as 1/k)")
+        rep.table(["case", "V̄ at the 1 s samples, swarm", "`run`", "final V̄ / V̄(0): swarm, "
+                   "`run`", "rises at the 1 s samples: swarm, `run`", "final rot_err: swarm, `run`"],
+                  [r[2] for r in rows], caption="the loop's outcome against `se3sync run` of the "
+                  "same scenario on the float32 reference plant")
 
 
-def _g(x) -> str:
-    return "n/a" if x is None else f"{x:.3g}"
+def _g(x, fmt="{:.3g}") -> str:
+    return "n/a" if x is None else fmt.format(x)
+
+
+def _pct(x) -> str:
+    return "n/a" if x is None else f"{100 * x:.2g} %"
+
+
+def _vs(v) -> str:
+    return ", ".join(f"{x:.4g}" for x in v["V"])
 
 
 def bench(a) -> list:
     rows = []
     for case in a.cases.split(","):
-        n, rate = case.split("x")
-        r = run_case(int(n), float(rate), a.duration)
-        f = r["final"] or {}
-        print(f"{r['agents']:3d} agents at {r['rate_hz']:g} Hz, {r['steps']} steps: CPU per agent "
-              f"median {r['cpu_median']:.3f} / max {r['cpu_max']:.3f} of a core; late steps median "
-              f"{r['late_steps_median']}; data age p50 ≤ {r['age_p50_steps_max']}, p99 median "
-              f"{r['age_p99_steps_median']} / max {r['age_p99_steps_max']} steps; lost {r['lost']} "
-              f"of {r['sent']}; peak RSS median {_g(r['rss_mb_median'])} / max "
-              f"{_g(r['rss_mb_max'])} MB; start-up (kernels loaded) median "
-              f"{_g(r['warm_s_median'])} / max {_g(r['warm_s_max'])} s; final rot_err "
-              f"{f.get('rot_err', float('nan')):.3g} (exit {r['exit']})")
+        r = run_case(case, a.duration, a.keep)
+        f, fr = r["final"] or {}, r["final_run"] or {}
+        m, st, v = r["memory"], r["startup"], r["vehicle"]
+        vs, vr = r["V_swarm"], r["V_run"]
+        tree = r["tree"] if r["tree"] != "random" else f"random tree, seed {r['seed']}"
+        name = f"{r['agents']} agents ({tree}) at {r['rate_hz']:g} Hz, {r['steps']} steps"
+        load = "/".join(f"{x:.1f}" for x in r["load_start"]) + " → " + \
+            "/".join(f"{x:.1f}" for x in r["load_end"])
+        print(f"{name}: CPU per agent median {_g(r['cpu_median'])} / max {_g(r['cpu_max'])} of a "
+              f"core; late steps median {_pct(r['late_frac_median'])} / max "
+              f"{_pct(r['late_frac_max'])}; first steps {r['first_steps'][:5]}; data age p50 ≤ "
+              f"{r['age_p50_steps_max']}, p99 median {r['age_p99_steps_median']} / max "
+              f"{r['age_p99_steps_max']} steps; lost {r['lost']} of {r['sent']}; vehicle process "
+              f"(tick {_g(v['tick_s'])} s): CPU {_g(v['cpu'])} of a core, late ticks "
+              f"{v['late_ticks']} of {v['ticks']}, resyncs {v['resyncs']}; VmHWM median "
+              f"{_g(m['vm_hwm_mb']['median'])} / max {_g(m['vm_hwm_mb']['max'])} MB, RssAnon "
+              f"{_g(m['rss_anon_mb']['median'])}, RssFile {_g(m['rss_file_mb']['median'])}, PSS "
+              f"{_g(m['pss_mb']['median'])} MB (Σ {_g(r['pss_total_mb'], '{:.0f}')} MB); start-up: "
+              f"kernels loaded {_g(st['warm_s']['median'])} / {_g(st['warm_s']['max'])} s, ready "
+              f"{_g(st['ready_s']['median'])} / {_g(st['ready_s']['max'])} s; V̄ final/V̄(0) "
+              f"swarm {_g(vs['ratio'])} (rises {vs['rises']}), run {_g(vr['ratio'])} (rises "
+              f"{vr['rises']}); final rot_err {f.get('rot_err', float('nan')):.3g} (run "
+              f"{fr.get('rot_err', float('nan')):.3g}); machine: this case "
+              f"{_g(r['own_cores'], '{:.2f}')} cores, other work {_g(r['other_cores'], '{:.2f}')},"
+              f" load {load} (exit {r['exit']})")
         print(json.dumps(r), file=sys.stderr)
-        rows.append((f"{r['agents']} agents at {r['rate_hz']:g} Hz, {r['steps']} steps",
-                     f"median {r['cpu_median']:.3f}, max {r['cpu_max']:.3f}",
-                     f"{r['late_steps_median']} of {r['steps']}",
-                     f"≤ {r['age_p50_steps_max']} / median {r['age_p99_steps_median']}, "
-                     f"max {r['age_p99_steps_max']}",
-                     f"{r['lost']} of {r['sent']}",
-                     f"median {_g(r['rss_mb_median'])}, max {_g(r['rss_mb_max'])}",
-                     f"median {_g(r['warm_s_median'])}, max {_g(r['warm_s_max'])}",
-                     f"{f.get('rot_err', float('nan')):.3g}",
-                     r["exit"]))
+        rows.append((
+            (name, f"median {_g(r['cpu_median'])}, max {_g(r['cpu_max'])}",
+             f"{_pct(r['late_frac_median'])} / {_pct(r['late_frac_max'])}",
+             f"≤ {r['age_p50_steps_max']} / median {r['age_p99_steps_median']}, "
+             f"max {r['age_p99_steps_max']}",
+             f"{r['lost']} of {r['sent']}",
+             f"{_g(v['cpu'])}, {v['late_ticks']} of {v['ticks']} (tick {_g(v['tick_s'])} s), "
+             f"{v['resyncs']}",
+             f"{_g(r['own_cores'], '{:.2f}')} / {_g(r['other_cores'], '{:.2f}')}, {load}",
+             r["exit"]),
+            (name, f"{_g(m['vm_hwm_mb']['median'])}, {_g(m['vm_hwm_mb']['max'])}",
+             f"{_g(m['rss_anon_mb']['median'])} / {_g(m['rss_file_mb']['median'])}",
+             f"{_g(m['pss_mb']['median'])}, {_g(m['pss_mb']['max'])}",
+             _g(r["pss_total_mb"], "{:.0f}"),
+             " / ".join(f"{_g(st[k]['median'])} ({_g(st[k]['max'])})"
+                        for k in ("warm_s", "ready_s", "first_step_s"))),
+            (name, _vs(vs), _vs(vr), f"{_g(vs['ratio'])}, {_g(vr['ratio'])}",
+             f"{vs['rises']}, {vr['rises']}",
+             f"{f.get('rot_err', float('nan')):.3g}, {fr.get('rot_err', float('nan')):.3g}")))
     return rows
 
 

@@ -9,7 +9,9 @@ hybrid controller included). Reported: CPU of each side as a fraction of one cor
 time over the run's wall time; the bridge from getrusage, the vehicle from /proc/<pid>/stat),
 command → state latency p50/p99 (command sent → next valid state of that vehicle received),
 state age p50/p99 (age of the oldest state used at a control step), packets dropped (sequence
-gaps, both directions), late control steps, vehicle fail-safes, and rejected/malformed packets.
+gaps, both directions), late control steps, the vehicle process's late ticks (a physics tick more
+than one tick after it was due) and resyncs (it fell 10 ticks behind and skipped them), vehicle
+fail-safes, and rejected/malformed packets.
 """
 from __future__ import annotations
 
@@ -122,6 +124,10 @@ def run_case(n, rate, duration, tmp):
         "rejected": ln["rejected"], "rejected_by_reason": ln["rejected_by_reason"], "malformed": ln["malformed"], "late_steps": ln["late_steps"],
         "vehicle_failsafes_during_run": max(0, ln["vehicle_failsafes"]),
         "vehicle_commands": vst.get("commands"),
+        # the vehicle process's own deadlines: physics ticks more than one tick late, of its
+        # ticks (from the first command), and times it fell 10 ticks behind and skipped them
+        "vehicle_late_ticks": vst.get("late_ticks"), "vehicle_ticks": vst.get("ticks"),
+        "vehicle_resyncs": vst.get("resyncs"),
     }
 
 
@@ -146,13 +152,15 @@ def main(argv=None):
             print(json.dumps(res), flush=True)
         rep.table(["case", "bridge CPU", "vehicle CPU", "latency p50 / p99", "state age p50 / p99",
                    "dropped (vehicle → bridge, bridge → vehicle)", "late steps",
-                   "vehicle fail-safes"],
+                   "vehicle: late ticks of ticks, resyncs", "vehicle fail-safes"],
                   [(r["case"], f"{r['bridge_cpu_pct_of_core']} % of a core",
                     f"{r['vehicle_cpu_pct_of_core']} %",
                     f"{_ms(r['latency_ms_p50'])} / {_ms(r['latency_ms_p99'])} ms",
                     f"{_ms(r['state_age_ms_p50'])} / {_ms(r['state_age_ms_p99'])} ms",
                     f"{r['dropped_vehicle_to_bridge']}, {r['dropped_bridge_to_vehicle']}",
-                    r["late_steps"], r["vehicle_failsafes_during_run"]) for r in out],
+                    r["late_steps"],
+                    f"{r['vehicle_late_ticks']} of {r['vehicle_ticks']}, {r['vehicle_resyncs']}",
+                    r["vehicle_failsafes_during_run"]) for r in out],
                   caption=f"{a.duration:g} s of real time per case")
     if a.json:
         Path(a.json).write_text(json.dumps(out, indent=1))

@@ -17,8 +17,6 @@ from typing import NamedTuple
 from xml.etree import ElementTree
 
 import numpy as np
-from fmpy import extract, read_model_description
-from fmpy.fmi2 import FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
 
 from controller import layout as state_layout
 from controller.errors import Se3SyncError
@@ -71,6 +69,15 @@ def _one_line(messages: list[str]) -> str:
     if used < len(parts):
         detail += f" (+{len(parts) - used} more)"
     return detail
+
+
+def read_model_description(path, *args, **kwargs):
+    """fmpy's read_model_description, fmpy imported on first use: what imports this module
+    only to name its types (`cosim.fastloop`, an agent process that steps no FMU) does not pay
+    for fmpy (20-30 ms of start-up)."""
+    from fmpy import read_model_description as read
+
+    return read(path, *args, **kwargs)
 
 
 def _identity(fmu_path: Path, n: int) -> tuple[str, str]:
@@ -152,6 +159,8 @@ class FleetFMU:
         self._user_logger = logger
         self._closed = True
         self._slave = None
+        from fmpy import extract
+        from fmpy.fmi2 import FMU2Slave, fmi2CallbackFunctions, fmi2CallbackLoggerTYPE
 
         guid, model_identifier = _identity(self.fmu_path, n)
         key = (str(self.fmu_path.resolve()), self.fmu_path.stat().st_mtime)

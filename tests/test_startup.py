@@ -154,3 +154,22 @@ def test_run_does_not_import_scipy_for_identical_agents(tmp_path):
     """, cwd=tmp_path)
     assert out == [0, []]
     assert (tmp_path / "a.mcap").stat().st_size > 0
+
+
+def test_an_agent_process_does_not_import_fmpy(tmp_path):
+    """Issue 31: an agent process steps no FMU, and `import bridge.swarm.agent` (through
+    cosim.master → cosim.fastloop → plant_fmu.fast) leaves fmpy unimported (20-30 ms and 2 MB of
+    every agent's start-up); plant_fmu.fast imports it when a FleetFMU is made, which still
+    works."""
+    out = _run("""
+        import json, sys
+        import bridge.swarm.agent
+        before = "fmpy" in sys.modules
+        from plant_fmu.fast import FleetFMU
+        with FleetFMU(1) as f:
+            f.initialize()
+            f.do_step(0.0, 0.001)
+            ok = f.get_state().shape == (1, 18)
+        print(json.dumps([before, "fmpy" in sys.modules, ok]))
+    """, cwd=tmp_path)
+    assert out == [False, True, True]

@@ -738,6 +738,43 @@ def _max_rss_mb() -> float | None:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+_STATUS_MB = {"VmHWM": "vm_hwm_mb", "VmRSS": "vm_rss_mb", "RssAnon": "rss_anon_mb",
+              "RssFile": "rss_file_mb", "RssShmem": "rss_shmem_mb"}
+_ROLLUP_MB = {"Pss": "pss_mb", "Pss_Anon": "pss_anon_mb", "Pss_File": "pss_file_mb"}
+
+
+def _memory() -> dict:
+    """This process's memory now (MB; Linux /proc, None elsewhere): its peak resident set
+    (``vm_hwm_mb``, the kernel's VmHWM), the resident set and its parts (``rss_anon_mb``: private
+    heap and stacks; ``rss_file_mb``: mapped files, mostly shared libraries that every agent
+    process maps from the same pages: libLLVM, numpy's; ``rss_shmem_mb``), the proportional set
+    size (``pss_mb``: each resident page divided by the number of processes mapping it, so the
+    PSS of all processes add up to what they hold together; its anonymous and file parts) and the
+    unique set (``uss_mb``: the private pages, what ending the process frees)."""
+    out = dict.fromkeys([*_STATUS_MB.values(), *_ROLLUP_MB.values(), "uss_mb"])
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                key, _, rest = line.partition(":")
+                if key in _STATUS_MB:
+                    out[_STATUS_MB[key]] = int(rest.split()[0]) / 1024.0   # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        uss = 0
+        with open("/proc/self/smaps_rollup", encoding="ascii") as f:
+            for line in f:
+                key, _, rest = line.partition(":")
+                if key in _ROLLUP_MB:
+                    out[_ROLLUP_MB[key]] = int(rest.split()[0]) / 1024.0
+                elif key in ("Private_Clean", "Private_Dirty"):
+                    uss += int(rest.split()[0])
+                    out["uss_mb"] = uss / 1024.0
+    except (OSError, ValueError, IndexError):
+        pass
+    return out
+
+
 def _warm_up(node: AgentNode) -> None:
     """The compiled kernels the steps use, loaded (or compiled) now rather than while the vehicle
     and the neighbours wait for the first step."""
@@ -784,6 +821,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
         startup["warm_s"] = _process_age()        # imports, set-up, the compiled kernels loaded
         node.connect()
         startup["connected_s"] = _process_age()   # …and the vehicle's first state
+        startup["ready_s"] = _process_age()       # …ready to step: the swarm's start awaited
         if start_file is not None and not lockstep:
             start = node.wait_start(start_file)
         spl = max(1, int(round(1.0 / h)))
@@ -808,6 +846,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
                             first_step=node.first_step)
         if requested:
             master.request_stop()
+        startup["first_step_s"] = _process_age()  # step n₀ due (real time: paced by join)
         cpu0 = time.process_time()
         summary = master.run(n_steps, progress=progress)
         cpu = time.process_time() - cpu0
@@ -833,7 +872,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
         "edges": list(node.edge_ids), "owned_edges": list(node.owned),
         "first_step": node.first_step, "start": start, "duration_steps": sc.n_steps(),
         "cpu_s": cpu, "cpu_fraction": cpu / summary["wall_time_s"] if summary["wall_time_s"] else None,
-        "max_rss_mb": _max_rss_mb(), "startup": startup,
+        "max_rss_mb": _max_rss_mb(), "memory": _memory(), "startup": startup,
         "own": {"samples": node.own_samples, "final": own},
         "failsafe": {"steps": node.failsafe_steps, "entries": node.failsafe_entries,
                      "hold_steps": node.hold_steps,

@@ -150,7 +150,8 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
         agents.append({"agent": i, "steps": s["steps"], "first_step": s.get("first_step", 0),
                        "interrupted": s["interrupted"], "wall_time_s": s["wall_time_s"],
                        "cpu_fraction": s.get("cpu_fraction"), "max_rss_mb": s.get("max_rss_mb"),
-                       "startup": s.get("startup"), "failsafe": s["failsafe"],
+                       "memory": s.get("memory"), "startup": s.get("startup"),
+                       "failsafe": s["failsafe"],
                        "late_steps": ln.get("late_steps"),
                        "vehicle_latency_ms_p99": ln.get("latency_ms_p99"),
                        "vehicle_failsafes": ln.get("vehicle_failsafes"),
@@ -318,6 +319,7 @@ def merge_logs(scenario, logs: dict, out_path, *, law: str = "hybrid",
 # ------------------------------------------------------------------------------ launching
 READY_TIMEOUT_S = 120.0   # every agent imports, loads its kernels and connects before the start
 START_LEAD_S = 1.0        # from "all ready" to step 0: the start file reaches every agent
+LOOPBACK_CONNECT_S = 120.0   # an agent's wait for a loopback vehicle the launcher started
 
 
 PR_SET_PDEATHSIG = 1      # linux/prctl.h
@@ -381,6 +383,18 @@ class _Children:
         except OSError:
             return ""
         return lines[-1] if lines else ""
+
+
+def vehicle_argv(py, sc, scenario_path, sets: list, wd: Path, lockstep: bool, sec: list) -> list:
+    """The loopback vehicles' command line: one `se3sync vehicle` process for the scenario's
+    vehicles, ticking (physics and ODOMETRY) at the swarm's control rate 1/h: each agent steps
+    once per h and reads one state per step, so a faster stream would only be decoded and
+    dropped (at 250 Hz, 64 vehicles cost that process twice the CPU of 100 Hz, and every agent
+    2.5 ODOMETRY per step), and with a tick of h the vehicle holds each wrench for one control
+    period, as `run`'s plant does."""
+    return [py, "-m", "cosim.cli", "vehicle", "--scenario", str(Path(scenario_path)), *sets,
+            "--rate", repr(1.0 / float(sc.step)), "--aux-rate", "0",
+            "--stats", str(wd / "vehicle.json"), *(["--lockstep"] if lockstep else []), *sec]
 
 
 def check_ports(sc, vehicles: str, listen: float = PORT_LISTEN_S) -> None:
@@ -463,6 +477,12 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
     if duration is not None:
         common += ["--duration", repr(float(duration))]
     sec = (["--key", str(key_file)] if key_file else []) + (["--insecure"] if insecure else [])
+    # loopback: the vehicle process starts with the agents and comes up when they do; started
+    # with 64 agents importing numba on two cores it came up 43 s later, and an agent that had
+    # loaded its kernels at 36 s waited 7.4 s of bridge.connect_timeout's 10 s for it
+    wait = [] if vehicles != "loopback" else [
+        "--connect-timeout", repr(max(LOOPBACK_CONNECT_S, float(
+            (sc.bridge or default_config(sc.n_agents)).connect_timeout)))]
     kids = _Children()
     view = None
     if live is not None:   # the merged live view; each agent feeds it its own row
@@ -480,10 +500,7 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                 interrupted = True
                 say("stopped (signal) before any process started")
             elif vehicles == "loopback":
-                kids.start("vehicle", [py, "-m", "cosim.cli", "vehicle", "--scenario",
-                                       str(Path(scenario_path)), *sets,
-                                       "--aux-rate", "0", "--stats", str(wd / "vehicle.json"),
-                                       *(["--lockstep"] if lockstep else []), *sec],
+                kids.start("vehicle", vehicle_argv(py, sc, scenario_path, sets, wd, lockstep, sec),
                            wd / "vehicle.err")
             start = None
             start_file = wd / "start"
@@ -496,7 +513,7 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                     *(["--log", str(wd / f"agent_{i}.mcap"), "--log-encoding", log_encoding]
                       if log_path is not None else []),
                     *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec,
-                    *feed],
+                    *wait, *feed],
                     wd / f"agent_{i}.err")
             agents = [a for a in (f"agent {i}" for i in range(1, N + 1)) if a in kids.procs]
             if agents:
@@ -569,7 +586,10 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
         vst = json.loads((wd / "vehicle.json").read_text(encoding="utf-8"))
         merged["vehicles"] = {k: vst.get(k) for k in (
             "received", "datagrams", "malformed", "rejected", "rejected_by_reason", "failsafe",
-            "commands", "dropped", "commander")}
+            "commands", "dropped", "commander",
+            # its deadlines and its cost (real time; ticks counted from the first command)
+            "tick_s", "ticks", "late_ticks", "resyncs", "cpu_s", "wall_s", "ticking_cpu_s",
+            "ticking_s")}
     except (OSError, ValueError):
         pass
     if log_path is not None:

@@ -616,6 +616,10 @@ class VehicleServer:
         self.drain_deadline_hits = 0      # receive passes cut short by the tick deadline
         self.ticks = 0                    # real time: physics ticks since the first command
         self.late_ticks = 0               # ... of them more than one tick after they were due
+        self.resyncs = 0                  # ... and times it fell 10 ticks behind and skipped them
+        self.cpu_s = self.wall_s = None   # `run`: its CPU time (s) and its wall time
+        self.ticking_cpu_s = self.ticking_s = None   # ... from the first counted tick on
+        self._ticking_from = None
         self.failsafe_delays: list = []   # command timeout detected: seconds since the last command
         self.failsafe_tick_delays: list = []  # the same, from the time the detecting tick was due
         self.started_commands: dict = {}
@@ -689,7 +693,9 @@ class VehicleServer:
                  commands=sum(v.commands for v in self.vehicles), steps=[v.k for v in self.vehicles],
                  repeats=self.repeats, encode_errors=self.encode_errors,
                  drain_deadline_hits=self.drain_deadline_hits, commander=list(self.commander),
-                 ticks=self.ticks, late_ticks=self.late_ticks,
+                 ticks=self.ticks, late_ticks=self.late_ticks, resyncs=self.resyncs,
+                 tick_s=self.odom_period, cpu_s=self.cpu_s, wall_s=self.wall_s,
+                 ticking_cpu_s=self.ticking_cpu_s, ticking_s=self.ticking_s,
                  failsafe_delay_max=max(self.failsafe_delays) if self.failsafe_delays else None,
                  failsafe_delays=[round(x, 6) for x in self.failsafe_delays[:200]],
                  failsafe_tick_delays=[round(x, 6) for x in self.failsafe_tick_delays[:200]],
@@ -786,6 +792,9 @@ class VehicleServer:
             old = signal.signal(signal.SIGTERM, lambda *a: (signals.note(signal.SIGTERM),
                                                             self._stop.set()))
         t0 = time.monotonic()
+        # CPU time: the process's (`se3sync vehicle`), this thread's when served from another
+        clock = time.process_time if in_main else time.thread_time
+        cpu0 = clock()
         end = None if duration is None else t0 + duration
         tick = self.odom_period
         next_tick = t0
@@ -805,6 +814,8 @@ class VehicleServer:
                     continue
                 if not self.lockstep:
                     if self.ticks or any(v.last_cmd is not None for v in self.vehicles):
+                        if not self.ticks:
+                            self._ticking_from = (next_tick, clock())   # from when it was due
                         self.ticks += 1
                         if now - next_tick > tick:   # the machine could not keep the rate
                             self.late_ticks += 1
@@ -823,9 +834,14 @@ class VehicleServer:
                 next_tick += tick
                 if now - next_tick > 10 * tick:  # fell far behind (suspended?): resynchronise
                     next_tick = now + tick
+                    self.resyncs += 1
         except KeyboardInterrupt:
             pass
         finally:
+            self.wall_s, self.cpu_s = time.monotonic() - t0, clock() - cpu0
+            if self._ticking_from is not None:
+                self.ticking_s = time.monotonic() - self._ticking_from[0]
+                self.ticking_cpu_s = clock() - self._ticking_from[1]
             if in_main and old is not None:
                 signal.signal(signal.SIGTERM, old)
         return self.stats()

@@ -533,6 +533,156 @@ def test_swarm_says_the_outcome_as_run_does(case, status, needle, capsys, monkey
         assert f"{bound + 7} jumps, more than the bound" in hits[0]
 
 
+# ------------------------------------------------------------------------------ what it costs
+_PROC = os.path.exists("/proc/self/smaps_rollup")
+
+
+@pytest.mark.skipif(not _PROC, reason="Linux /proc (smaps_rollup) only")
+def test_agent_summary_memory_record_is_what_proc_says(monkeypatch):
+    """The summary's ``memory`` record (issue 31) of this process: VmRSS is RssAnon + RssFile +
+    RssShmem of the same read (the kernel's sum), PSS ≤ RSS, the unique set ≤ PSS, the peak ≥
+    now; 64 MB written here come out as 64 MB more of private anonymous memory; without /proc
+    every value is None."""
+    from bridge.swarm.agent import _memory
+
+    m = _memory()
+    assert all(isinstance(v, float) for v in m.values()), m
+    assert m["rss_anon_mb"] + m["rss_file_mb"] + m["rss_shmem_mb"] == m["vm_rss_mb"]
+    assert m["uss_mb"] <= m["pss_mb"] <= m["vm_rss_mb"] <= m["vm_hwm_mb"]
+    assert m["pss_anon_mb"] + m["pss_file_mb"] <= m["pss_mb"] + 0.01
+    block = np.ones(64 * 2 ** 20 // 8)   # 64 MB, every page written
+    m2 = _memory()
+    for f in ("rss_anon_mb", "uss_mb", "pss_anon_mb"):
+        assert 62 <= m2[f] - m[f] <= 70, (f, m, m2)
+    del block
+    monkeypatch.setattr("bridge.swarm.agent.open", lambda *a, **k: (_ for _ in ()).throw(
+        OSError("no /proc")), raising=False)
+    assert set(_memory().values()) == {None}
+
+
+@pytest.mark.skipif(not _PROC, reason="Linux /proc (smaps_rollup) only")
+def test_agent_summary_memory_peak_is_the_process_own_not_its_launchers():
+    """Why the summary has VmHWM beside ``max_rss_mb``: Linux keeps getrusage's peak across
+    exec, so a process forked (the launcher forks: it sets up the child before exec) from a
+    parent holding 256 MB more reports ru_maxrss ≥ that, while VmHWM is its own image's."""
+    block = np.ones(256 * 2 ** 20 // 8)
+    code = ("import json, resource; from bridge.swarm.agent import _memory; "
+            "print(json.dumps([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "
+            "_memory()['vm_hwm_mb']]))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                       preexec_fn=lambda: None, timeout=100, cwd=str(ROOT))
+    del block
+    assert r.returncode == 0, r.stderr
+    maxrss, hwm = json.loads(r.stdout)
+    assert maxrss >= 256 > hwm, (maxrss, hwm)
+
+
+def test_swarm_summary_carries_each_agents_memory_and_startup():
+    from bridge.swarm.launcher import merge_summaries
+
+    sc = load(duration=1.0)
+    per = _agent_summaries(sc)
+    for i, s in per.items():
+        s["memory"] = {"pss_mb": 10.0 * i}
+        s["startup"] = {"warm_s": 0.1 * i, "ready_s": 0.2 * i}
+    merged = merge_summaries(sc, per)
+    assert [a["memory"] for a in merged["agents"]] == [per[i]["memory"] for i in range(1, 7)]
+    assert [a["startup"] for a in merged["agents"]] == [per[i]["startup"] for i in range(1, 7)]
+
+
+@pytest.mark.parametrize("step", [0.004, 0.01])
+def test_swarm_loopback_vehicles_tick_at_the_control_rate(tmp_path, step):
+    """`se3sync swarm --vehicles loopback` starts the vehicle process with --rate 1/h (physics
+    tick and ODOMETRY at the agents' step), read back through the command line's own parser."""
+    from bridge.swarm.launcher import vehicle_argv
+    from cosim.cli import build_parser
+
+    sets, _, _ = _ports([f"simulation.step={step}"])
+    sc = load(sets)
+    argv = vehicle_argv(sys.executable, sc, HIL, [x for v in sets for x in ("--set", v)],
+                        tmp_path, False, [])
+    assert argv[:3] == [sys.executable, "-m", "cosim.cli"]
+    args = build_parser().parse_args(argv[3:])
+    assert args.func.__name__ == "_cmd_vehicle" and args.scenario == HIL
+    assert args.rate == pytest.approx(1.0 / step, rel=1e-12) and args.aux_rate == 0
+    assert args.set == sets and args.stats == str(tmp_path / "vehicle.json")
+    assert not args.lockstep
+
+
+_FAKE_PYTHON = """#!/bin/sh
+# stands in for python: "-m cosim.cli vehicle|agent ..." (the launcher's children)
+case "$3" in
+vehicle) echo "se3sync vehicle: 6 vehicle(s) (real time, 250 Hz)" >&2; exec sleep 60 ;;
+agent) echo "$@" >> {log}/agents ;;
+esac
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="a /bin/sh stand-in for python")
+@pytest.mark.parametrize("vehicles", ["loopback", "external"])
+def test_swarm_agents_wait_for_loopback_vehicles_started_with_them(tmp_path, vehicles):
+    """The loopback vehicle process starts with the agents (64 of them importing numba on two
+    cores held it back 43 s): the launcher gives each agent --connect-timeout
+    LOOPBACK_CONNECT_S for it; with external vehicles the scenario's connect_timeout stands
+    (the processes are a stand-in for python that records each agent's arguments)."""
+    from bridge.swarm.launcher import LOOPBACK_CONNECT_S, run_swarm
+    from cosim.cli import build_parser
+
+    fake = tmp_path / "python"
+    fake.write_text(_FAKE_PYTHON.format(log=tmp_path))
+    fake.chmod(0o755)
+    sets, _, _ = _ports()
+    merged, rc = run_swarm(HIL, sets, vehicles=vehicles, duration=0.1,
+                           workdir=tmp_path / "work", python=str(fake), on_event=lambda s: None)
+    assert rc == 0 and merged["agents_missing"] == [1, 2, 3, 4, 5, 6]
+    lines = (tmp_path / "agents").read_text().splitlines()
+    assert len(lines) == 6
+    for line in lines:
+        args = build_parser().parse_args(line.split()[2:])
+        assert args.func.__name__ == "_cmd_agent"
+        assert args.connect_timeout == (LOOPBACK_CONNECT_S if vehicles == "loopback" else None)
+
+
+@pytest.mark.skipif(not _PROC, reason="Linux /proc (smaps_rollup) only")
+@pytest.mark.realtime
+@pytest.mark.timeout(120)
+def test_agent_summary_startup_and_memory_and_the_vehicles_cost(tmp_path):
+    """One agent process against the loopback vehicles: its summary's ``startup`` comes in the
+    order of its life (kernels loaded, vehicle connected, ready, first step: with no --start, 0.5 s
+    after ready) and its ``memory`` adds up as /proc's does; the vehicle process's stats give
+    its CPU time within what the kernel counted for it (getrusage of the reaped child), and no
+    more ticks than its ticking time holds."""
+    import resource
+
+    sets, _, _ = _ports()
+    argv = [sys.executable, "-m", "cosim.cli", "agent", HIL, "--id", "3", "--duration", "0.5",
+            "--summary", str(tmp_path / "a3.json")]
+    for v in sets:
+        argv += ["--set", v]
+    with VehicleProcess(["--scenario", HIL, *[x for v in sets for x in ("--set", v)],
+                         "--aux-rate", "0"], tmp_path) as veh:
+        veh.wait_ready()
+        agent = subprocess.run(argv, cwd=str(ROOT), capture_output=True, text=True, timeout=100)
+        ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        vst = veh.stop()
+        ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    assert agent.returncode == 0, agent.stderr
+    s = json.loads((tmp_path / "a3.json").read_text())
+    st = s["startup"]
+    assert 0 < st["warm_s"] <= st["connected_s"] <= st["ready_s"] <= st["first_step_s"], st
+    assert st["first_step_s"] >= st["ready_s"] + 0.5 - 0.02, st   # /proc's 10 ms ticks
+    m = s["memory"]
+    assert m["rss_anon_mb"] + m["rss_file_mb"] + m["rss_shmem_mb"] == m["vm_rss_mb"], m
+    assert m["uss_mb"] <= m["pss_mb"] <= m["vm_rss_mb"] <= m["vm_hwm_mb"], m
+    # the vehicle process: its loop's CPU within the whole process's, as the kernel counts it
+    total = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
+    assert 0 < vst["cpu_s"] <= total + 0.01, (vst["cpu_s"], total)
+    assert vst["ticking_cpu_s"] <= vst["cpu_s"] and vst["ticking_s"] <= vst["wall_s"]
+    assert vst["tick_s"] == 0.004 and vst["resyncs"] >= 0
+    assert 0 < vst["ticks"] <= vst["ticking_s"] / vst["tick_s"] + 1
+    assert 0 <= vst["late_ticks"] <= vst["ticks"]
+
+
 # ------------------------------------------------------------------------------ signals
 @pytest.mark.slow
 @pytest.mark.realtime
