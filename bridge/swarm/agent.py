@@ -141,9 +141,11 @@ class AgentNode:
 
     ``compiled``: the law's arithmetic of a step in one compiled call over preallocated arrays
     (`controller.kernels.agent_step`; two in lockstep, θ's publish between them), with the same
-    kernels as the reference, ``compiled=False``: `AgentStepper`'s calls per edge on dicts
-    (`_step`). A law whose per-agent view is not `AgentStepper` (``decoupled``) always runs the
-    reference (``self.compiled`` says which runs).
+    kernels as the reference, and the neighbours' samples decoded by compiled code
+    (`bridge.swarm.sample_wire`, real time); ``compiled=False``: the reference, `AgentStepper`'s
+    calls per edge on dicts (`_step`) and the link's Python receive path. A law whose per-agent
+    view is not `AgentStepper` (``decoupled``) always runs the reference step (``self.compiled``
+    says which runs).
     """
 
     def __init__(self, scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = False,
@@ -206,7 +208,7 @@ class AgentNode:
             self.link = AgentLink(i, net, sc.graph, step=h, key=key,
                                   world=cfg.world_frame, signing_state=self.vehicle.signing,
                                   history=4 if self.lockstep else 0,
-                                  emulate=not self.lockstep)
+                                  emulate=not self.lockstep, compiled=bool(compiled))
         except BaseException:
             self.vehicle.close()
             raise

@@ -256,7 +256,8 @@ def run_feed(agent: int, steps: int, *, law: str = "hybrid", lockstep: bool = Fa
             "node": {"failsafe_steps": node.failsafe_steps,
                      "failsafe_entries": node.failsafe_entries, "hold_steps": node.hold_steps,
                      "transitions": list(node.transitions), "own_samples": node.own_samples,
-                     "own_final_theta": node.theta_owned, "compiled": node.compiled},
+                     "own_final_theta": node.theta_owned, "compiled": node.compiled,
+                     "scanned": node.link.scanned, "link": _link_counts(st["agent_link"])},
             "events": [e for e in events if e.startswith(("fail-safe", "rejoined"))],
             "sent": sent,
         }
@@ -264,6 +265,14 @@ def run_feed(agent: int, steps: int, *, law: str = "hybrid", lockstep: bool = Fa
         node.close()
         for s in socks:
             s.close()
+
+
+def _link_counts(st: dict) -> dict:
+    """The inter-agent link's statistics without what the kernel says of its sockets."""
+    st = {k: v for k, v in st.items() if k != "kernel_drops"}
+    st["links"] = {j: {k: v for k, v in ln.items() if k != "kernel_drops"}
+                   for j, ln in st["links"].items()}
+    return st
 
 
 def run_pair(agent: int, steps: int, kwargs_a: dict, kwargs_b: dict, attempts: int = 3,

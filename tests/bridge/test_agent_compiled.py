@@ -25,6 +25,10 @@ def _same_json(a, b) -> bool:
 
 def assert_identical(ref: dict, new: dict, lockstep: bool) -> None:
     assert ref["node"].pop("compiled") is False and new["node"].pop("compiled") is True
+    # the neighbours' samples: the link's Python path, and (real time) its compiled decoder
+    # (bridge/swarm/sample_wire.py), with the same counts
+    assert ref["node"].pop("scanned") == 0
+    assert new["node"].pop("scanned") == (0 if lockstep else sum(new["sent"]["samples"].values()))
     assert len(ref["steps"]) == len(new["steps"]) == STEPS
     for n, (a, b) in enumerate(zip(ref["steps"], new["steps"])):
         for f in ARRAYS:
