@@ -52,6 +52,7 @@ class _Odometry:
         return ID_ODOMETRY
 
 
+HEARTBEAT_ASK_S = 0.2  # connect: how often a vehicle with a state but no HEARTBEAT is asked for one
 HIST_BIN = 1e-5        # latency histograms: 10 µs bins up to 0.2 s (the last bin is "more")
 HIST_N = 20_001
 
@@ -408,7 +409,8 @@ class MavlinkPlant:
         elif mid == ID_LPOS:
             ok = tr.on_local_position_ned(m, now)
         elif mid == ID_ACK:
-            v.acks += 1
+            if m.command == M.MAV_CMD_COMPONENT_ARM_DISARM:   # (the arming retries stop)
+                v.acks += 1
         elif mid == ID_STATUSTEXT:
             txt = m.text if isinstance(m.text, str) else bytes(m.text).decode("utf-8", "replace")
             v.statustexts.append(txt)
@@ -486,10 +488,20 @@ class MavlinkPlant:
         at t = 0). Raises ConnectError naming the vehicles that did not connect."""
         t_end = time.monotonic() + self.connect_timeout
         t_settle = None
-        armed_sent = 0.0
+        armed_sent = hb_asked = 0.0
         while True:
             now = time.monotonic()
             self._heartbeats(now)
+            if now - hb_asked > HEARTBEAT_ASK_S:
+                hb_asked = now
+                for v in self.vehicles:
+                    # a state but no HEARTBEAT yet: ask for one rather than wait up to a second
+                    # for the periodic one (most of an agent's start-up); a vehicle that does
+                    # not answer MAV_CMD_REQUEST_MESSAGE sends its periodic one anyway
+                    if v.addr is not None and v.tracker.have and not v.connected:
+                        self._send(v, v.peer.mav.command_long_encode(
+                            v.sysid, 1, M.MAV_CMD_REQUEST_MESSAGE, 0, ID_HEARTBEAT,
+                            0, 0, 0, 0, 0, 0))
             for v in self.vehicles:
                 other = next((a for a, k in v.others.items() if k >= OTHER_SOURCE_PACKETS), None)
                 if other is not None:
