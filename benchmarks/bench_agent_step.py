@@ -14,6 +14,9 @@ neighbours' newest samples), the step (`controller.step_state`: the age rule, th
 publish to the neighbours, the law, the flow), the command (`plant.apply`: mapping, encode,
 send) and the poll (`plant.advance`: the vehicle's and the neighbours' datagrams decoded and
 checked), the total, and the share of one core at 250 Hz and 100 Hz. Medians of the repeats.
+``--paced HZ`` runs the agent at HZ in real time instead (step h = 1/HZ, every step waits for its
+deadline as in a swarm): the same work, plus what waking up from each wait costs the thread (on
+a virtual machine whose CPU halts while idle, far more than the work itself).
 ``--publish`` also times the step's publish to the neighbours (`AgentLink.publish`: encode and
 one send per neighbour), part of the step (its timer adds a little to the step's figure).
 """
@@ -44,14 +47,17 @@ from cosim.scenario import load_scenario
 ROOT = Path(__file__).resolve().parents[1]
 HIL = ROOT / "scenarios" / "hil_6uav.toml"
 PHASES = ("read", "step", "apply", "poll")
+PACED_ENV = "SE3SYNC_BENCH_PACED"
 
 
 def once(steps: int, agent: int, key: bytes | None, publish: bool = False) -> dict:
     from bridge.mavlink.link import mavlink2 as M
 
     nb, bb = free_base_port(6), free_base_port(6)
+    paced = float(os.environ.get(PACED_ENV, "0"))   # (the worker's argv stays as it was)
     sc = load_scenario(HIL, [f"network.base_port={nb}", f"bridge.base_port={bb}",
-                             "simulation.duration=100000"])
+                             "simulation.duration=100000",
+                             *([f"simulation.step={1.0 / paced!r}"] if paced else [])])
     node = AgentNode(sc, agent, on_event=lambda s: None, insecure=True)
     if key is not None:    # sign both links as `--key` would (the same key everywhere)
         node.close()
@@ -104,7 +110,8 @@ def once(steps: int, agent: int, key: bytes | None, publish: bool = False) -> di
             vs.sendto(d, vaddr)
         node.connect()
         node.n_steps = steps
-        node.vehicle.pace_from(time.monotonic() - 1e6)   # every step already due: no sleep
+        # flat out: every step already due, no sleep; paced: step 0 due in 50 ms
+        node.vehicle.pace_from(time.monotonic() + (0.05 if paced else -1e6))
         for j, s in nsock.items():
             s.sendto(pre_n[0][j], naddr)
         node.vehicle.poll(0.01)
@@ -168,9 +175,10 @@ def once(steps: int, agent: int, key: bytes | None, publish: bool = False) -> di
             s.close()
 
 
-def _worker(tree: Path, steps: int, agent: int, signed: bool, publish: bool = False) -> dict:
+def _worker(tree: Path, steps: int, agent: int, signed: bool, publish: bool = False,
+            paced: float = 0.0) -> dict:
     """`once` in a process running the code of ``tree`` (this script, that tree's packages)."""
-    env = dict(os.environ, PYTHONPATH=str(tree))
+    env = dict(os.environ, PYTHONPATH=str(tree), **{PACED_ENV: repr(float(paced))})
     out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", str(steps),
                           str(agent), "1" if signed else "0", "1" if publish else "0"], env=env,
                          capture_output=True, text=True, cwd=tree)
@@ -190,6 +198,9 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--agent", type=int, default=2)
     ap.add_argument("--signed", action="store_true", help="also with signed links (--key)")
+    ap.add_argument("--paced", type=float, default=0.0, metavar="HZ",
+                    help="run at HZ in real time (each step waits for its deadline) instead of "
+                         "flat out")
     ap.add_argument("--publish", action="store_true",
                     help="also the step's publish to the neighbours (part of the step)")
     ap.add_argument("--against", metavar="DIR", type=Path,
@@ -198,6 +209,8 @@ def main(argv=None) -> None:
     ap.add_argument("--label", help="what to call the --against code in the output (default DIR)")
     _markdown.add_option(ap)
     a = ap.parse_args(argv)
+    if a.paced < 0 or a.paced > 10000:
+        ap.error(f"--paced: must be a rate in Hz in (0, 10000], got {a.paced:g}")
     other = a.label or str(a.against)
     trees = {"this tree": ROOT, **({other: a.against.resolve()} if a.against else {})}
     rows = []
@@ -206,7 +219,7 @@ def main(argv=None) -> None:
             runs = {t: [] for t in trees}
             for _ in range(a.repeats):
                 for t, d in trees.items():
-                    runs[t].append(_worker(d, a.steps, a.agent, signed, a.publish))
+                    runs[t].append(_worker(d, a.steps, a.agent, signed, a.publish, a.paced))
             for t in trees:
                 med = {k: statistics.median(r[k] for r in runs[t]) for k in runs[t][0]}
                 pub = f" of which publish {med['publish']:.1f}" if a.publish else ""
@@ -228,7 +241,8 @@ def main(argv=None) -> None:
         rep.table(["code", "links", "µs per step", "read", "step (law + publish)",
                    *(("of which publish",) if a.publish else ()), "apply (command)",
                    "poll (decode + checks)", "master", "core at 250 Hz", "core at 100 Hz"], rows,
-                  caption=f"agent {a.agent} of hil_6uav, {a.steps} steps flat out, CPU of its "
+                  caption=f"agent {a.agent} of hil_6uav, {a.steps} steps "
+                          f"{f'paced at {a.paced:g} Hz' if a.paced else 'flat out'}, CPU of its "
                           f"thread (the harness's sends left out), medians of {a.repeats}")
 
 
