@@ -151,9 +151,12 @@ def once(steps: int, agent: int, key: bytes | None, publish: bool = False) -> di
             acc["publish"] = 0.0
             node.link.publish = timed("publish", node.link.publish)
         master = Master(node.local, plant, ctl, None)
+        import resource
+        r0 = resource.getrusage(resource.RUSAGE_THREAD)
         c0 = clock()
         master.run(steps)
         total = clock() - c0 - acc["harness"]
+        r1 = resource.getrusage(resource.RUSAGE_THREAD)
         st = node.stats()
         links = st["agent_link"]["links"]
         taken = min(v["samples"] for v in links.values())
@@ -166,6 +169,10 @@ def once(steps: int, agent: int, key: bytes | None, publish: bool = False) -> di
         out = {k: acc[k] / steps * 1e6 for k in PHASES}
         out["total"] = total / steps * 1e6
         out["other"] = out["total"] - sum(out[k] for k in PHASES)   # the master's own share
+        # the thread's user and kernel time per step, the harness's sends included: where a
+        # paced step's extra time goes (user code running slower after a wait, or the kernel)
+        out["user"] = (r1.ru_utime - r0.ru_utime) / steps * 1e6
+        out["sys"] = (r1.ru_stime - r0.ru_stime) / steps * 1e6
         if publish:
             out["publish"] = acc["publish"] / steps * 1e6
         return out
@@ -226,7 +233,9 @@ def main(argv=None) -> None:
                 print(f"{t}: agent {a.agent}, {name}: {med['total']:.1f} µs CPU per step (read "
                       f"{med['read']:.1f}, step {med['step']:.1f}{pub}, apply "
                       f"{med['apply']:.1f}, poll {med['poll']:.1f}, master {med['other']:.1f}) = {med['total'] / 4000:.4f} "
-                      f"of a core at 250 Hz, {med['total'] / 10000:.4f} at 100 Hz")
+                      f"of a core at 250 Hz, {med['total'] / 10000:.4f} at 100 Hz; user "
+                      f"{med['user']:.0f} + kernel {med['sys']:.0f} µs per step with the "
+                      f"harness's sends")
                 rows.append((t, name, f"{med['total']:.0f}", f"{med['read']:.0f}",
                              f"{med['step']:.0f}",
                              *((f"{med['publish']:.0f}",) if a.publish else ()),
