@@ -138,7 +138,7 @@ def register(sub) -> None:
                    help="real time: wall-clock time (s since 1970) of the swarm's step 0; every "
                         "agent of a swarm must get the same (`swarm` passes it); an agent "
                         "started after it joins at the next whole second of the run. Default: "
-                        "0.5 s after the vehicle connects")
+                        "0.2 s after the vehicle connects")
     p.add_argument("--start-file", metavar="FILE",
                    help="real time: once connected, create FILE.ready<I> and wait until FILE holds "
                         "the start time (what `swarm` does: it starts the clock when every agent "

@@ -63,6 +63,9 @@ __all__ = ["AgentNode", "DEFAULT_MAX_AGE_STEPS", "LAWS", "join_step"]
 # co-simulation's default (inf) is for studies; a vehicle's controller holds after this many steps.
 DEFAULT_MAX_AGE_STEPS = 10
 RESEND_S = 0.02          # lockstep: a step's messages go out again after this long without progress
+# without --start (an agent run on its own, not by `swarm`): step 0 this long after the agent is
+# ready, time to service its links once before the first deadline
+LONE_START_S = 0.2
 
 
 def join_step(start: float, now: float, h: float, period: int, lead: float = 0.5) -> int:
@@ -298,8 +301,8 @@ class AgentNode:
         if self.lockstep:
             return
         start_given = start is not None
-        if not start_given:   # step 0 half a second from now (join_step would call that late)
-            start = time.time() + 0.5
+        if not start_given:   # a lone agent: step 0 shortly after it is ready
+            start = time.time() + LONE_START_S
         # the receiver's step follows the wall clock from now on: a neighbour's sample stamped
         # beyond it (+ the link's tolerance) is refused as `future`
         self.link.set_timeline(start)
