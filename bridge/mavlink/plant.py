@@ -488,20 +488,21 @@ class MavlinkPlant:
         at t = 0). Raises ConnectError naming the vehicles that did not connect."""
         t_end = time.monotonic() + self.connect_timeout
         t_settle = None
-        armed_sent = hb_asked = 0.0
+        armed_sent = 0.0
+        hb_asked = {}
         while True:
             now = time.monotonic()
             self._heartbeats(now)
-            if now - hb_asked > HEARTBEAT_ASK_S:
-                hb_asked = now
-                for v in self.vehicles:
-                    # a state but no HEARTBEAT yet: ask for one rather than wait up to a second
-                    # for the periodic one (most of an agent's start-up); a vehicle that does
-                    # not answer MAV_CMD_REQUEST_MESSAGE sends its periodic one anyway
-                    if v.addr is not None and v.tracker.have and not v.connected:
-                        self._send(v, v.peer.mav.command_long_encode(
-                            v.sysid, 1, M.MAV_CMD_REQUEST_MESSAGE, 0, ID_HEARTBEAT,
-                            0, 0, 0, 0, 0, 0))
+            for v in self.vehicles:
+                # a state but no HEARTBEAT yet: ask for one (at once, then every
+                # HEARTBEAT_ASK_S) rather than wait up to a second for the periodic one (most of
+                # an agent's start-up); a vehicle that does not answer MAV_CMD_REQUEST_MESSAGE
+                # sends its periodic one anyway
+                if v.addr is not None and v.tracker.have and not v.connected \
+                        and now - hb_asked.get(v.i, -HEARTBEAT_ASK_S) >= HEARTBEAT_ASK_S:
+                    hb_asked[v.i] = now
+                    self._send(v, v.peer.mav.command_long_encode(
+                        v.sysid, 1, M.MAV_CMD_REQUEST_MESSAGE, 0, ID_HEARTBEAT, 0, 0, 0, 0, 0, 0))
             for v in self.vehicles:
                 other = next((a for a, k in v.others.items() if k >= OTHER_SOURCE_PACKETS), None)
                 if other is not None:
