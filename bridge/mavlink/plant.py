@@ -91,6 +91,9 @@ class LinkError(Se3SyncError):
 
 
 OTHER_SOURCE_PACKETS = 3   # packets from a second source that make connect() refuse
+# connect() listens this long once every vehicle is ready, for a second process claiming one:
+# with the HEARTBEAT asked for, it would otherwise be done before a second source is heard
+CLAIM_LISTEN_S = 0.15
 STATUS_QUIET_S = 5.0       # a vehicle's repeated fail-safe reports: one line per this long
 
 
@@ -514,11 +517,14 @@ class MavlinkPlant:
             ready = [v.connected and v.tracker.have and (not self.lockstep or v.tracker.time_usec == 0)
                      for v in self.vehicles]
             if all(ready):
-                # a second source seen: listen a little longer for the evidence (one stray
-                # packet costs half a second, never a refusal)
+                # listen CLAIM_LISTEN_S more in any case (a second process claiming a vehicle,
+                # e.g. a leftover one on these ports, is heard then: a vehicle streams at tens
+                # of Hz), and when a second source was seen, up to half a second for the
+                # evidence (one stray packet costs half a second, never a refusal)
                 if t_settle is None:
-                    t_settle = now + 0.5
-                if any(v.others for v in self.vehicles) and now < t_settle:
+                    t_ready, t_settle = now, now + 0.5
+                if (now < t_ready + CLAIM_LISTEN_S
+                        or any(v.others for v in self.vehicles)) and now < t_settle:
                     self.poll(0.01)
                     continue
                 break
