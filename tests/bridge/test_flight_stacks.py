@@ -468,16 +468,31 @@ def test_px4_idle_client_is_dropped_and_the_vehicle_served_again():
 
     srv = Px4SimServer(_scenario_two(), port=0, step=0.004, noise=False, lockstep_timeout=3600.0,
                        idle_timeout=0.3)
+    retries = []
+
+    def genuine(port, n):
+        """`_genuine_steps`, again (at most twice more) when the server dropped this client
+        itself as idle: this process was starved for the idle timeout (the machine's load, as
+        the server's count of idle drops says), not a fault of the server."""
+        for attempt in range(3):
+            drops = srv.stats()["idle_drops"]
+            try:
+                return _genuine_steps(port, n)
+            except OSError:
+                if attempt == 2 or srv.stats()["idle_drops"] == drops:
+                    raise
+                retries.append(port)
+
     with _Serve(srv):
         idle = socket.create_connection(("127.0.0.1", srv.links[0].port))
-        other = _genuine_steps(srv.links[1].port, 100)
+        other = genuine(srv.links[1].port, 100)
         deadline = time.monotonic() + 60
         while not srv.stats()["idle_drops"] and time.monotonic() < deadline:
             time.sleep(0.05)
-        mine = _genuine_steps(srv.links[0].port, 50)
+        mine = genuine(srv.links[0].port, 50)
         idle.close()
         st = srv.stats()
-    assert st["idle_drops"] >= 1 and st["connections"] == 3
+    assert st["idle_drops"] >= 1 and st["connections"] == 3 + len(retries)
     assert len(other) == 100 and len(mine) == 50 and np.all(np.diff(mine) == 4000)
 
 
