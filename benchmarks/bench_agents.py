@@ -8,17 +8,19 @@ Cases: ``NxRATE`` = N agents at RATE Hz: N = 6 is hil_6uav itself; any other N a
 seed 0 (`cosim.analysis.stability_cases.tree_scenario_text`: hil_6uav's vehicles, weighting and
 gains, each agent k ≥ 2 joined to a random earlier one, a random start of seed 1, and
 hil_6uav's [bridge] table); ``NxRATEsK`` the random tree of seed K (also for N = 6),
-``NxRATEchain`` the chain 1-2-…-N. Each agent has its own loopback vehicle (one `se3sync
+``NxRATEchain`` the chain 1-2-…-N; a suffix ``pK`` (``64x100p8``) runs K agents per process
+(`swarm --agents-per-process K`: one thread each). Each agent has its own loopback vehicle (one `se3sync
 vehicle` process serves them all, ticking at RATE), no logs. Per case one swarm run; reported:
-- per agent process: its CPU while it stepped (share of one core, median and max over the
-  agents), its late steps (share of its steps that ended after their deadline: median, max), the
+- per agent: its CPU while it stepped (share of one core, median and max over the agents; with
+  K agents per process, the process's CPU over K, and the agent's own thread's CPU), its late
+  steps (share of its steps that ended after their deadline: median, max), the
   inter-agent data age p50/p99 (steps) and the losses over every directed link;
 - the vehicle process: its CPU from the first command to its end (share of one core), its late
   ticks (a physics tick more than one tick after it was due) of all ticks, and its resyncs (it
   fell 10 ticks behind and skipped them);
 - the machine: the CPU of the case's processes and of other work meanwhile (cores, /proc/stat),
   the load average at the start and at the end;
-- memory per agent process at its end (`bridge.swarm.agent._memory`: VmHWM, RssAnon, RssFile,
+- memory per process at its end (hosting K agents: divide by K for a figure per agent) (`bridge.swarm.agent._memory`: VmHWM, RssAnon, RssFile,
   PSS; median and max) and Σ PSS over the agents (what they hold together: the shared libraries
   counted once); start-up in seconds of process age (kernels loaded ``warm_s``, ready to step
   ``ready_s``, first step ``first_step_s``: that one waits for the slowest agent of the swarm);
@@ -50,16 +52,19 @@ HIL = ROOT / "scenarios" / "hil_6uav.toml"
 def parse_case(case: str) -> tuple:
     """``NxRATE`` (N = 6: hil_6uav itself; else a random tree of seed 0 with hil_6uav's
     vehicles, weighting and gains), ``NxRATEsK`` (the random tree of seed K, also for N = 6),
-    ``NxRATEchain`` (the chain 1-2-…-N) -> (N, rate, tree kind or None, seed)."""
-    m = re.fullmatch(r"(\d+)x([0-9.]+)(?:(chain)|s(\d+))?", case.strip())
-    if not m:
-        raise SystemExit(f"--cases: {case!r} is not NxRATE, NxRATEsSEED or NxRATEchain")
+    ``NxRATEchain`` (the chain 1-2-…-N), each with an optional ``pK`` (K agents per process)
+    -> (N, rate, tree kind or None, seed, K)."""
+    m = re.fullmatch(r"(\d+)x([0-9.]+)(?:(chain)|s(\d+))?(?:p(\d+))?", case.strip())
+    if not m or (m.group(5) is not None and int(m.group(5)) < 1):
+        raise SystemExit(f"--cases: {case!r} is not NxRATE, NxRATEsSEED or NxRATEchain "
+                         "(optionally followed by pK, K >= 1)")
     n, rate = int(m.group(1)), float(m.group(2))
+    k = int(m.group(5) or 1)
     if m.group(3):
-        return n, rate, "chain", 0
+        return n, rate, "chain", 0, k
     if m.group(4) is None and n == 6:
-        return n, rate, None, 0
-    return n, rate, "random", int(m.group(4) or 0)
+        return n, rate, None, 0, k
+    return n, rate, "random", int(m.group(4) or 0), k
 
 
 def scenario_for(n: int, rate: float, tmp: Path, kind=None, seed: int = 0) -> tuple[Path, list]:
@@ -131,7 +136,7 @@ def v_bar(summary) -> dict:
 def run_case(case: str, duration: float, keep=None) -> dict:
     from bridge.swarm.launcher import run_swarm
 
-    n, rate, kind, seed = parse_case(case)
+    n, rate, kind, seed, per = parse_case(case)
     load0 = os.getloadavg()
     with tempfile.TemporaryDirectory() as d:
         wd = Path(keep) / case if keep else Path(d)
@@ -139,17 +144,23 @@ def run_case(case: str, duration: float, keep=None) -> dict:
         path, sets = scenario_for(n, rate, wd, kind, seed)
         busy0, own0, t0 = _busy_seconds(), _children_seconds(), time.monotonic()
         merged, rc = run_swarm(path, sets, vehicles="loopback", duration=duration,
-                               workdir=wd / "work", on_event=lambda s: None)
+                               workdir=wd / "work", on_event=lambda s: None,
+                               agents_per_process=per)
         wall = time.monotonic() - t0
         busy1, own = _busy_seconds(), (_children_seconds() - own0) / wall
         other = None if busy0 is None or busy1 is None else max(0.0, (busy1 - busy0) / wall - own)
         load1 = os.getloadavg()
         ref = reference(path, sets, duration)
     ag = [a for a in merged["agents"] if a.get("steps") is not None]
+    # one entry per process: an agent alone, or the first of the agents a process hosts (the
+    # memory and the process's CPU are the process's)
+    procs = [a for a in ag if not a.get("host") or a["host"]["agents"][0] == a["agent"]]
+    per_agent = [(a["host"]["cpu_fraction"] / len(a["host"]["agents"])) if a.get("host")
+                 else a.get("cpu_fraction") for a in ag]
     late = [a["late_steps"] / a["steps"] for a in ag if a.get("late_steps") is not None
             and a["steps"]]
     links = merged["links"]
-    mem = {f: [((a.get("memory") or {}).get(f)) for a in ag]
+    mem = {f: [((a.get("memory") or {}).get(f)) for a in procs]
            for f in ("vm_hwm_mb", "rss_anon_mb", "rss_file_mb", "pss_mb", "uss_mb")}
     st = {f: [((a.get("startup") or {}).get(f)) for a in ag]
           for f in ("warm_s", "connected_s", "ready_s", "first_step_s")}
@@ -158,11 +169,13 @@ def run_case(case: str, duration: float, keep=None) -> dict:
     vb, vr = v_bar(merged), v_bar(ref)
     pss = [x for x in mem["pss_mb"] if x is not None]
     return {"case": case, "agents": n, "rate_hz": rate, "tree": kind or "hil_6uav", "seed": seed,
+            "agents_per_process": per, "processes": len(procs),
             "scenario": str(path.name), "exit": rc, "steps": merged["steps"],
             "wall_s": wall, "load_start": load0, "load_end": load1,
             "own_cores": own, "other_cores": other,
-            "cpu_median": _med(a.get("cpu_fraction") for a in ag),
-            "cpu_max": _max(a.get("cpu_fraction") for a in ag),
+            "cpu_median": _med(per_agent), "cpu_max": _max(per_agent),
+            "thread_cpu_median": _med(a.get("cpu_fraction") for a in ag) if per > 1 else None,
+            "thread_cpu_max": _max(a.get("cpu_fraction") for a in ag) if per > 1 else None,
             "late_frac_median": _med(late), "late_frac_max": _max(late),
             "first_steps": sorted({a.get("first_step", 0) for a in ag}),
             "age_p50_steps_max": _max(ln["age_p50_steps"] for ln in links),
@@ -172,7 +185,7 @@ def run_case(case: str, duration: float, keep=None) -> dict:
             "rss_mb_median": _med(a.get("max_rss_mb") for a in ag),
             "rss_mb_max": _max(a.get("max_rss_mb") for a in ag),
             "memory": {f: {"median": _med(v), "max": _max(v)} for f, v in mem.items()},
-            "pss_total_mb": sum(pss) if len(pss) == len(ag) and pss else None,
+            "pss_total_mb": sum(pss) if len(pss) == len(procs) and pss else None,
             "startup": {f: {"median": _med(v), "max": _max(v)} for f, v in st.items()},
             "vehicle": {"tick_s": veh.get("tick_s"), "ticks": veh.get("ticks"),
                         "late_ticks": veh.get("late_ticks"), "resyncs": veh.get("resyncs"),
@@ -194,15 +207,15 @@ def main(argv=None) -> None:
     with _markdown.Report(a.markdown) as rep:
         rows = bench(a)
         cap = f"one swarm run per case, {a.duration:g} s, loopback vehicles, no logs"
-        rep.table(["case", "CPU per agent process (share of a core)",
+        rep.table(["case", "CPU per agent (share of a core; K per process: the process's / K)",
                    "late steps (median / max over agents)", "data age p50 / p99 (steps)", "lost",
                    "vehicle process: CPU (share of a core), late ticks, resyncs",
                    "machine: this case / other work (cores), load", "exit"],
                   [r[0] for r in rows], caption=cap)
-        rep.table(["case", "peak RSS per agent, VmHWM (MB)", "RssAnon / RssFile at the end (MB)",
-                   "PSS per agent (MB)", "Σ PSS of the agents (MB)",
+        rep.table(["case", "peak RSS per process, VmHWM (MB)", "RssAnon / RssFile at the end (MB)",
+                   "PSS per process (MB)", "Σ PSS of the agent processes (MB)",
                    "start-up: kernels loaded / ready / first step (s of process age)"],
-                  [r[1] for r in rows], caption="memory and start-up per agent process: median, "
+                  [r[1] for r in rows], caption="memory per agent process and start-up per agent: median, "
                   "max over the agents (PSS counts a page shared by k processes as 1/k)")
         rep.table(["case", "V̄ at the 1 s samples, swarm", "`run`", "final V̄ / V̄(0): swarm, "
                    "`run`", "rises at the 1 s samples: swarm, `run`", "final rot_err: swarm, `run`"],
@@ -230,7 +243,9 @@ def bench(a) -> list:
         m, st, v = r["memory"], r["startup"], r["vehicle"]
         vs, vr = r["V_swarm"], r["V_run"]
         tree = r["tree"] if r["tree"] != "random" else f"random tree, seed {r['seed']}"
-        name = f"{r['agents']} agents ({tree}) at {r['rate_hz']:g} Hz, {r['steps']} steps"
+        name = f"{r['agents']} agents ({tree}) at {r['rate_hz']:g} Hz, {r['steps']} steps" + (
+            "" if r["agents_per_process"] == 1 else
+            f", {r['agents_per_process']} per process ({r['processes']} processes)")
         load = "/".join(f"{x:.1f}" for x in r["load_start"]) + " → " + \
             "/".join(f"{x:.1f}" for x in r["load_end"])
         print(f"{name}: CPU per agent median {_g(r['cpu_median'])} / max {_g(r['cpu_max'])} of a "

@@ -133,7 +133,11 @@ def register(sub) -> None:
                     "vehicle or a neighbour stopped answering (or a late joiner heard no "
                     "neighbour), 130 Ctrl-C, 143 SIGTERM (log and summary finished).")
     p.add_argument("scenario", help="scenario TOML file")
-    p.add_argument("--id", type=int, required=True, metavar="I", help="the agent's number, 1..N")
+    p.add_argument("--id", required=True, metavar="I[,J,...]",
+                   help="the agent's number, 1..N; several (1,2,3): those agents in one process, "
+                        "one thread each, each with its own links, log and summary (a simulation "
+                        "machine's many agents share one interpreter; --log, --summary and --tlog "
+                        "then contain {id}, replaced by each agent's number)")
     p.add_argument("--start", type=float, metavar="UNIX_TIME",
                    help="real time: wall-clock time (s since 1970) of the swarm's step 0; every "
                         "agent of a swarm must get the same (`swarm` passes it); an agent "
@@ -205,11 +209,39 @@ def register(sub) -> None:
                         "its vehicle and is waiting (default 1 s)")
     p.add_argument("--insecure", action="store_true",
                    help="allow sockets reachable from other machines without --key")
+    p.add_argument("--agents-per-process", type=int, default=1, metavar="K",
+                   help="run K agents in each process (one thread each, `agent --id I,J,...`), "
+                        "not one process per agent: for a machine that simulates many vehicles "
+                        "(the agents share one interpreter's memory and wake together each step; "
+                        "what they compute is the same). Default 1")
     p.add_argument("--force", action="store_true",
                    help="run even if the sampled loop is unstable at this step")
     add_live_options(p)
     # a signal before the agents start still writes the merged summary and log (`main`)
     p.set_defaults(func=_cmd_swarm, stops_cleanly=True)
+
+
+def _agent_ids(text: str) -> tuple:
+    """--id: ``I`` or ``I,J,…`` (several agents hosted in one process), distinct numbers."""
+    try:
+        ids = tuple(int(x) for x in str(text).split(","))
+    except ValueError:
+        raise Se3SyncError(f"--id: must be an agent number or numbers separated by commas "
+                           f"(1 or 1,2,3), got {text!r}") from None
+    if len(set(ids)) != len(ids):
+        raise Se3SyncError(f"--id: an agent is named twice in {text!r}")
+    return ids
+
+
+def _per_agent(option: str, path, ids: tuple):
+    """An output path of agent i: the path itself for one agent; for several, the path must hold
+    ``{id}`` (replaced by each agent's number)."""
+    if path is None:
+        return lambda i: None
+    if len(ids) > 1 and "{id}" not in path:
+        raise Se3SyncError(f"{option}: with several agents in --id the path must contain {{id}} "
+                           f"(replaced by each agent's number), got {path!r}")
+    return lambda i: path.replace("{id}", str(i))
 
 
 def _cmd_agent(args) -> int:
@@ -219,8 +251,16 @@ def _cmd_agent(args) -> int:
     from bridge.swarm.agent import run_agent
     from bridge.mavlink.plant import ConnectError, LinkError
 
-    _outputs(("--log", args.log, (".mcap",)), ("--summary", args.summary, None),
-             ("--tlog", args.tlog, None))
+    ids = _agent_ids(args.id)
+    log_of = _per_agent("--log", args.log, ids)
+    summary_of = _per_agent("--summary", args.summary, ids)
+    tlog_of = _per_agent("--tlog", args.tlog, ids)
+    for i in ids:
+        _outputs(("--log", log_of(i), (".mcap",)), ("--summary", summary_of(i), None),
+                 ("--tlog", tlog_of(i), None))
+    if len(ids) > 1 and args.vehicle is not None:
+        raise Se3SyncError("--vehicle: names one agent's vehicle; with several agents in --id "
+                           "each takes its own from the scenario's [bridge] table")
     _timeout("--connect-timeout", args.connect_timeout)
     if args.start_file is not None and not Path(args.start_file).parent.is_dir():
         raise Se3SyncError(f"--start-file: {args.start_file!r}: directory "
@@ -232,38 +272,65 @@ def _cmd_agent(args) -> int:
         feed = (*parse_live(args.live_feed, option="--live-feed"), args.live_rate)
     sc = load_scenario(args.scenario, args.set, duration=args.duration)
     refuse_actuation_delay(sc, "se3sync agent (the vehicle is the plant)")
+    N = sc.graph.n
+    bad = [i for i in ids if not 1 <= i <= N]
+    if bad:
+        raise Se3SyncError(f"--id: must be an agent number in 1..{N}, got {bad[0]}")
     if args.start is not None and not (args.start == args.start and abs(args.start) < 1e11):
         raise Se3SyncError(f"--start: must be a Unix time in seconds, got {args.start!r}")
-    try:
-        if args.start is not None and args.start_file is not None:
-            raise Se3SyncError("--start-file: give --start or --start-file, not both")
-        summary = run_agent(sc, args.id, law=args.controller, lockstep=args.lockstep,
-                            start=args.start, start_file=args.start_file, key_file=args.key,
-                            insecure=args.insecure,
-                            vehicle=args.vehicle, connect_timeout=args.connect_timeout,
-                            signing_state=args.signing_state, tlog=args.tlog,
-                            log_path=args.log, summary_path=args.summary,
-                            log_encoding=args.log_encoding, progress=sys.stderr.isatty(),
-                            live_feed=feed)
-    except ConnectError as exc:
-        print(f"se3sync agent: error: {exc}", file=sys.stderr)
-        return EXIT_NOT_CONNECTED
-    except LinkError as exc:
-        print(f"se3sync agent: error: {exc}", file=sys.stderr)
-        return EXIT_LINK
+    if args.start is not None and args.start_file is not None:
+        raise Se3SyncError("--start-file: give --start or --start-file, not both")
+
+    def kwargs(i):
+        return dict(law=args.controller, lockstep=args.lockstep, start=args.start,
+                    start_file=args.start_file, key_file=args.key, insecure=args.insecure,
+                    vehicle=args.vehicle, connect_timeout=args.connect_timeout,
+                    signing_state=args.signing_state, tlog=tlog_of(i), log_path=log_of(i),
+                    summary_path=summary_of(i), log_encoding=args.log_encoding,
+                    progress=len(ids) == 1 and sys.stderr.isatty(), live_feed=feed)
+
+    if len(ids) == 1:
+        try:
+            results = {ids[0]: run_agent(sc, ids[0], **kwargs(ids[0]))}
+        except (ConnectError, LinkError) as exc:
+            results = {ids[0]: exc}
+    else:
+        from bridge.swarm.host import run_agents
+
+        results = run_agents(lambda agent_id, **kw: run_agent(sc, agent_id, **kw), ids, kwargs)
+    rc = 0
+    for i, res in results.items():
+        if isinstance(res, BaseException):
+            code = (EXIT_NOT_CONNECTED if isinstance(res, ConnectError) else
+                    EXIT_LINK if isinstance(res, LinkError) else None)
+            if code is None:
+                if isinstance(res, KeyboardInterrupt):
+                    rc = rc or 130
+                    continue
+                raise res
+            print(f"se3sync agent: error: {'' if len(ids) == 1 else f'agent {i}: '}{res}",
+                  file=sys.stderr)
+            rc = rc if rc not in (0, 130) else code
+            continue
+        _agent_line(i, res, args.lockstep)
+        if res.get("interrupted"):
+            rc = rc or 130
+    if rc == 130 and len(ids) > 1 and not any(isinstance(r, dict) for r in results.values()):
+        raise KeyboardInterrupt   # none ran: as one agent stopped before its first step
+    return rc
+
+
+def _agent_line(i: int, summary: dict, lockstep: bool) -> None:
     f = summary.get("final") or {}
     al = summary.get("link", {}).get("agent_link", {})
     fs = summary["failsafe"]
-    print(f"agent {args.id}: {summary['steps']} steps from step {summary['first_step']} "
-          f"({'lockstep' if args.lockstep else 'real time'}) in {summary['wall_time_s']:.3g} s; "
+    print(f"agent {i}: {summary['steps']} steps from step {summary['first_step']} "
+          f"({'lockstep' if lockstep else 'real time'}) in {summary['wall_time_s']:.3g} s; "
           f"{summary['n_jumps']} jumps; its edges' max rot_err {f.get('rot_err', float('nan')):.3g}; "
           f"neighbour link: sent {al.get('sent')}, received {al.get('received')}, refused "
           f"{_refused(al)}; vehicle link: refused {_refused(summary.get('link', {}))}; "
           f"fail-safe {fs['steps']} steps ({fs['entries']} times)",
           file=sys.stderr)
-    if summary.get("interrupted"):
-        return 130
-    return 0
 
 
 def _cmd_swarm(args) -> int:

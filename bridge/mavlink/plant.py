@@ -228,6 +228,12 @@ class MavlinkPlant:
         # real time: read the sockets once per step at the deadline (an agent process) instead
         # of whenever a datagram arrives (latency measured on arrival, as `connect` reports it)
         self.drain_per_step = False
+        # a lock the agents of one process pass between them (bridge.swarm.host): held from
+        # this plant's wake-up at a deadline to its next wait, so that one agent's step runs at
+        # a time instead of the agents' threads taking the interpreter from each other at
+        # every socket call
+        self.step_lock = None
+        self._holding = False
         self.read_budget_s = 0.25 * self.h   # a poll reads the vehicles' own sockets this long at most
         self.junk_budget_s = 0.1 * self.h    # …and the catch-alls (first contact, junk) this long
         self._rr = 0
@@ -603,7 +609,14 @@ class MavlinkPlant:
             # pass at the deadline (the step uses nothing newer anyway); each wake-up costs a
             # select and a Python dispatch, which several processes per core cannot afford
             if deadline > now:
+                lock = self.step_lock
+                if self._holding:
+                    self._holding = False
+                    lock.release()
                 time.sleep(deadline - now)
+                if lock is not None:
+                    lock.acquire()
+                    self._holding = True
             self.poll(0.0)
             now = time.monotonic()
         while now < deadline:
@@ -683,6 +696,9 @@ class MavlinkPlant:
         if self._closed:
             return
         self._closed = True
+        if self._holding:
+            self._holding = False
+            self.step_lock.release()
         for s in self.socks:
             s.close()
         for e in getattr(self, "_src_socks", {}).values():

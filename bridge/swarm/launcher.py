@@ -151,6 +151,7 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
                        "interrupted": s["interrupted"], "wall_time_s": s["wall_time_s"],
                        "cpu_fraction": s.get("cpu_fraction"), "max_rss_mb": s.get("max_rss_mb"),
                        "memory": s.get("memory"), "startup": s.get("startup"),
+                       **({"host": s["host"]} if s.get("host") else {}),
                        "failsafe": s["failsafe"],
                        "late_steps": ln.get("late_steps"),
                        "vehicle_latency_ms_p99": ln.get("latency_ms_p99"),
@@ -449,14 +450,16 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
               log_path=None, summary_path=None, workdir=None, duration=None, law: str = "hybrid",
               key_file=None, start_delay=None, insecure: bool = False, progress: bool = False,
               python=None, on_event=None, log_encoding: str = "json",
-              stop_requested: list | None = None, live=None) -> tuple:
+              stop_requested: list | None = None, live=None,
+              agents_per_process: int = 1) -> tuple:
     """Launches the swarm and merges its outputs; returns (merged summary, exit status): 0 all
     agents finished, EXIT_AGENT_FAILED an agent failed (the others are stopped), 130/143 a
     signal stopped everything (also one noted in ``stop_requested`` before the call: then no
     process is started). The merged outputs are written in every case. Raises Se3SyncError
     before starting anything when a port of the swarm is taken or already receives traffic
     (`check_ports`). live: (host, port, rate) of the merged live view (bridge/live.py), or
-    None."""
+    None. agents_per_process: K > 1 runs agents 1..K in one process, K+1..2K in the next, …
+    (`bridge.swarm.host`: one thread per agent; for a machine that simulates many vehicles)."""
     say = on_event or (lambda s: print(f"se3sync swarm: {s}", file=sys.stderr, flush=True))
     sc = load_scenario(scenario_path, overrides, duration=duration)
     stop_requested = [] if stop_requested is None else stop_requested
@@ -468,7 +471,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
     wd = Path(tempfile.mkdtemp(prefix="se3sync-swarm-") if own_dir else workdir)
     wd.mkdir(exist_ok=True)
     # a previous run's outputs in --dir must not be merged as this run's
-    for pattern in ("agent_*.json", "agent_*.mcap", "agent_*.err", "agent_*.layout.json",
+    for pattern in ("agent_*.json", "agent_*.mcap", "agent_*.err", "agents_*.err",
+                    "agent_*.layout.json",
                     "vehicle.json", "vehicle.err", "start", "start.*"):
         for old in wd.glob(pattern):
             old.unlink(missing_ok=True)
@@ -504,20 +508,26 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                            wd / "vehicle.err")
             start = None
             start_file = wd / "start"
-            for i in range(1, N + 1):
+            K = max(1, int(agents_per_process))
+            groups = [list(range(a, min(N, a + K - 1) + 1)) for a in range(1, N + 1, K)]
+            names = [f"agent {g[0]}" if len(g) == 1 else f"agents {g[0]}-{g[-1]}" for g in groups]
+            for g, name in zip(groups, names):
                 if stop_requested:
                     break
-                kids.start(f"agent {i}", [
-                    py, "-m", "cosim.cli", "agent", *common, "--id", str(i),
-                    "--controller", law, "--summary", str(wd / f"agent_{i}.json"),
-                    *(["--log", str(wd / f"agent_{i}.mcap"), "--log-encoding", log_encoding]
+                one = len(g) == 1
+                tag = str(g[0]) if one else "{id}"
+                kids.start(name, [
+                    py, "-m", "cosim.cli", "agent", *common, "--id", ",".join(map(str, g)),
+                    "--controller", law, "--summary", str(wd / f"agent_{tag}.json"),
+                    *(["--log", str(wd / f"agent_{tag}.mcap"), "--log-encoding", log_encoding]
                       if log_path is not None else []),
                     *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec,
                     *wait, *feed],
-                    wd / f"agent_{i}.err")
-            agents = [a for a in (f"agent {i}" for i in range(1, N + 1)) if a in kids.procs]
+                    wd / (f"agent_{g[0]}.err" if one else f"agents_{g[0]}-{g[-1]}.err"))
+            agents = [a for a in names if a in kids.procs]
             if agents:
                 say(f"{len(agents)} agent processes"
+                    f"{'' if K == 1 else f' ({N} agents, up to {K} per process)'}"
                     f"{' and the loopback vehicles' if vehicles == 'loopback' else ''}"
                     f" started ({'lockstep' if lockstep else 'real time'}); outputs in {wd}")
             if not lockstep and not stop_requested:
@@ -634,6 +644,9 @@ def _swarm_cli(args, early: list) -> int:
     # everything an agent would refuse is refused here, once, before a process starts
     if args.dir is not None:
         check_output_dir("--dir", args.dir)
+    if isinstance(args.agents_per_process, bool) or args.agents_per_process < 1:
+        raise Se3SyncError(f"--agents-per-process: must be an integer >= 1, got "
+                           f"{args.agents_per_process!r}")
     if args.start_delay is not None and not (math.isfinite(args.start_delay)
                                              and 0 <= args.start_delay <= 3600):
         raise Se3SyncError(f"--start-delay: must be a number of seconds in [0, 3600], got "
@@ -662,7 +675,8 @@ def _swarm_cli(args, early: list) -> int:
                            duration=args.duration, law=args.controller, key_file=args.key,
                            start_delay=args.start_delay, insecure=args.insecure,
                            progress=sys.stderr.isatty(), log_encoding=args.log_encoding,
-                           stop_requested=early, live=getattr(args, "live_target", None))
+                           stop_requested=early, live=getattr(args, "live_target", None),
+                           agents_per_process=args.agents_per_process)
     f = merged.get("final") or {}
     tot = merged["link_total"]
     print(f"{sc.name}: {len(merged['agents']) - len(merged['agents_missing'])} agents, "

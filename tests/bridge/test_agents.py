@@ -84,17 +84,22 @@ def _assert_equal_to_float32(merged, ref):
 @pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("encoding", ["json", "cdr"])
-def test_lockstep_swarm_equals_run_on_the_float32_plant(tmp_path, encoding):
-    """...with the agents' logs and the merged one in either encoding (the reference's JSON)."""
+@pytest.mark.parametrize("encoding, per_process", [("json", 1), ("cdr", 3)])
+def test_lockstep_swarm_equals_run_on_the_float32_plant(tmp_path, encoding, per_process):
+    """...with the agents' logs and the merged one in either encoding (the reference's JSON),
+    one process per agent or three agents per process (`bridge.swarm.host`)."""
     sets, _, _ = _ports()
     p, merged = _swarm(tmp_path, sets, "--lockstep", "--duration", "1.0", "--log",
-                       str(tmp_path / "swarm.mcap"), "--log-encoding", encoding)
+                       str(tmp_path / "swarm.mcap"), "--log-encoding", encoding,
+                       "--agents-per-process", str(per_process))
     assert p.returncode == 0, p.stderr
     from mcap.reader import make_reader
 
     agent_logs = sorted((tmp_path / "work").glob("agent_*.mcap"))
     assert len(agent_logs) == 6
+    hosts = [a.get("host", {}).get("agents") for a in merged["agents"]]
+    assert hosts == ([None] * 6 if per_process == 1 else [[1, 2, 3]] * 3 + [[4, 5, 6]] * 3)
+    assert len(merged["exit_status"]) == 1 + 6 // per_process   # the vehicle process too
     for log in [tmp_path / "swarm.mcap", *agent_logs]:
         with open(log, "rb") as f:
             chans = make_reader(f).get_summary().channels.values()
@@ -422,6 +427,14 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
 # ------------------------------------------------------------------------------ bad input
 @pytest.mark.parametrize("argv, needle", [
     (["agent", HIL, "--id", "7"], "--id: must be an agent number in 1..6"),
+    (["agent", HIL, "--id", "1,7"], "--id: must be an agent number in 1..6, got 7"),
+    (["agent", HIL, "--id", "1,2,1"], "--id: an agent is named twice"),
+    (["agent", HIL, "--id", "1;2"], "--id: must be an agent number or numbers"),
+    (["agent", HIL, "--id", "1,2", "--summary", "/nonexistent-se3sync/a.json"], "{id}"),
+    (["agent", HIL, "--id", "1,2", "--log", "/nonexistent-se3sync/a.mcap"], "--log"),
+    (["agent", HIL, "--id", "1,2", "--log", "/nonexistent-se3sync/a_{id}.mcap"], "--log"),
+    (["agent", HIL, "--id", "1,2", "--vehicle", "udpin:127.0.0.1:14550"], "--vehicle"),
+    (["swarm", HIL, "--agents-per-process", "0"], "--agents-per-process"),
     (["agent", HIL, "--id", "2", "--lockstep", "--set", "network.delay=0.01"], "network.delay"),
     (["agent", HIL, "--id", "2", "--set", "network.loss=1.5"], "network.loss"),
     (["agent", HIL, "--id", "2", "--start", "nan"], "--start"),
@@ -688,18 +701,19 @@ def test_agent_summary_startup_and_memory_and_the_vehicles_cost(tmp_path):
 @pytest.mark.slow
 @pytest.mark.realtime
 @pytest.mark.timeout(300)
-def test_sigterm_stops_every_child_and_still_writes_the_merged_outputs(tmp_path):
+@pytest.mark.parametrize("per_process", [1, 3])
+def test_sigterm_stops_every_child_and_still_writes_the_merged_outputs(tmp_path, per_process):
     sets, _, _ = _ports()
     out, log = tmp_path / "swarm.json", tmp_path / "swarm.mcap"
     argv = [sys.executable, "-m", "cosim.cli", "swarm", HIL, "--vehicles", "loopback", "--lockstep",
             "--duration", "600", "--summary", str(out), "--log", str(log), "--dir",
-            str(tmp_path / "work")]
+            str(tmp_path / "work"), "--agents-per-process", str(per_process)]
     for s in sets:
         argv += ["--set", s]
     p = subprocess.Popen(argv, cwd=str(ROOT), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                          text=True)
     t_end = time.monotonic() + 120
-    err = tmp_path / "work" / "agent_6.err"
+    err = tmp_path / "work" / ("agent_6.err" if per_process == 1 else "agents_4-6.err")
     while not (err.exists() and "connected" in err.read_text()):   # the agents are stepping
         assert time.monotonic() < t_end and p.poll() is None
         time.sleep(0.1)
