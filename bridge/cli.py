@@ -42,6 +42,11 @@ def register(sub) -> None:
                    help="physics tick and ODOMETRY rate in real time (default 250)")
     p.add_argument("--aux-rate", type=float, default=10.0, metavar="HZ",
                    help="ATTITUDE_QUATERNION and LOCAL_POSITION_NED rate (default 10; 0 = off)")
+    p.add_argument("--start-file", metavar="FILE",
+                   help="real time: once FILE holds a swarm's start (Unix time of its step 0, as "
+                        "`swarm` writes it), tick 0.3 of a tick before each of the swarm's steps, "
+                        "so that every agent reads the state of its step and its command has the "
+                        "rest of the period to arrive (`swarm --vehicles loopback` passes it)")
     p.add_argument("--step", type=float, metavar="S",
                    help="control period (lockstep step, command timeout base); default: the scenario's "
                         "step, else 1/rate")
@@ -421,6 +426,13 @@ def _cmd_vehicle(args) -> int:
         raise Se3SyncError(f"--count: must be >= 1, got {args.count}")
     _vehicle_ports(args)
     _outputs(("--tlog", args.tlog, None), ("--stats", args.stats, None))
+    if args.start_file is not None:
+        if args.lockstep or getattr(args, "sim_protocol", None):
+            raise Se3SyncError("--start-file: real time only, not with --lockstep or "
+                               "--sim-protocol")
+        if not Path(args.start_file).parent.is_dir():
+            raise Se3SyncError(f"--start-file: {args.start_file!r}: directory "
+                               f"{str(Path(args.start_file).parent)!r} does not exist")
     args.live_target = live_target(args)
     if args.live_target is not None and not args.scenario:
         raise Se3SyncError("--live: needs --scenario (the graph and the bodies to draw)")

@@ -801,6 +801,7 @@ def _warm_up(node: AgentNode) -> None:
                    ctl.theta.copy(), node._rx.copy(), ctl.theta_prev.copy(),
                    ctl.theta_jump.copy(), ctl.mu.copy(), ctl.jumped.copy(), node._termbuf.copy(),
                    node._relrows.copy(), ctl.u.copy())
+    node.link.warm_up()
     loc = node.local
     N, M = loc.graph.n, loc.graph.M
     U = np.zeros(M)

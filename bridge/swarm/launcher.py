@@ -386,16 +386,22 @@ class _Children:
         return lines[-1] if lines else ""
 
 
-def vehicle_argv(py, sc, scenario_path, sets: list, wd: Path, lockstep: bool, sec: list) -> list:
+def vehicle_argv(py, sc, scenario_path, sets: list, wd: Path, lockstep: bool, sec: list,
+                 start_file=None) -> list:
     """The loopback vehicles' command line: one `se3sync vehicle` process for the scenario's
     vehicles, ticking (physics and ODOMETRY) at the swarm's control rate 1/h: each agent steps
     once per h and reads one state per step, so a faster stream would only be decoded and
     dropped (at 250 Hz, 64 vehicles cost that process twice the CPU of 100 Hz, and every agent
     2.5 ODOMETRY per step), and with a tick of h the vehicle holds each wrench for one control
-    period, as `run`'s plant does."""
+    period, as `run`'s plant does. Real time: its ticks are locked to the swarm's steps
+    (``start_file``, `bridge.vehicles.loopback.locked_tick`), so that a command applies from the
+    tick after the state it was computed from, as in `run`, whatever phase the process started
+    at."""
     return [py, "-m", "cosim.cli", "vehicle", "--scenario", str(Path(scenario_path)), *sets,
             "--rate", repr(1.0 / float(sc.step)), "--aux-rate", "0",
-            "--stats", str(wd / "vehicle.json"), *(["--lockstep"] if lockstep else []), *sec]
+            "--stats", str(wd / "vehicle.json"), *(["--lockstep"] if lockstep else []),
+            *(["--start-file", str(start_file)] if start_file is not None and not lockstep
+              else []), *sec]
 
 
 def check_ports(sc, vehicles: str, listen: float = PORT_LISTEN_S) -> None:
@@ -504,8 +510,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                 interrupted = True
                 say("stopped (signal) before any process started")
             elif vehicles == "loopback":
-                kids.start("vehicle", vehicle_argv(py, sc, scenario_path, sets, wd, lockstep, sec),
-                           wd / "vehicle.err")
+                kids.start("vehicle", vehicle_argv(py, sc, scenario_path, sets, wd, lockstep, sec,
+                                                   wd / "start"), wd / "vehicle.err")
             start = None
             start_file = wd / "start"
             K = max(1, int(agents_per_process))
@@ -599,7 +605,7 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
             "commands", "dropped", "commander",
             # its deadlines and its cost (real time; ticks counted from the first command)
             "tick_s", "ticks", "late_ticks", "resyncs", "cpu_s", "wall_s", "ticking_cpu_s",
-            "ticking_s")}
+            "ticking_s", "tick_lead_s", "tick_locked")}
     except (OSError, ValueError):
         pass
     if log_path is not None:

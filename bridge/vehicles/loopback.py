@@ -62,6 +62,35 @@ ID_LPOS = M.MAVLINK_MSG_ID_LOCAL_POSITION_NED
 STREAMABLE = (ID_HEARTBEAT, ID_ODOMETRY, ID_ATTQ, ID_LPOS)
 NAN21 = [float("nan")] + [0.0] * 20
 MAX_AHEAD_US = 1_000_000        # a command may be stamped at most 1 s ahead of the vehicle's clock
+# --start-file: the physics ticks fall this share of a tick before each step of the swarm (the
+# tick's states must reach the agents before their deadline; each command then has the rest of
+# the period to arrive before the tick that applies it)
+TICK_LEAD = 0.3
+
+
+def locked_tick(origin: float, now: float, tick: float, lead: float) -> float:
+    """The first time >= ``now`` of the grid ``origin - lead + m·tick`` (m an integer): the
+    ticks of a vehicle locked to a swarm whose step 0 is due at ``origin``."""
+    first = origin - lead
+    return first + math.ceil((now - first) / tick) * tick
+
+
+def start_file_origin(path):
+    """A callable giving the swarm's step 0 as time.monotonic() once ``path`` holds its Unix
+    time (`swarm` writes it when every agent is ready), else None."""
+    from pathlib import Path
+
+    p = Path(path)
+
+    def origin():
+        try:
+            start = float(p.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        if not math.isfinite(start):
+            return None
+        return time.monotonic() + (start - time.time())
+    return origin
 DEFAULT_COMMANDER = (255, 191)  # the bridge's default source_system, source_component
 ID_AUTOPILOT_VERSION = M.MAVLINK_MSG_ID_AUTOPILOT_VERSION
 # what only the commander (or a signed sender) may send: the messages that move the vehicle or
@@ -623,6 +652,12 @@ class VehicleServer:
         self.failsafe_delays: list = []   # command timeout detected: seconds since the last command
         self.failsafe_tick_delays: list = []  # the same, from the time the detecting tick was due
         self.started_commands: dict = {}
+        # real time, --start-file: a callable giving the swarm's step 0 (time.monotonic()) or
+        # None while unknown; the ticks are locked to it once known (`locked_tick`)
+        self.tick_origin = None
+        self.tick_lead = TICK_LEAD * self.odom_period
+        self.locked_at = None             # ... the step-0 time it was locked to (monotonic)
+        self.locked_due: list = []        # ... the times the first ticks after it were due
         self.quiet = quiet
         self.t_boot = time.monotonic()
         self._stop = threading.Event()
@@ -695,6 +730,8 @@ class VehicleServer:
                  drain_deadline_hits=self.drain_deadline_hits, commander=list(self.commander),
                  ticks=self.ticks, late_ticks=self.late_ticks, resyncs=self.resyncs,
                  tick_s=self.odom_period, cpu_s=self.cpu_s, wall_s=self.wall_s,
+                 tick_lead_s=self.tick_lead if self.tick_origin is not None else None,
+                 tick_locked=self.locked_at is not None,
                  ticking_cpu_s=self.ticking_cpu_s, ticking_s=self.ticking_s,
                  failsafe_delay_max=max(self.failsafe_delays) if self.failsafe_delays else None,
                  failsafe_delays=[round(x, 6) for x in self.failsafe_delays[:200]],
@@ -798,6 +835,7 @@ class VehicleServer:
         end = None if duration is None else t0 + duration
         tick = self.odom_period
         next_tick = t0
+        next_look = t0
         fds = [v.sock.fileno() for v in self.vehicles]
         self.ready.set()
         try:
@@ -805,6 +843,17 @@ class VehicleServer:
                 now = time.monotonic()
                 if end is not None and now >= end:
                     break
+                if self.tick_origin is not None and self.locked_at is None \
+                        and not self.lockstep and now >= next_look:
+                    next_look = now + 0.02
+                    origin = self.tick_origin()
+                    if origin is not None:
+                        # a state of each vehicle leaves just before each step is due, whatever
+                        # the phase this process happened to start at: with an arbitrary phase a
+                        # command that came after the tick waited a whole tick (for some agents
+                        # every step), a delay the sampled loop does not have
+                        self.locked_at = origin
+                        next_tick = locked_tick(origin, now, tick, self.tick_lead)
                 timeout = max(0.0, min(next_tick - now, 0.05))
                 r, _, _ = select.select(fds, [], [], timeout)
                 now = self._drain(r, next_tick)
@@ -812,6 +861,8 @@ class VehicleServer:
                     self.signing.tick(now)
                 if now < next_tick:
                     continue
+                if self.locked_at is not None and len(self.locked_due) < 50:
+                    self.locked_due.append(next_tick)
                 if not self.lockstep:
                     if self.ticks or any(v.last_cmd is not None for v in self.vehicles):
                         if not self.ticks:
@@ -833,7 +884,8 @@ class VehicleServer:
                     v.emit_due(now, lockstep=self.lockstep)
                 next_tick += tick
                 if now - next_tick > 10 * tick:  # fell far behind (suspended?): resynchronise
-                    next_tick = now + tick
+                    next_tick = now + tick if self.locked_at is None else \
+                        locked_tick(self.locked_at, now, tick, self.tick_lead)   # on the grid
                     self.resyncs += 1
         except KeyboardInterrupt:
             pass
@@ -881,6 +933,8 @@ def run_vehicle_cli(args) -> int:
                         tlog=args.tlog, allow_unsigned_heartbeat=args.allow_unsigned_heartbeat,
                         require_arm=args.require_arm, gravity_ned=g, commander=args.commander,
                         insecure=args.insecure, signing_state=args.signing_state, key_file=args.key)
+    if getattr(args, "start_file", None) is not None:
+        srv.tick_origin = start_file_origin(args.start_file)
     live = getattr(args, "live_target", None)
     if live is not None:
         srv.live = VehicleLive(scenario, live[0], live[1], rate=live[2],
