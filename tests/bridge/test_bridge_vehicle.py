@@ -137,3 +137,35 @@ def test_sigterm_stops_cleanly(tmp_path):
         # SIGTERM stops it cleanly (stats written) with the documented status 143 (issue 13)
         assert veh.proc.returncode == 143, veh.stderr
     assert st["sent"] > 0 and "stopped" in veh.stderr
+
+
+@pytest.mark.parametrize("key", [None, bytes(range(32))])
+def test_vehicle_odometry_is_pymavlinks_bytes(key):
+    """The loopback vehicle's ODOMETRY (`SimVehicle.odometry`, the struct codec) packs to the
+    bytes of pymavlink's odometry_encode of the same fields, signed and unsigned, at random
+    states."""
+    from bridge.vehicles.loopback import NAN21, VehicleServer
+
+    srv = VehicleServer(1, base_port=free_base_port(1), key=key, insecure=True)
+    try:
+        v = srv.vehicles[0]
+        v.time_usec = lambda: 1_700_000_123_456_789
+        rng = np.random.default_rng(7)
+        mav = v.peer.mav
+        for _ in range(50):
+            v.wire[:] = rng.normal(scale=5.0, size=13)
+            seq = mav.seq
+            ts = mav.signing.timestamp if key else None
+            mine = v.peer.pack(v.odometry())
+            mav.seq = seq
+            if key:
+                mav.signing.timestamp = ts
+            x = v.wire
+            ref = v.peer.pack(mav.odometry_encode(
+                v.time_usec(), M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_BODY_FRD, x[0], x[1], x[2],
+                [x[3], x[4], x[5], x[6]], x[10], x[11], x[12], x[7], x[8], x[9], NAN21, NAN21, 0,
+                M.MAV_ESTIMATOR_TYPE_NAIVE, 100))
+            assert bytes(mine) == bytes(ref)
+            assert (mine[2] & 1) == (key is not None)
+    finally:
+        srv.close()
