@@ -301,7 +301,9 @@ def _cmd_agent(args) -> int:
             results = {ids[0]: exc}
     else:
         from bridge.swarm.host import run_agents
+        from cosim.threads import AGENT_THREADS, limit_process
 
+        limit_process(AGENT_THREADS)   # once for the process's agents (each alone sets its own)
         results = run_agents(lambda agent_id, **kw: run_agent(sc, agent_id, **kw), ids, kwargs)
     rc = 0
     for i, res in results.items():

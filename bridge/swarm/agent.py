@@ -825,8 +825,9 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
     each): its ``stop`` event stops this agent as a signal would, its master loop is registered
     with it (so that it can be asked to stop), and the summary's ``cpu_s`` is this thread's own,
     with the process's in ``host``."""
-    limit_process(AGENT_THREADS)   # one job per process: BLAS threads would only compete
     hosted = host is not None
+    if not hosted:   # (a host sets it once for its agents)
+        limit_process(AGENT_THREADS)   # one job per process: BLAS threads would only compete
     node = AgentNode(scenario, agent_id, law=law, lockstep=lockstep, key_file=key_file,
                      insecure=insecure, vehicle=vehicle, connect_timeout=connect_timeout,
                      signing_state=signing_state, tlog=tlog, on_event=on_event,

@@ -38,7 +38,8 @@ class Host:
         # time (see `run_agent`)
         self.step_lock = threading.Lock()
         self._masters = []
-        self._lock = threading.Lock()
+        # re-entrant: the main thread's signal handler may call stop_all while it is in stop_all
+        self._lock = threading.RLock()
 
     def register(self, master) -> None:
         with self._lock:
@@ -72,7 +73,8 @@ def run_agents(run_agent, ids, kwargs_for) -> dict:
     """Runs ``run_agent(agent_id=i, host=…, **kwargs_for(i))`` for every i of ``ids``, each in
     its own thread, and waits for all of them; returns {i: its summary or the exception it
     raised}, in the order of ``ids``. The first agent to fail (an exception other than
-    KeyboardInterrupt) stops the others, and so does a signal."""
+    KeyboardInterrupt) stops the others, and so does a signal. The caller sets the process's
+    BLAS threads (`cosim.threads.limit_process`): `run_agent` leaves them to the host."""
     host = Host(ids)
     threads = [_Agent(run_agent, i, {**kwargs_for(i), "host": host}) for i in host.ids]
     with signals.catching(host.stop_all):

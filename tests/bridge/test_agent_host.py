@@ -88,3 +88,24 @@ def test_agents_that_all_finish_are_not_stopped():
 
     out = run_agents(run_agent, [3, 1], lambda i: {})
     assert out == {3: {"agent": 3}, 1: {"agent": 1}} and list(out) == [3, 1]
+
+
+def test_stop_all_may_be_reentered_as_a_signal_handler_would():
+    """SIGINT or SIGTERM runs `stop_all` in the main thread, which may be inside `stop_all`
+    already (an agent failed a moment before): the second call must not wait for the first."""
+    host = Host([1])
+
+    class _Reenters(_Master):
+        def request_stop(self):
+            super().request_stop()
+            if len(calls) < 2:
+                calls.append(True)
+                host.stop_all()
+
+    calls = []
+    m = _Reenters()
+    host.register(m)
+    t = threading.Thread(target=host.stop_all, daemon=True)
+    t.start()
+    t.join(WAIT_S)
+    assert not t.is_alive() and m.stopped.is_set() and len(calls) == 2
