@@ -240,6 +240,19 @@ class Master:
 
     # -------------------------------------------------------------- the loop
     def run(self, n_steps: int, progress: bool = False, budget: float | None = None) -> dict:
+        """Runs ``n_steps`` steps (fewer if stopped, diverged or out of ``budget`` seconds of
+        wall time) and returns the summary."""
+        steps = self.steps(n_steps, progress, budget)
+        try:
+            while True:
+                next(steps)
+        except StopIteration as done:
+            return done.value
+
+    def steps(self, n_steps: int, progress: bool = False, budget: float | None = None):
+        """`run` one step at a time: a generator that yields after each step's
+        ``plant.advance`` and returns the summary. A process stepping several master loops
+        from one thread drives them this way (`bridge.swarm.host`); `run` drives one."""
         n_steps = int(n_steps)
         h = self.h
         plant, ctrl = self.plant, self.controller
@@ -291,6 +304,7 @@ class Master:
                         break
                 apply(u)
                 advance(h)
+                yield
                 n += 1
                 if self._stop:
                     interrupted = True
@@ -309,6 +323,7 @@ class Master:
                         on_jumps(k, ev)
                     apply(u)
                     advance(h)
+                    yield
                 n = nxt
                 if budget is not None:
                     now = time.perf_counter()

@@ -53,6 +53,7 @@ class _Odometry:
 
 
 HEARTBEAT_ASK_S = 0.2  # connect: how often a vehicle with a state but no HEARTBEAT is asked for one
+LATE_KEPT = 16            # late steps noted by number in the link statistics (the first ones)
 HIST_BIN = 1e-5        # latency histograms: 10 µs bins up to 0.2 s (the last bin is "more")
 HIST_N = 20_001
 
@@ -171,6 +172,7 @@ class MavlinkPlant:
         self.age_hist = np.zeros(HIST_N, dtype=np.int64)   # age of the oldest state used at a step
         self.events: list = []
         self.late_steps = 0          # real time: steps whose deadline had already passed
+        self.late_first = []         # …the first LATE_KEPT of them (when: at the start, or later)
         self.lockstep_resends = 0
         self._closed = False
         self.socks: list[UdpSocket] = []
@@ -228,12 +230,11 @@ class MavlinkPlant:
         # real time: read the sockets once per step at the deadline (an agent process) instead
         # of whenever a datagram arrives (latency measured on arrival, as `connect` reports it)
         self.drain_per_step = False
-        # a lock the agents of one process pass between them (bridge.swarm.host): held from
-        # this plant's wake-up at a deadline to its next wait, so that one agent's step runs at
-        # a time instead of the agents' threads taking the interpreter from each other at
-        # every socket call
-        self.step_lock = None
-        self._holding = False
+        # real time, one of several agents of a process (bridge.swarm.host): `advance` does
+        # not wait; it sets `due`, the process's one stepping thread waits for it and calls
+        # `resume`
+        self.paced_by_host = False
+        self.due = None
         self.read_budget_s = 0.25 * self.h   # a poll reads the vehicles' own sockets this long at most
         self.junk_budget_s = 0.1 * self.h    # …and the catch-alls (first contact, junk) this long
         self._rr = 0
@@ -604,24 +605,30 @@ class MavlinkPlant:
         now = time.monotonic()
         if now > deadline:
             self.late_steps += 1
+            if len(self.late_first) < LATE_KEPT:
+                self.late_first.append(self.k + 1)
+        self.due = deadline
+        if self.paced_by_host:
+            return    # the host waits until `due`, then calls `resume`
         if self.drain_per_step:
             # wake once per step: what arrived meanwhile waits in the sockets and is read in one
             # pass at the deadline (the step uses nothing newer anyway); each wake-up costs a
             # select and a Python dispatch, which several processes per core cannot afford
             if deadline > now:
-                lock = self.step_lock
-                if self._holding:
-                    self._holding = False
-                    lock.release()
                 time.sleep(deadline - now)
-                if lock is not None:
-                    lock.acquire()
-                    self._holding = True
             self.poll(0.0)
             now = time.monotonic()
         while now < deadline:
             self.poll(deadline - now)
             now = time.monotonic()
+        self._heartbeats(now)
+        self._check_links(now)
+
+    def resume(self) -> None:
+        """Real time, paced by the host (``paced_by_host``): the wait for ``due`` is over; what
+        `advance` does after it (the links drained in one pass, heartbeats, link checks)."""
+        self.poll(0.0)
+        now = time.monotonic()
         self._heartbeats(now)
         self._check_links(now)
 
@@ -675,6 +682,7 @@ class MavlinkPlant:
         d["saturations"] = int(self.transport.mapping.saturations)
         d["nan_commands"] = int(self.transport.nan_commands)
         d["late_steps"] = int(self.late_steps)
+        d["late_first"] = list(self.late_first)
         d["lockstep_resends"] = int(self.lockstep_resends)
         d["link_losses"] = int(sum(v.losses for v in self.vehicles))
         d["link_recoveries"] = int(sum(v.recoveries for v in self.vehicles))
@@ -696,9 +704,6 @@ class MavlinkPlant:
         if self._closed:
             return
         self._closed = True
-        if self._holding:
-            self._holding = False
-            self.step_lock.release()
         for s in self.socks:
             s.close()
         for e in getattr(self, "_src_socks", {}).values():

@@ -62,6 +62,7 @@ __all__ = ["AgentNode", "DEFAULT_MAX_AGE_STEPS", "LAWS", "join_step"]
 # Without a max_age in [network], an agent process still never runs on data of unbounded age: the
 # co-simulation's default (inf) is for studies; a vehicle's controller holds after this many steps.
 DEFAULT_MAX_AGE_STEPS = 10
+HOSTED_LEAD_S = 0.05     # a hosted agent hands its first step to the stepping thread this early
 RESEND_S = 0.02          # lockstep: a step's messages go out again after this long without progress
 # without --start (an agent run on its own, not by `swarm`): step 0 this long after the agent is
 # ready, time to service its links once before the first deadline
@@ -298,9 +299,12 @@ class AgentNode:
         self.vehicle.connect()
         return self
 
-    def join(self, start: float | None, sample_every: int, timeout: float = 10.0) -> None:
+    def join(self, start: float | None, sample_every: int, timeout: float = 10.0,
+             lead: float = 0.0) -> None:
         """Real time: picks the first step (`join_step`) and paces the vehicle from it; a late
-        joiner first waits for a sample from every neighbour (it must not start on S0)."""
+        joiner first waits for a sample from every neighbour (it must not start on S0). Returns
+        when the first step is due, or ``lead`` seconds before (a hosted agent: the process's
+        stepping thread waits the rest)."""
         self.sample_every = int(sample_every)
         if self.lockstep:
             return
@@ -335,9 +339,9 @@ class AgentNode:
         t_first = start + self.first_step * self.h
         mono = time.monotonic() + (t_first - time.time())
         self.vehicle.pace_from(mono)
-        while time.monotonic() < mono:   # service both links until step n₀ is due
+        while time.monotonic() < mono - lead:   # service both links until step n₀ is due
             self._check_stop()
-            self.vehicle.poll(min(0.05, mono - time.monotonic()))
+            self.vehicle.poll(min(0.05, mono - lead - time.monotonic()))
         if self.first_step:
             self.on_event(f"joined the swarm at step {self.first_step} (t = "
                           f"{self.first_step * self.h:g} s)")
@@ -832,12 +836,10 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
                      insecure=insecure, vehicle=vehicle, connect_timeout=connect_timeout,
                      signing_state=signing_state, tlog=tlog, on_event=on_event,
                      stop=host.stop if hosted else None)
-    if hosted and not lockstep:
-        # one agent's step at a time: with every thread of the process woken at the same
-        # deadline, they would otherwise take the interpreter from each other at each of a
-        # step's socket calls (hil_6uav at 250 Hz, 6 agents in one process: 0.070 of a core per
-        # agent, against 0.052 in a process each)
-        node.vehicle.step_lock = host.step_lock
+    stepped = hosted and not lockstep
+    if stepped:
+        # the process's stepping thread waits for the deadlines (bridge.swarm.host)
+        node.vehicle.paced_by_host = True
     logger = None
     failed = False
     sc = scenario
@@ -853,7 +855,9 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
             start = node.wait_start(start_file)
         spl = max(1, int(round(1.0 / h)))
         dec = max(1, int(round(1.0 / (sc.log_rate * h))))
-        node.join(start, math.lcm(spl, dec))
+        # hosted: at the start, one thread of the process wakes (the stepping thread), not one
+        # per agent (all at once, on a machine running the whole swarm: its first steps late)
+        node.join(start, math.lcm(spl, dec), lead=HOSTED_LEAD_S if stepped else 0.0)
         n_steps = sc.n_steps() - node.first_step
         if n_steps <= 0:
             raise Se3SyncError(f"--start: the swarm's run ({sc.n_steps()} steps from "
@@ -877,10 +881,17 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
             master.request_stop()
         startup["first_step_s"] = _process_age()  # step n₀ due (real time: paced by join)
         cpu0, pcpu0 = time.thread_time(), time.process_time()
-        summary = master.run(n_steps, progress=progress)
+        if stepped:
+            summary, cpu = host.drive(master.steps(n_steps, progress=progress), node.vehicle,
+                                      due=node.vehicle.t0)
+        else:
+            summary = master.run(n_steps, progress=progress)
+            cpu = None
         # one agent per process: the process's CPU (its log's encoding included); hosted, the
-        # thread's own (the process's is shared by its agents)
-        cpu = (time.thread_time() - cpu0) if hosted else (time.process_time() - pcpu0)
+        # CPU its steps took (real time: of the stepping thread; lockstep: its own thread's) —
+        # the process's is shared by its agents
+        if cpu is None:
+            cpu = (time.thread_time() - cpu0) if hosted else (time.process_time() - pcpu0)
         pcpu = time.process_time() - pcpu0
     except BaseException as exc:
         failed = not isinstance(exc, KeyboardInterrupt)

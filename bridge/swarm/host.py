@@ -10,6 +10,15 @@ talks to its vehicle and its neighbours over its own sockets and the same wire a
 its own would, and a lockstep swarm hosted this way equals `se3sync run` as one process per
 agent does. A companion computer runs one agent: hosting is for simulation machines.
 
+Stepping (real time): one thread of the process steps every agent's master loop (`Master.steps`,
+driven by `Host.drive`). It waits for the earliest deadline, then runs each agent whose step is
+due, one after the other. Why not each thread its own steps: a thread woken from a wait costs
+far more than the step itself on a virtual machine (cold caches, a context switch at each hand
+over of the interpreter); with one thread, a process of K agents wakes once per period and its
+agents' steps run back to back while its caches are warm. The agents' own threads connect,
+wait for the start, and write their logs and summaries. Lockstep runs keep each agent's loop in
+its own thread: there each step waits for the vehicle and the neighbours, not for a clock.
+
 Stopping: the main thread catches SIGINT and SIGTERM and asks every agent to stop
 (`Master.request_stop` for a running master loop; an agent still connecting, waiting for the
 start or waiting in lockstep sees the signal itself through `cosim.signals`). An agent that
@@ -19,12 +28,53 @@ neighbours in other processes would fail safe anyway, and `swarm` stops the swar
 from __future__ import annotations
 
 import threading
+import time
 
 from cosim import signals
 
 __all__ = ["Host", "run_agents"]
 
 JOIN_POLL_S = 0.05
+# the agents of a process follow one timeline, but each reads it from the clocks on its own:
+# their deadlines differ by microseconds, and a step due this soon runs with the others rather
+# than after a wait of its own
+DUE_SLACK_S = 1e-4
+
+
+class _Run:
+    """One master loop on the stepping thread: its steps, its plant, when its next step is due,
+    the stepping thread's CPU spent on it, and how it ended."""
+
+    def __init__(self, steps, plant, due):
+        self.steps = steps
+        self.plant = plant
+        self.due = float("-inf") if due is None else float(due)
+        self.cpu_s = 0.0
+        self.value = None
+        self.exc = None
+        self.done = threading.Event()
+
+    def step(self) -> bool:
+        """One step; False once the loop has ended (``value`` or ``exc`` set)."""
+        c0 = time.thread_time()
+        try:
+            try:
+                self.plant.resume()
+            except BaseException as exc:  # noqa: BLE001 - thrown in
+                # the loop waits at its last `advance`: it takes this as that advance's error,
+                # as it would from a plant that waits for itself
+                self.steps.throw(exc)
+            else:
+                next(self.steps)
+            self.due = self.plant.due
+            return True
+        except StopIteration as end:
+            self.value = end.value
+        except BaseException as exc:  # noqa: BLE001 - handed to the agent's thread
+            self.exc = exc
+        finally:
+            self.cpu_s += time.thread_time() - c0
+        return False
 
 
 class Host:
@@ -34,10 +84,11 @@ class Host:
     def __init__(self, ids):
         self.ids = tuple(int(i) for i in ids)
         self.stop = threading.Event()
-        # passed between the agents' vehicle plants (`MavlinkPlant.step_lock`): one step at a
-        # time (see `run_agent`)
-        self.step_lock = threading.Lock()
         self._masters = []
+        self._runs = []
+        self._cv = threading.Condition()
+        self._stepper = None
+        self._closing = False
         # re-entrant: the main thread's signal handler may call stop_all while it is in stop_all
         self._lock = threading.RLock()
 
@@ -52,6 +103,55 @@ class Host:
             self.stop.set()
             for m in self._masters:
                 m.request_stop()
+
+    def drive(self, steps, plant, due: float | None = None) -> tuple:
+        """Runs a master loop (``steps``: `Master.steps`, over ``plant``, a real-time
+        `MavlinkPlant` with ``paced_by_host`` set) on the process's stepping thread and waits for
+        it to end; returns (its summary, the stepping thread's CPU seconds spent on it) or
+        raises what the loop raised. Its first step runs at ``due`` (time.monotonic()), or at
+        once; every step after the plant's `resume`."""
+        run = _Run(steps, plant, due)
+        with self._cv:
+            if self._closing:
+                raise RuntimeError("Host.drive: the host is closed")
+            self._runs.append(run)
+            if self._stepper is None:
+                self._stepper = threading.Thread(target=self._step_all, name="stepper",
+                                                 daemon=True)
+                self._stepper.start()
+            self._cv.notify()
+        run.done.wait()
+        if run.exc is not None:
+            raise run.exc
+        return run.value, run.cpu_s
+
+    def close(self) -> None:
+        """Ends the stepping thread (once no loop is left)."""
+        with self._cv:
+            self._closing = True
+            self._cv.notify()
+
+    def _step_all(self) -> None:
+        while True:
+            with self._cv:
+                while not self._runs:
+                    if self._closing:
+                        return
+                    self._cv.wait()
+                runs = list(self._runs)
+                wait = min(r.due for r in runs) - time.monotonic()
+                if wait > DUE_SLACK_S:
+                    # a loop that joins meanwhile (due at once) wakes it early
+                    self._cv.wait(wait)
+                    continue
+            now = time.monotonic() + DUE_SLACK_S
+            ended = [r for r in runs if r.due <= now and not r.step()]
+            if ended:
+                with self._cv:
+                    for r in ended:
+                        self._runs.remove(r)
+                for r in ended:
+                    r.done.set()
 
 
 class _Agent(threading.Thread):
@@ -77,16 +177,19 @@ def run_agents(run_agent, ids, kwargs_for) -> dict:
     BLAS threads (`cosim.threads.limit_process`): `run_agent` leaves them to the host."""
     host = Host(ids)
     threads = [_Agent(run_agent, i, {**kwargs_for(i), "host": host}) for i in host.ids]
-    with signals.catching(host.stop_all):
-        for t in threads:
-            t.start()
-        while True:
-            alive = [t for t in threads if t.is_alive()]
-            if not alive:
-                break
-            alive[0].join(JOIN_POLL_S)
-            if not host.stop.is_set() and any(
-                    isinstance(t.result, BaseException) and not isinstance(t.result, KeyboardInterrupt)
-                    for t in threads if not t.is_alive()):
-                host.stop_all()
+    try:
+        with signals.catching(host.stop_all):
+            for t in threads:
+                t.start()
+            while True:
+                alive = [t for t in threads if t.is_alive()]
+                if not alive:
+                    break
+                alive[0].join(JOIN_POLL_S)
+                if not host.stop.is_set() and any(
+                        isinstance(t.result, BaseException) and not isinstance(t.result, KeyboardInterrupt)
+                        for t in threads if not t.is_alive()):
+                    host.stop_all()
+    finally:
+        host.close()
     return {t.agent_id: t.result for t in threads}

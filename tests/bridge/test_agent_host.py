@@ -109,3 +109,179 @@ def test_stop_all_may_be_reentered_as_a_signal_handler_would():
     t.start()
     t.join(WAIT_S)
     assert not t.is_alive() and m.stopped.is_set() and len(calls) == 2
+
+
+# ---------------------------------------------------------------------------- the stepping thread
+class _Paced:
+    """A plant paced by the host: its loop's step k (k ≥ 1) is due at t0 + k·h."""
+
+    def __init__(self, t0, h):
+        self.t0, self.h, self.k = t0, h, 0
+        self.due = None
+        self.resumes = 0
+
+    def advance(self):
+        self.k += 1
+        self.due = self.t0 + self.k * self.h
+
+    def resume(self):
+        self.resumes += 1
+
+
+def _loop(plant, name, n, log, fail_at=None):
+    """A stand-in for `Master.steps`: n steps, each noted (name, k, time, thread)."""
+    for k in range(n):
+        log.append((name, k, time.monotonic(), threading.get_ident()))
+        if k == fail_at:
+            raise RuntimeError(f"{name} failed at step {k}")
+        plant.advance()
+        yield
+    return {"name": name, "steps": n}
+
+
+def _drive_all(host, loops):
+    """Drives each (name, plant, steps) from a thread of its own, as the agents' threads do;
+    returns {name: (summary, cpu) or the exception} and the drivers' thread ids."""
+    out, idents = {}, set()
+
+    def driver(name, plant, steps):
+        idents.add(threading.get_ident())
+        try:
+            out[name] = host.drive(steps, plant)
+        except Exception as exc:  # noqa: BLE001 - compared below
+            out[name] = exc
+
+    ts = [threading.Thread(target=driver, args=x, daemon=True) for x in loops]
+    for t in ts:
+        t.start()
+    for t in ts:
+        t.join(WAIT_S)
+    assert not any(t.is_alive() for t in ts)
+    host.close()
+    return out, idents
+
+
+def test_one_thread_steps_every_loop_none_before_its_deadline():
+    from bridge.swarm.host import DUE_SLACK_S
+
+    host = Host([1, 2, 3])
+    h, n, log = 0.005, 30, []
+    t0 = time.monotonic() + 0.02
+    plants = {f"a{i}": _Paced(t0 + i * 1e-6, h) for i in range(3)}   # one timeline, read apart
+    out, drivers = _drive_all(host, [(k, p, _loop(p, k, n, log)) for k, p in plants.items()])
+    for name, p in plants.items():
+        summary, cpu = out[name]
+        assert summary == {"name": name, "steps": n} and cpu >= 0.0
+        assert p.resumes == n + 1    # before each step, and before the end
+    stepper = {e[3] for e in log}
+    assert len(stepper) == 1 and not stepper & drivers        # one thread, none of the drivers'
+    assert len(log) == 3 * n
+    for name, k, t, _ in log:
+        if k:
+            assert t >= plants[name].t0 + k * h - DUE_SLACK_S, (name, k)
+    # closed with no loop left: the stepping thread ends
+    t_end = time.monotonic() + WAIT_S
+    while any(t.ident in stepper for t in threading.enumerate()) and time.monotonic() < t_end:
+        time.sleep(0.001)
+    assert not any(t.ident in stepper for t in threading.enumerate())
+
+
+def test_a_loop_that_fails_raises_in_its_driver_and_the_others_go_on():
+    host = Host([1, 2])
+    t0, h, log = time.monotonic(), 0.002, []
+    a, b = _Paced(t0, h), _Paced(t0, h)
+    out, _ = _drive_all(host, [("a", a, _loop(a, "a", 20, log, fail_at=5)),
+                               ("b", b, _loop(b, "b", 20, log))])
+    assert isinstance(out["a"], RuntimeError) and "step 5" in str(out["a"])
+    assert out["b"][0] == {"name": "b", "steps": 20}
+
+
+def test_a_loop_that_joins_later_starts_at_once():
+    """Step 0 of a loop that joins while the stepper waits a long deadline runs at once."""
+    host = Host([1, 2])
+    log = []
+    slow = _Paced(time.monotonic(), 5.0)           # its step 1 is due in 5 s
+    started = threading.Event()
+
+    def drive_slow():
+        started.set()
+        host.drive(_loop(slow, "slow", 2, log), slow)
+
+    t = threading.Thread(target=drive_slow, daemon=True)
+    t.start()
+    started.wait(WAIT_S)
+    while not log:
+        time.sleep(0.001)
+    quick = _Paced(time.monotonic(), 0.001)
+    t_join = time.monotonic()
+    summary, _ = host.drive(_loop(quick, "quick", 3, log), quick)
+    assert summary["steps"] == 3 and time.monotonic() - t_join < 2.0
+    host.stop_all()
+    t.join(WAIT_S)   # (the slow loop ends at its own deadline)
+    host.close()
+
+
+def test_master_steps_yields_once_per_step_and_ends_as_run():
+    """`Master.steps` driven by hand: one yield per step, and the summary and final state of
+    `Master.run` (the Python reference loop, which `run` now drives the same way)."""
+    import numpy as np
+
+    from cosim.master import Master
+    from cosim.plants import FmuPlant
+    from cosim.scenario import load_scenario
+    from pathlib import Path
+
+    sc = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper_6uav.toml",
+                       ["simulation.duration=0.3"])
+    out = []
+    for by_hand in (False, True):
+        plant = FmuPlant.from_scenario(sc)
+        try:
+            m = Master(sc, plant, "hybrid", None)
+            m.use_compiled = False
+            if by_hand:
+                gen, yields = m.steps(sc.n_steps()), 0
+                try:
+                    while True:
+                        next(gen)
+                        yields += 1
+                except StopIteration as end:
+                    s = end.value
+                assert yields == sc.n_steps() == s["steps"]
+            else:
+                s = m.run(sc.n_steps())
+            out.append((s, plant.read().copy()))
+        finally:
+            plant.close()
+    (s0, S0), (s1, S1) = out
+    assert np.array_equal(S0, S1)
+    timing = ("wall_time_s", "realtime_factor", "us_per_step")
+    assert {k: v for k, v in s0.items() if k not in timing} == \
+        {k: v for k, v in s1.items() if k not in timing}
+
+
+def test_a_plant_that_fails_after_its_wait_fails_inside_the_loop():
+    """`resume` raising is thrown into the loop at its last step, as a plant that waits for
+    itself raises from `advance`: the loop's own handlers see it (here it records it and ends)."""
+    host = Host([1])
+
+    class _Breaks(_Paced):
+        def resume(self):
+            super().resume()
+            if self.resumes == 4:
+                raise OSError("link gone")
+
+    p, seen = _Breaks(time.monotonic(), 0.001), []
+
+    def loop():
+        try:
+            for _ in range(10):
+                p.advance()
+                yield
+        except OSError as exc:
+            seen.append((p.k, str(exc)))
+            return {"failed_at": p.k}
+
+    summary, _ = host.drive(loop(), p)
+    host.close()
+    assert summary == {"failed_at": 3} and seen == [(3, "link gone")]
