@@ -85,9 +85,10 @@ def delayed_loop(lin: Linearisation, h: float):
     return Phi0, (Bf @ Cd).tocsr()
 
 
-def delayed_parts(lin: Linearisation, h: float):
+def delayed_parts(lin: Linearisation, h: float, fresh_wrench: bool = False):
     """(Φ₀, B, C) with Φ_d = B C: the delayed data enter only through the wrench and θ's flow,
-    C = [K_d; G_d] ((6N + M) × n), B = blkdiag(B_d, h I)."""
+    C = [K_d; G_d] ((6N + M) × n), B = blkdiag(B_d, h I). ``fresh_wrench``: also K₀ (6N × n),
+    the wrench's gain on the fresh data (Φ₀'s wrench rows are B_d K₀ plus the plant's)."""
     N, M, J, E = lin.N, lin.M, lin.J, lin.edges
     Mt = M if lin.hybrid else 0
     n6, n = 6 * N, 12 * N + Mt
@@ -120,8 +121,9 @@ def delayed_parts(lin: Linearisation, h: float):
     Ad = sp.identity(12 * N, format="csr") + sp.csr_matrix(
         (np.full(n6, h), (np.arange(n6), n6 + np.arange(n6))), shape=(12 * N, 12 * N))
     top0 = Bd @ Kx[True] + sp.hstack([Ad, sp.csr_matrix((12 * N, Mt))])
+    extra = (Kx[True],) if fresh_wrench else ()
     if not Mt:
-        return top0.tocsr(), Bd, Kx[False]
+        return (top0.tocsr(), Bd, Kx[False], *extra)
     # θ_k(n+1) = θ_k(n) + h G(x_p(n), x_q(n−d), θ_k(n)): the owner's fresh δp, ξp, θ
     g = J[12]
     r = np.repeat(np.arange(M), 12)
@@ -138,7 +140,7 @@ def delayed_parts(lin: Linearisation, h: float):
     Gd = sp.csr_matrix((vd, (r, cd)), shape=(M, n))
     B = sp.block_diag([Bd, h * sp.identity(M)], format="csr")
     C = sp.vstack([Kx[False], Gd]).tocsr()
-    return sp.vstack([top0, G0]).tocsr(), B, C
+    return (sp.vstack([top0, G0]).tocsr(), B, C, *extra)
 
 
 def augmented(Phi0, B, C, d: int):

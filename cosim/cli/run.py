@@ -213,8 +213,8 @@ def _cmd_run(args) -> int:
     print(msg, file=sys.stderr)
     if sc.actuation_delay:
         print(f"se3sync run: the plant applied each wrench {sc.actuation_delay} step(s) late "
-              "(simulation.actuation_delay; the stability and delay checks are of the loop "
-              "without it)",
+              "(simulation.actuation_delay; the step's stability was checked with it, the "
+              "delay margin without it)",
               file=sys.stderr)
     return report_outcome("run", summary)
 
@@ -243,8 +243,23 @@ def _guards(args, sc, at) -> dict:
             f"h = {sc.step:g} s makes the sampled loop unstable (spectral radius "
             f"{st['spectral_radius']:.6f} >= 1; max_stable_step = {st['max_stable_step']:.3g} s); "
             "use a smaller step or --force", sc.path)
+    out = {}
+    if sc.actuation_delay:
+        at("checking the step's stability with the actuation delay")
+        from ..analysis.actuation import actuation_check
+        act = actuation_check(sc, law=args.controller, bisect=False)
+        if act["stable"] is False:
+            act = actuation_check(sc, law=args.controller, bisect=True)
+            upto = ("" if act["max_stable_step"] is None else
+                    f"; with it max_stable_step = {act['max_stable_step']:.3g} s")
+            raise ScenarioError(
+                "simulation.actuation_delay",
+                f"{sc.actuation_delay} step(s) of actuation delay make the sampled loop at h = "
+                f"{sc.step:g} s unstable (spectral radius {act['spectral_radius']:.6f} >= 1"
+                f"{upto}); use a smaller step or --force", sc.path)
+        out["actuation_check"] = act
     if net is None:
-        return {}
+        return out
     at("computing the delay margin")
     from ..analysis.delay_guard import delay_guard     # scipy: only with a [network] table
     progress = None
@@ -254,7 +269,8 @@ def _guards(args, sc, at) -> dict:
                     else f"{outside} roots outside the unit circle")
             print(f"se3sync run: delay margin: d = {d} steps, {what} ({seconds:.1f} s)",
                   file=sys.stderr, flush=True)
-    return {"delay_check": delay_guard(sc, args.controller, args.delay_agents, progress)}
+    out["delay_check"] = delay_guard(sc, args.controller, args.delay_agents, progress)
+    return out
 
 
 def _cmd_check(args) -> int:
@@ -289,9 +305,12 @@ def _cmd_check(args) -> int:
                       f"{stage} ({now - t0[0]:.0f} s)", file=sys.stderr, flush=True)
     out.update(check_extras(sc, st, args.controller, args.from_error, args.delay_agents,
                             progress, sweep))
-    if sc.actuation_delay:   # simulation.actuation_delay: the analysis is of the loop without it
+    act = None
+    if sc.actuation_delay:   # simulation.actuation_delay: the loop with it, besides the one without
+        from ..analysis.actuation import actuation_check
         out["actuation_delay_steps"] = sc.actuation_delay
-    rc = 0 if st["stable"] else EXIT_UNSTABLE
+        out["actuation"] = act = actuation_check(sc, law=args.controller)
+    rc = 0 if st["stable"] and (act is None or act["stable"] is not False) else EXIT_UNSTABLE
     if args.json:
         print(json.dumps(out, indent=1))
         return rc
@@ -314,9 +333,19 @@ def _cmd_check(args) -> int:
         f"spectral_radius {st['spectral_radius']:.8f} ({'stable' if st['stable'] else 'UNSTABLE'})",
         f"max_stable_step {st['max_stable_step']:.4g} s",
     ]
-    if sc.actuation_delay:
-        lines.append(f"warning         simulation.actuation_delay = {sc.actuation_delay} step(s) "
-                     "is not part of this analysis (it is of the loop without it)")
+    if act is not None:
+        what = f"{act['actuation_delay_steps']} step(s) late (simulation.actuation_delay"
+        if act["network_delay_steps"]:
+            what += f", with the network's {act['network_delay_steps']} step(s)"
+        if act["spectral_radius"] is None:
+            lines.append(f"actuation       {what}): {act['method']}")
+        else:
+            upto = ("" if act["max_stable_step"] is None else
+                    f"; max_stable_step {act['max_stable_step']:.4g} s with it")
+            lines.append(f"actuation       {what}): spectral radius {act['spectral_radius']:.8f} "
+                         f"({'stable' if act['stable'] else 'UNSTABLE'}{upto})")
+        lines.append("                the delay margin and the rates below are of the loop "
+                     "without it")
     lines += check_lines(out)
     print("\n".join(lines))
     return rc
