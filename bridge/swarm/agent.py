@@ -30,6 +30,7 @@ swarm equals `se3sync run` on the float32 reference plant (`bridge.mavlink.trans
 from __future__ import annotations
 
 import dataclasses
+import gc
 import math
 import os
 import sys
@@ -814,6 +815,17 @@ def _warm_up(node: AgentNode) -> None:
             np.ascontiguousarray(loc.inertias), np.zeros(M), np.zeros(M), np.zeros((N, 4)))
 
 
+def _freeze_heap() -> int:
+    """What the start-up built (the modules, numba's registries, the links) lives as long as the
+    process: collected once, then frozen (`gc.freeze`), so the collector's full passes walk only
+    what the steps allocate. Without it a full pass walked all of it while the loop waited: 50–200
+    ms with 16 agents in a process at 100 Hz (2 such passes a run in each process, each 5–20
+    periods late at once for all its agents). Returns how many objects are frozen."""
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
+
+
 def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = False,
               start: float | None = None, start_file=None, key_file=None, insecure: bool = False,
               vehicle: str | None = None, connect_timeout: float | None = None,
@@ -851,6 +863,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
         node.connect()
         startup["connected_s"] = _process_age()   # …and the vehicle's first state
         startup["ready_s"] = _process_age()       # …ready to step: the swarm's start awaited
+        startup["frozen_objects"] = _freeze_heap()
         if start_file is not None and not lockstep:
             start = node.wait_start(start_file)
         spl = max(1, int(round(1.0 / h)))
