@@ -840,7 +840,8 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
     ``host``: the `bridge.swarm.host.Host` of a process running several agents (one thread
     each): its ``stop`` event stops this agent as a signal would, its master loop is registered
     with it (so that it can be asked to stop), and the summary's ``cpu_s`` is this thread's own,
-    with the process's in ``host``."""
+    with the process's in ``host``. Meant for a process of its own (`se3sync agent`): before
+    its loop it freezes the process's heap (`_freeze_heap`)."""
     hosted = host is not None
     if not hosted:   # (a host sets it once for its agents)
         limit_process(AGENT_THREADS)   # one job per process: BLAS threads would only compete
