@@ -100,6 +100,7 @@ def test_lockstep_swarm_equals_run_on_the_float32_plant(tmp_path, encoding, per_
     hosts = [a.get("host", {}).get("agents") for a in merged["agents"]]
     assert hosts == ([None] * 6 if per_process == 1 else [[1, 2, 3]] * 3 + [[4, 5, 6]] * 3)
     assert len(merged["exit_status"]) == 1 + 6 // per_process   # the vehicle process too
+    assert merged["agents_per_process"] == per_process
     for log in [tmp_path / "swarm.mcap", *agent_logs]:
         with open(log, "rb") as f:
             chans = make_reader(f).get_summary().channels.values()
@@ -119,6 +120,44 @@ def test_lockstep_swarm_equals_run_on_the_float32_plant(tmp_path, encoding, per_
     for f in ("rot_err", "pos_err", "theta", "omega", "v", "V"):
         assert np.allclose(d[f], r[f], rtol=2e-5, atol=1e-6), f
     assert [(j["t"], j["edge"]) for j in d["jumps"]] == [(j["t"], j["edge"]) for j in r["jumps"]]
+
+
+@pytest.mark.parametrize("cores", [1, 2, 3, 4, 8, 64])
+def test_auto_agents_per_process_spreads_over_the_cores_within_a_period(cores):
+    """`--agents-per-process auto`: the fewest agents per process that keep to two processes
+    per core, unless a process's agents would not step in a quarter of a period."""
+    from bridge.swarm.launcher import (AUTO_PROCESSES_PER_CORE, AUTO_QUEUE_SHARE, AUTO_STEP_S,
+                                       auto_agents_per_process)
+
+    for n in (1, 2, 5, 6, 16, 31, 64, 200, 1000):
+        for h in (0.001, 0.004, 0.01, 0.05):
+            K = auto_agents_per_process(n, h, cores)
+            fits = lambda k: k * AUTO_STEP_S <= AUTO_QUEUE_SHARE * h   # noqa: E731
+            spread = lambda k: -(-n // k) <= AUTO_PROCESSES_PER_CORE * cores   # noqa: E731
+            assert 1 <= K <= n
+            assert K == 1 or fits(K), (n, h, K)
+            if spread(K):       # K − 1 would need more processes than two per core
+                assert K == 1 or not spread(K - 1), (n, h, K)
+            else:               # limited by the period: one more would not fit
+                assert not fits(K + 1), (n, h, K)
+
+
+@pytest.mark.slow
+@pytest.mark.realtime
+@pytest.mark.timeout(300)
+def test_swarm_agents_per_process_auto(tmp_path):
+    """`swarm --agents-per-process auto` starts the processes the rule gives for this machine
+    and says which K ran."""
+    from bridge.swarm.launcher import auto_agents_per_process
+
+    sets, _, _ = _ports()
+    p, merged = _swarm(tmp_path, sets, "--lockstep", "--duration", "0.1",
+                       "--agents-per-process", "auto")
+    assert p.returncode == 0, p.stderr
+    K = auto_agents_per_process(6, 0.004)
+    assert merged["agents_per_process"] == K
+    assert len(merged["exit_status"]) == 1 + -(-6 // K)
+    assert all(a["steps"] == 25 for a in merged["agents"])
 
 
 class _Forger(threading.Thread):
@@ -441,6 +480,7 @@ def test_killed_agent_neighbours_fail_safe_then_it_rejoins_and_the_swarm_converg
     (["agent", HIL, "--id", "1,2", "--log", "/nonexistent-se3sync/a_{id}.mcap"], "--log"),
     (["agent", HIL, "--id", "1,2", "--vehicle", "udpin:127.0.0.1:14550"], "--vehicle"),
     (["swarm", HIL, "--agents-per-process", "0"], "--agents-per-process"),
+    (["swarm", HIL, "--agents-per-process", "several"], "--agents-per-process"),
     (["agent", HIL, "--id", "2", "--lockstep", "--set", "network.delay=0.01"], "network.delay"),
     (["agent", HIL, "--id", "2", "--set", "network.loss=1.5"], "network.loss"),
     (["agent", HIL, "--id", "2", "--start", "nan"], "--start"),
