@@ -161,6 +161,12 @@ class StateTracker:
             n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
             if n2 > 0:
                 vals[10:13] = _rot_T_apply(q, vals[10:13])
+        if not self.n_odometry and self.source == "fallback":
+            # the first ODOMETRY after states from the fallback: its time_usec is another clock
+            # than their time_boot_ms (often the Unix epoch), so it starts the clock estimate
+            # afresh; checked against theirs it was refused as `future` for good, and the vehicle
+            # stayed on the fallback's rate
+            self.reset_clock()
         ok = self._accept(vals, int(m.time_usec), t_wall, "odometry")
         if ok and not self.n_odometry:
             self.time_usec = int(m.time_usec)

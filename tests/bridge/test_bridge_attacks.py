@@ -24,7 +24,7 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 
 from _attack import can_spoof, os_ports, spoofed_sendto, swarm_scenario  # noqa: E402
-from _machine import OTHER_MIN, CpuShare, skip_if_deadline_missed  # noqa: E402
+from _machine import CpuShare, skip_if_deadline_missed  # noqa: E402
 from _bridge import ROOT, VehicleThread, bound_udp, load  # noqa: E402
 
 from bridge.mavlink.link import Counters, Peer, mavlink2  # noqa: E402
@@ -491,53 +491,28 @@ def test_a_real_ground_station_configures_telemetry_but_cannot_actuate():
 
 
 # ------------------------------------------------------------------------------ issue 33, 4
-SETTLE_S = 2.2   # a late clock-offset estimate is gone after two windows (`StateTracker`)
-
-
 @pytest.mark.realtime
 def test_connect_counts_no_phantom_losses_from_fallback_messages():
     """`connect` reported "dropped 1224" on a clean loopback run: the vehicles' ATTITUDE_QUATERNION
     and LOCAL_POSITION_NED, authentic but unused while ODOMETRY comes, were left out of the
     sequence count, so each made a gap. Now `dropped` is what was lost on the way: here nothing
-    (or what the kernel dropped).
-
-    Judged over one second after a settling of `SETTLE_S`. The vehicles run in this process: a
-    stall of the whole process (seconds on a busy machine) stops the senders too, so every state
-    read after it is old and sets the clock offset late, and the fresh ones that follow are
-    refused as ``future`` until two offset windows have passed (a vehicle in a process of its
-    own keeps sending through the receiver's stall, and its newest state keeps the offset
-    right). A refused state's sequence number is not counted, so it shows as a gap: when the
-    window still holds such refusals and other work took the cores, the test skips and says so."""
+    (or what the kernel dropped)."""
     from bridge.mavlink.plant import MavlinkPlant
 
     port = os_ports(1)[0]
     sc = load(["bridge.routing=shared", f"bridge.base_port={port}"])
-    keys = ("received", "dropped", "kernel_drops", "rejected")
-
-    def poll_for(p, seconds):
-        t_end = time.monotonic() + seconds
-        while time.monotonic() < t_end:
-            p.poll(0.01)
-        st = p.stats()
-        return {k: st[k] or 0 for k in keys}, dict(st["rejected_by_reason"])
-
     with VehicleThread(scenario=sc, aux_rate=50) as srv:
         p = MavlinkPlant(sc, connect_timeout=20, on_event=lambda s: None).connect()
         try:
-            st0, why0 = poll_for(p, SETTLE_S)
-            with CpuShare() as cpu:
-                st1, why1 = poll_for(p, 1.0)
+            t_end = time.monotonic() + 1.0
+            while time.monotonic() < t_end:
+                p.poll(0.01)
+            st = p.stats()
         finally:
             p.close()
-    d = {k: st1[k] - st0[k] for k in keys}
-    why = {r: n - why0.get(r, 0) for r, n in why1.items() if n - why0.get(r, 0)}
-    if d["rejected"] and set(why) <= {"future", "stale"} and cpu.other is not None \
-            and cpu.other >= OTHER_MIN:
-        pytest.skip(f"the process stalled while other work took {cpu.other:.2f} cores: "
-                    f"{why} of its vehicles' states refused by their timing")
-    assert d["received"] > 6 * 50 * 2 * 0.5          # the aux messages did arrive
-    assert d["dropped"] <= d["kernel_drops"], (d, why)
-    assert d["rejected"] == 0 and srv.counters.as_dict()["rejected"] == 0, (d, why)
+    assert st["received"] > 6 * 50 * 2 * 0.5          # the aux messages did arrive
+    assert st["dropped"] <= (st["kernel_drops"] or 0), st
+    assert st["rejected"] == 0 and srv.counters.as_dict()["rejected"] == 0
 
 
 @pytest.mark.realtime

@@ -192,6 +192,44 @@ def test_state_tracker_rejections():
     assert tr2.reboots == 1 and tr2.time_usec == 5000 and dict(c2.rejected) == {"out_of_order": 4}
 
 
+class _Att:
+    def __init__(self, t_ms):
+        self.time_boot_ms, self.q1, self.q2, self.q3, self.q4 = t_ms, 1.0, 0.0, 0.0, 0.0
+        self.rollspeed = self.pitchspeed = self.yawspeed = 0.0
+
+
+class _Pos:
+    def __init__(self, t_ms, x=0.0):
+        self.time_boot_ms, self.x, self.y, self.z = t_ms, x, 0.0, 0.0
+        self.vx = self.vy = self.vz = 0.0
+
+
+def test_odometry_after_the_fallback_starts_its_own_clock():
+    """A vehicle sends ODOMETRY (time_usec: here the Unix epoch) and, more slowly, the fallback
+    pair (time_boot_ms). When the pair is taken first, the ODOMETRY that follows is on another
+    clock: it must not be judged by the pair's (it was refused as `future` for good, and the
+    vehicle stayed on the fallback). From the first ODOMETRY on, the pair is not used."""
+    c = Counters()
+    tr = StateTracker(c, stale_after=0.1)
+    w0, epoch_us = 100.0, 1_795_000_000_000_000
+    assert not tr.on_attitude_quaternion(_Att(180), w0)
+    assert tr.on_local_position_ned(_Pos(180, x=1.0), w0) and tr.source == "fallback"
+    for k in range(1, 50):                      # ODOMETRY at 250 Hz from the next instant on
+        assert tr.on_odometry(_Odo(epoch_us + 4000 * k, x=2.0), w0 + 0.004 * k), k
+        assert tr.source == "odometry" and tr.wire[0] == 2.0
+        if k % 5 == 0:                          # the pair still comes: ignored, never refused
+            assert not tr.on_attitude_quaternion(_Att(180 + 4 * k), w0 + 0.004 * k)
+            assert not tr.on_local_position_ned(_Pos(180 + 4 * k, x=9.0), w0 + 0.004 * k)
+    assert tr.n_odometry == 49 and tr.wire[0] == 2.0 and not c.rejected
+    # a vehicle on the fallback alone keeps its clock: a stale pair is still refused
+    c2 = Counters()
+    tr2 = StateTracker(c2, stale_after=0.1)
+    tr2.on_attitude_quaternion(_Att(1000), w0)
+    assert tr2.on_local_position_ned(_Pos(1000), w0)
+    tr2.on_attitude_quaternion(_Att(1004), w0 + 0.5)
+    assert not tr2.on_local_position_ned(_Pos(1004), w0 + 0.5) and dict(c2.rejected) == {"stale": 1}
+
+
 def test_one_future_stamped_state_holds_no_window():
     """Issue 29 (the same fault as the agents' link, at the bridge): one ODOMETRY stamped 5 s
     ahead made every genuine state out of order (and, through the stale reference, stale)."""
