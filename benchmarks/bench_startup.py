@@ -8,7 +8,9 @@ Reports the median wall time of K runs of each command (numba's on-disk cache wa
 run first) and, with --against, the ratio new/old.
 
 Section ``agent``, K fresh processes per tree (medians): ``python -c "import bridge.swarm.agent"``
-(its import time, VmRSS after it, the modules it brings of those an agent does not need), then
+after choosing the kernels as `se3sync agent` does (`bridge.swarm.aot.use`; the tree column
+says which ran): its import time, VmRSS after it, the modules it brings of those an agent does
+not need; then
 the same process builds agent 2 of hil_6uav (`AgentNode`) and loads its compiled kernels
 (`bridge.swarm.agent._warm_up`): process age and VmRSS, RssAnon, RssFile, PSS after that. And
 `se3sync agent` itself (agent 2 of hil_6uav against one loopback vehicle process, 0.2 s, no
@@ -68,6 +70,11 @@ def mem():
     return d
 a0 = age()
 t = time.perf_counter()
+try:    # what `se3sync agent` does first: its kernels (an older tree has no choice)
+    from bridge.swarm import aot
+    kernels = aot.use()
+except ImportError:
+    kernels = "jit"
 import bridge.swarm.agent as A
 imp = time.perf_counter() - t
 after_import = mem()
@@ -78,7 +85,7 @@ node = A.AgentNode(sc, 2)
 t = time.perf_counter()
 A._warm_up(node)
 warm = time.perf_counter() - t
-print(json.dumps({"age_at_main": a0, "import_s": imp, "import": after_import, "not_needed": mods,
+print(json.dumps({"kernels": kernels, "age_at_main": a0, "import_s": imp, "import": after_import, "not_needed": mods,
                   "warm_up_s": warm, "age_warm": age(), "warm": mem()}))
 node.close()
 """
@@ -154,7 +161,8 @@ def agent_section(trees: dict, repeat: int, tmp: str):
         mem = {f: _med([x["memory"].get(f) for x in r]) for f in ("vm_hwm_mb", "rss_anon_mb",
                                                                   "rss_file_mb", "pss_mb")}
         mods = sorted({m for x in p for m in x["not_needed"]})
-        print(f"{k}: import bridge.swarm.agent {_med([x['import_s'] for x in p]) * 1e3:.0f} ms, "
+        kern = ", ".join(sorted({x["kernels"].partition(":")[0] for x in p}))
+        print(f"{k} ({kern}): import bridge.swarm.agent {_med([x['import_s'] for x in p]) * 1e3:.0f} ms, "
               f"VmRSS {imp['VmRSS']:.1f} MB (anon {imp['RssAnon']:.1f}, file "
               f"{imp['RssFile']:.1f}); not needed but imported: {', '.join(mods) or 'none'}; "
               f"after AgentNode + _warm_up ({_med([x['warm_up_s'] for x in p]) * 1e3:.0f} ms, "
@@ -166,7 +174,7 @@ def agent_section(trees: dict, repeat: int, tmp: str):
               f"{_f(mem['vm_hwm_mb'], '{:.1f}')}, RssAnon {_f(mem['rss_anon_mb'], '{:.1f}')}, "
               f"RssFile {_f(mem['rss_file_mb'], '{:.1f}')}, PSS {_f(mem['pss_mb'], '{:.1f}')} MB "
               f"(max_rss_mb {_f(_med([x['max_rss_mb'] for x in r]), '{:.1f}')})")
-        rows.append([k, f"{_med([x['import_s'] for x in p]) * 1e3:.0f}",
+        rows.append([f"{k} ({kern})", f"{_med([x['import_s'] for x in p]) * 1e3:.0f}",
                      f"{imp['VmRSS']:.1f} ({imp['RssAnon']:.1f} + {imp['RssFile']:.1f})",
                      ", ".join(mods) or "none",
                      f"{warm['VmRSS']:.1f} ({warm['RssAnon']:.1f} + {warm['RssFile']:.1f}), "

@@ -11,7 +11,7 @@ from cosim.cli.live_options import add_live_options, live_target
 from cosim.cli.outcome import report_outcome
 from cosim.guards import EXIT_DIVERGED
 from cosim.cli.run import add_log_encoding
-from cosim.registry import LAWS
+from cosim.registry import AGENT_AOT, LAWS
 
 __all__ = ["register", "EXIT_NOT_CONNECTED", "EXIT_LINK"]
 
@@ -161,6 +161,7 @@ def register(sub) -> None:
     p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
                    help="the law (default hybrid), one with a per-agent view; "
                         + "; ".join(f"{k}: {v[1]}" for k, v in LAWS.items()))
+    _kernels_option(p, "the agent's")
     p.add_argument("--log", metavar="OUT.mcap", help="write the agent's MCAP log here")
     add_log_encoding(p, "the agent's log's")
     p.add_argument("--summary", metavar="OUT.json", help="write the agent's summary JSON here")
@@ -208,6 +209,7 @@ def register(sub) -> None:
                    help="override a scenario value (passed to every process); repeatable")
     p.add_argument("--controller", choices=tuple(LAWS), default="hybrid",
                    help="the law every agent runs (default hybrid), one with a per-agent view")
+    _kernels_option(p, "the agents'")
     p.add_argument("--key", metavar="FILE", help="MAVLink 2 signing key file for every link")
     p.add_argument("--start-delay", type=float, default=None, metavar="S",
                    help="real time: step 0 comes this long after every agent has connected to "
@@ -251,7 +253,28 @@ def _per_agent(option: str, path, ids: tuple):
     return lambda i: path.replace("{id}", str(i))
 
 
+def _kernels_option(p, whose: str) -> None:
+    p.add_argument("--kernels", choices=("aot", "jit"), default="aot",
+                   help=f"{whose} compiled kernels: aot (default) compiled ahead of time by "
+                        "numba.pycc, built once per source beside numba's cache (~12 s), so the "
+                        "process runs without numba and LLVM (about 100 MB less; laws "
+                        f"{', '.join(AGENT_AOT)}; where it cannot be built, jit, and the summary's "
+                        "startup.kernels says why); jit: numba's JIT, from its on-disk cache")
+
+
+def _choose_kernels(kernels: str, law: str) -> str:
+    """The agent process's kernels, chosen before anything imports one (`bridge.swarm.aot`)."""
+    if kernels == "jit":
+        return "jit"
+    if law not in AGENT_AOT:
+        return f"jit: the law {law!r} has kernels of its own"
+    from bridge.swarm import aot
+
+    return aot.use()
+
+
 def _cmd_agent(args) -> int:
+    kernels = _choose_kernels(args.kernels, args.controller)
     from cosim.plants import refuse_actuation_delay
     from cosim.scenario import load_scenario
 
@@ -294,7 +317,8 @@ def _cmd_agent(args) -> int:
                     vehicle=args.vehicle, connect_timeout=args.connect_timeout,
                     signing_state=args.signing_state, tlog=tlog_of(i), log_path=log_of(i),
                     summary_path=summary_of(i), log_encoding=args.log_encoding,
-                    progress=len(ids) == 1 and sys.stderr.isatty(), live_feed=feed)
+                    progress=len(ids) == 1 and sys.stderr.isatty(), live_feed=feed,
+                    kernels=kernels)
 
     if len(ids) == 1:
         try:

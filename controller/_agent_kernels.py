@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._jit import jit
+from .jit import jit
 from ._kernels import (P_DELTA, P_KE, P_KTH, P_KX, P_KXI, P_THETA, Ad_inv_T, _t3, _t9,
                        gradient_core, mu_core, prepare, rel_pose_rows)
 from .layout import S_XI

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from ._jit import jit
+from .jit import jit
 
 P_A = 0        # A, 9 values row-major
 P_B = 9        # b, 3

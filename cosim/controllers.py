@@ -29,10 +29,9 @@ from __future__ import annotations
 from typing import Callable, NamedTuple, Protocol, runtime_checkable
 
 import numpy as np
-from numba import njit, types
-from numba.extending import overload
 
 from controller import AgentStepper, GradientController, HybridController
+from controller.jit import aot_module, jit, numba_module
 from controller.errors import Se3SyncError
 from controller.kernels import network_step
 
@@ -133,10 +132,14 @@ def compiled_law_step(record):
     about 8 % of the paper's step), which inlining removes."""
     def register(step):
         _PY_STEPS[record] = step
+        if aot_module() is not None:
+            return step     # a process without numba (an agent's) never runs the compiled loop
+        numba = numba_module()
+        from numba.extending import overload
 
         @overload(law_step, inline="always")
         def _typed(args, S, h):
-            if isinstance(args, types.BaseNamedTuple) and args.instance_class is record:
+            if isinstance(args, numba.types.BaseNamedTuple) and args.instance_class is record:
                 return lambda args, S, h: step(args, S, h)
         return step
     return register
@@ -159,7 +162,7 @@ class PaperStep(NamedTuple):
 
 
 @compiled_law_step(PaperStep)
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@jit(inline=True)
 def _paper_step(a, S, h):
     return network_step(S, a.theta, a.edges, a.P, h, a.hybrid, a.u, a.mu, a.jumped,
                         a.theta_prev, a.theta_jump)

@@ -41,9 +41,9 @@ from controller.kernels import metrics, network_U
 from plant_fmu.fast import CALL_NAMES
 
 from . import signals
+from .signals import MAX_BLOCK
 from .controllers import law_step
 
-MAX_BLOCK = 1000  # steps between two checks for Ctrl-C / progress updates
 
 __all__ = ["compiled_pair", "run_compiled", "Metrics", "LogRecords", "Jumps", "Samples"]
 

@@ -21,7 +21,6 @@ from controller.kernels import metrics, network_U
 
 from . import guards, signals
 from .controllers import edge_state_of, law_name, make_controller
-from .fastloop import MAX_BLOCK, compiled_pair, run_compiled
 from .scenario import design_summary
 
 __all__ = ["Master", "NetworkMetrics", "make_controller", "design_summary"]
@@ -271,7 +270,7 @@ class Master:
             self._stop = True
         # a plant paced by the wall clock says how many steps it may run between two checks
         # for Ctrl-C (MavlinkPlant: ~0.1 s of steps), so a stop never waits for 1000 periods
-        block = max(1, min(MAX_BLOCK, int(getattr(plant, "max_block", MAX_BLOCK))))
+        block = max(1, min(signals.MAX_BLOCK, int(getattr(plant, "max_block", signals.MAX_BLOCK))))
         interrupted = False
         broken = False
         timed_out = False
@@ -280,7 +279,11 @@ class Master:
         u = None
         t0 = time.perf_counter()
         fleet = None
-        if self.use_compiled and self.first_step == 0:
+        if (self.use_compiled and self.first_step == 0
+                and getattr(plant, "compiled_plant", None) is not None):
+            # imported only here: a process whose plant has no compiled loop (an agent's, on a
+            # vehicle) runs without numba (controller.jit.use_aot)
+            from .fastloop import compiled_pair, run_compiled
             fleet = compiled_pair(plant, ctrl)
         try:
             if fleet is not None:

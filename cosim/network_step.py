@@ -26,13 +26,13 @@ from __future__ import annotations
 
 from controller.kernels import (P_KE, P_KX, P_KXI, Ad_inv_T, edge_update, gradient_core,
                                 prepare, rel_pose_rows)
+from controller.jit import jit
 from controller.layout import S_XI
-from numba import njit
 
 __all__ = ["delayed_network_step", "receive", "fail_safe", "age_of"]
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@jit(inline=True)
 def receive(S, n, sched, r, ring_S, arrival, held, recv_S, edges, max_age, hold, age_hist,
             counts, failsafe):
     """Step n's links: S published into the ring, this step's message of every link scheduled,
@@ -73,13 +73,13 @@ def receive(S, n, sched, r, ring_S, arrival, held, recv_S, edges, max_age, hold,
             failsafe[dst, 0] = 1
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@jit(inline=True)
 def age_of(n, held, l):
     """The age in steps of the data link l delivers at step n."""
     return n - held[l] if held[l] >= 0 else n
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@jit(inline=True)
 def fail_safe(u, failsafe):
     """Zero wrench for the agents marked by `receive`; counts their steps and entries."""
     for i in range(u.shape[0]):
@@ -91,7 +91,7 @@ def fail_safe(u, failsafe):
                 u[i, a] = 0.0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@jit
 def delayed_network_step(S, n, sched, r, ring_S, ring_theta, arrival, held, recv_S, recv_theta,
                          term, max_age, hold, theta, edges, P, h, hybrid, u, mu, jumped,
                          theta_prev, theta_jump, age_hist, counts, failsafe):

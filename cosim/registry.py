@@ -15,7 +15,7 @@ import importlib
 
 from controller.errors import Se3SyncError
 
-__all__ = ["LAWS", "PLANTS", "resolve"]
+__all__ = ["LAWS", "PLANTS", "AGENT_AOT", "resolve"]
 
 # name -> ("module:attribute" of a factory(scenario) -> Controller, one-line description)
 LAWS = {
@@ -25,6 +25,10 @@ LAWS = {
     "decoupled": ("cosim.laws.decoupled:make", "decoupled SO(3) × R³ synchronisation, the design "
                                                "the paper contrasts itself with"),
 }
+
+# the laws whose per-agent view runs on the agent kernels compiled ahead of time
+# (`bridge.swarm.aot`): an agent process of one of these runs without numba
+AGENT_AOT = ("hybrid", "gradient")
 
 # name -> ("module:attribute" of a Plant class with from_scenario(scenario, **options), description)
 PLANTS = {

@@ -16,13 +16,14 @@ import sys
 import threading
 
 __all__ = ["install", "uninstall", "note", "requested", "pending", "received", "exit_status", "reset",
-           "catching", "deferred", "interruptible", "set_stage", "stage_at_signal"]
+           "catching", "deferred", "interruptible", "set_stage", "stage_at_signal", "MAX_BLOCK"]
 
 _received: list = []
 _installed: list = []
 _stage: list = [None]      # what the command is doing (`set_stage`), for a stop before any step
 _stage_at: list = []       # ... when the first signal arrived
 STATUS = {"SIGINT": 130, "SIGTERM": 143}
+MAX_BLOCK = 1000  # steps of the master loop between two checks for a signal / progress updates
 
 
 def note(signum) -> None:

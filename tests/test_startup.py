@@ -1,4 +1,4 @@
-"""Start-up: what `controller._jit` keeps numba from importing, and that numba still does
+"""Start-up: what `controller.jit` keeps numba from importing, and that numba still does
 everything it did (BLAS, its config file, extension entry points). Each case runs in a fresh
 process, since each is about what a process imports."""
 import json
@@ -55,7 +55,7 @@ print(before, "scipy.linalg" in sys.modules, equal, q.tolist())
 
 
 def test_numba_loads_without_importing_scipy_linalg_and_blas_still_works():
-    """`controller._jit` steps over numba's import-time BLAS probe (the start-up's 0.11 s):
+    """`controller.jit` steps over numba's import-time BLAS probe (the start-up's 0.11 s):
     the first compiled call leaves scipy.linalg unimported, and a kernel that does call BLAS
     still compiles (numba's own probe is back in place) and agrees with numpy."""
     r = subprocess.run([sys.executable, "-c", _BLAS_SCRIPT], capture_output=True, text=True,
@@ -98,14 +98,16 @@ def test_numba_config_file_is_still_read(tmp_path):
     (tmp_path / "at_import" / ".numba_config.yaml").write_text("boundscheck: 1\n")
     assert _run("""
         import json
-        import controller._jit
+        import controller.jit
+        controller.jit.numba_module()   # numba is imported at the first kernel
         from numba.core import config
         print(json.dumps(config.BOUNDSCHECK))
     """, cwd=tmp_path / "at_import") == 1
     (tmp_path / "later").mkdir()
     assert _run("""
         import json, sys
-        import controller._jit
+        import controller.jit
+        controller.jit.numba_module()   # numba is imported at the first kernel
         from numba.core import config
         before = (config.BOUNDSCHECK, "yaml" in sys.modules)
         open(".numba_config.yaml", "w").write("boundscheck: 1\\n")
@@ -127,7 +129,7 @@ def test_a_numba_extension_entry_point_still_runs(tmp_path):
     code = """
         import json, sys
         import numpy as np
-        from controller import _jit, se3
+        from controller import jit as _jit, se3
         scan = _jit._no_numba_extensions()
         from importlib.metadata import entry_points
         truth = not list(entry_points(group="numba_extensions"))

@@ -98,11 +98,21 @@ def is_cli(module: str) -> bool:
     return "cli" in last[1:] or last[-1].endswith("_cli")
 
 
+# the function-local imports of the project's own modules outside the command line, and why
+# (docs/internals/layout.md)
+LAZY = {
+    ("cosim.master", "cosim.fastloop"): "the compiled loop's numba, only for a plant that has "
+                                        "one: an agent process (its plant a vehicle) runs "
+                                        "without numba (bridge.swarm.aot)",
+}
+
+
 def test_project_modules_are_imported_at_the_top():
     """docs/internals/layout.md: modules import the project's modules at the top; only the command-line
-    modules import the job they run inside its handler (start-up of `se3sync --help`)."""
+    modules import the job they run inside its handler (start-up of `se3sync --help`), and the
+    imports of `LAZY` are where they are for the reason it gives."""
     bad = sorted({f"{m} imports {d} inside a function" for m, deps in GRAPH.items()
-                  if not is_cli(m) for d, top in deps if not top})
+                  if not is_cli(m) for d, top in deps if not top and (m, d) not in LAZY})
     assert not bad, "\n".join(bad)
 
 

@@ -831,7 +831,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
               vehicle: str | None = None, connect_timeout: float | None = None,
               signing_state=None, tlog=None, log_path=None, summary_path=None,
               log_encoding: str = "json", progress: bool = False, on_event=None,
-              live_feed=None, host=None) -> dict:
+              live_feed=None, host=None, kernels: str | None = None) -> dict:
     """Agent ``agent_id`` from its vehicle's connection to its summary (see the module
     docstring); the library entry point of `se3sync agent`. Raises ConnectError (the vehicle
     never connected) and LinkError (lockstep: a vehicle or neighbour stopped answering; a late
@@ -841,7 +841,8 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
     each): its ``stop`` event stops this agent as a signal would, its master loop is registered
     with it (so that it can be asked to stop), and the summary's ``cpu_s`` is this thread's own,
     with the process's in ``host``. Meant for a process of its own (`se3sync agent`): before
-    its loop it freezes the process's heap (`_freeze_heap`)."""
+    its loop it freezes the process's heap (`_freeze_heap`). ``kernels``: what `se3sync agent`
+    chose (`bridge.swarm.aot.use`), recorded in the summary's ``startup``."""
     hosted = host is not None
     if not hosted:   # (a host sets it once for its agents)
         limit_process(AGENT_THREADS)   # one job per process: BLAS threads would only compete
@@ -857,7 +858,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
     failed = False
     sc = scenario
     h = node.h
-    startup = {}
+    startup = {} if kernels is None else {"kernels": kernels}
     try:
         _warm_up(node)
         startup["warm_s"] = _process_age()        # imports, set-up, the compiled kernels loaded
@@ -865,6 +866,7 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
         startup["connected_s"] = _process_age()   # …and the vehicle's first state
         startup["ready_s"] = _process_age()       # …ready to step: the swarm's start awaited
         startup["frozen_objects"] = _freeze_heap()
+        startup["numba_loaded"] = "numba" in sys.modules
         if start_file is not None and not lockstep:
             start = node.wait_start(start_file)
         spl = max(1, int(round(1.0 / h)))

@@ -46,12 +46,14 @@ from cosim.master import NetworkMetrics
 from cosim.scenario import design_summary
 from cosim.network import parse_network
 from cosim.plants import refuse_actuation_delay
+from cosim.registry import AGENT_AOT
 from cosim.scenario import ScenarioError, load_scenario
 
 from bridge.live import SwarmLive
 from bridge.mavlink import frames
 from bridge.mavlink.config import default_config, read_key_file
 from bridge.mavlink.link import parse_endpoint, require_key_or_insecure
+from bridge.swarm import aot
 
 __all__ = ["merge_summaries", "merge_logs", "run_swarm", "run_swarm_cli", "EXIT_AGENT_FAILED"]
 
@@ -478,7 +480,7 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
               key_file=None, start_delay=None, insecure: bool = False, progress: bool = False,
               python=None, on_event=None, log_encoding: str = "json",
               stop_requested: list | None = None, live=None,
-              agents_per_process: int = 1) -> tuple:
+              agents_per_process: int = 1, kernels: str = "aot") -> tuple:
     """Launches the swarm and merges its outputs; returns (merged summary, exit status): 0 all
     agents finished, EXIT_AGENT_FAILED an agent failed (the others are stopped), 130/143 a
     signal stopped everything (also one noted in ``stop_requested`` before the call: then no
@@ -488,7 +490,9 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
     None. agents_per_process: K > 1 runs agents 1..K in one process, K+1..2K in the next, …
     (`bridge.swarm.host`: one thread per agent; for a machine that simulates many vehicles);
     "auto": `auto_agents_per_process` for this machine's cores. The merged summary's
-    ``agents_per_process`` says which K ran."""
+    ``agents_per_process`` says which K ran. kernels: the agents' (`se3sync agent --kernels`);
+    "aot" builds the ahead-of-time module here first, once for all of them (`bridge.swarm.aot`),
+    and each agent's ``startup.kernels`` says what it ran."""
     say = on_event or (lambda s: print(f"se3sync swarm: {s}", file=sys.stderr, flush=True))
     sc = load_scenario(scenario_path, overrides, duration=duration)
     stop_requested = [] if stop_requested is None else stop_requested
@@ -537,6 +541,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
             elif vehicles == "loopback":
                 kids.start("vehicle", vehicle_argv(py, sc, scenario_path, sets, wd, lockstep, sec,
                                                    wd / "start"), wd / "vehicle.err")
+            if kernels == "aot" and law in AGENT_AOT and not stop_requested:
+                _build_kernels(say)
             start = None
             start_file = wd / "start"
             groups = [list(range(a, min(N, a + K - 1) + 1)) for a in range(1, N + 1, K)]
@@ -548,7 +554,8 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
                 tag = str(g[0]) if one else "{id}"
                 kids.start(name, [
                     py, "-m", "cosim.cli", "agent", *common, "--id", ",".join(map(str, g)),
-                    "--controller", law, "--summary", str(wd / f"agent_{tag}.json"),
+                    "--controller", law, "--kernels", kernels,
+                    "--summary", str(wd / f"agent_{tag}.json"),
                     *(["--log", str(wd / f"agent_{tag}.mcap"), "--log-encoding", log_encoding]
                       if log_path is not None else []),
                     *(["--lockstep"] if lockstep else ["--start-file", str(start_file)]), *sec,
@@ -663,6 +670,15 @@ def _refused_line(merged) -> str:
     return "; ".join(parts)
 
 
+def _build_kernels(say) -> None:
+    """The agents' ahead-of-time kernels built before they start, so that they do not all wait
+    for one build (or, where it cannot be built, each learns why at once and runs on the JIT)."""
+    try:
+        aot.ensure(progress=say)
+    except aot.AotError as exc:
+        say(f"the agents run on numba's JIT: {exc}")
+
+
 def run_swarm_cli(args) -> int:
     """Handler of ``se3sync swarm``."""
     early = [True] if signals.requested() else []   # noted while the command line loaded
@@ -713,7 +729,7 @@ def _swarm_cli(args, early: list) -> int:
                            start_delay=args.start_delay, insecure=args.insecure,
                            progress=sys.stderr.isatty(), log_encoding=args.log_encoding,
                            stop_requested=early, live=getattr(args, "live_target", None),
-                           agents_per_process=app)
+                           agents_per_process=app, kernels=args.kernels)
     f = merged.get("final") or {}
     tot = merged["link_total"]
     print(f"{sc.name}: {len(merged['agents']) - len(merged['agents_missing'])} agents, "

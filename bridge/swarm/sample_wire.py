@@ -20,10 +20,10 @@ path.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from bridge.mavlink import codec
 from bridge.mavlink.state import QUAT_TOL
+from controller.jit import jit
 
 __all__ = ["scan_sample", "SCAN_WIDTH", "ODOMETRY_SIZE", "THETA_SIZE"]
 
@@ -45,7 +45,7 @@ SCAN_WIDTH = 13 + 58                  # wire row, then at most one chunk of θ
 QUAT_MARGIN = 1e-9
 
 
-@njit(cache=True, nogil=True)
+@jit(error_model="python")
 def _crc(buf, start, end, extra):
     """MAVLink's X.25 (MCRF4XX) checksum of buf[start:end] followed by CRC_EXTRA."""
     crc = 0xFFFF
@@ -57,7 +57,7 @@ def _crc(buf, start, end, extra):
     return crc
 
 
-@njit(cache=True, nogil=True)
+@jit(error_model="python")
 def _packet(buf, i, n, signed, sysid, msgid, extra, size, payload):
     """The packet at buf[i:]: signed if ``signed`` else not (its signature is the caller's to
     verify), from (sysid, COMPONENT), id msgid, checksum right, its payload (zero-extended to
@@ -82,7 +82,7 @@ def _packet(buf, i, n, signed, sysid, msgid, extra, size, payload):
     return end
 
 
-@njit(cache=True, nogil=True)
+@jit(error_model="python")
 def _u64(p, o):
     v = np.uint64(0)
     for k in range(7, -1, -1):
@@ -90,7 +90,7 @@ def _u64(p, o):
     return v
 
 
-@njit(cache=True, nogil=True)
+@jit(error_model="python")
 def scan_sample(buf, n, signed, sysid, n_theta, h_us, limit, scratch, out, seqs):
     """Step s of the sample in datagram buf[:n] from neighbour ``sysid`` (owning ``n_theta`` ≤ 58
     edges), or −1 (see the module docstring). ``signed`` (0 or 1): the link's packets carry

@@ -3,6 +3,12 @@
 Kernels are written as scalar loops so that numba compiles them to tight machine code; with
 NUMBA_DISABLE_JIT=1 numba hands back the plain functions and the same source runs as Python,
 which is how the tests check that both give the same numbers.
+
+numba is imported at the first `jit` (a kernel module's import), not with this module. A process
+that has called `use_aot` before any kernel module was imported never imports it: `jit` hands
+back the ahead-of-time module's compiled function of the same name (`bridge.swarm.aot`: the
+agent process's kernels, built once by numba's AOT compiler), or the plain function for a
+kernel that module does not hold (set-up arithmetic, run once).
 """
 import os
 import sys
@@ -103,9 +109,6 @@ class _Lazy:
         return getattr(importlib.import_module(self._name), attr)
 
 
-numba = _import_numba()
-
-
 def _load_numba_without_blas_probe():
     """Load numba's array registry (numba.np.arraymath) without its BLAS probe.
 
@@ -131,18 +134,48 @@ def _load_numba_without_blas_probe():
         linalg.ensure_blas = probe
 
 
-_load_numba_without_blas_probe()
+_NUMBA = []     # numba, once imported here
+_AOT = []       # the ahead-of-time module, once `use_aot` chose it
 
 
-def jit(fn=None, *, inline=False):
+def numba_module():
+    """numba, imported (once) as `_import_numba` and `_load_numba_without_blas_probe` do."""
+    if not _NUMBA:
+        if _AOT:
+            raise RuntimeError("this process runs the ahead-of-time kernels: numba is not "
+                               "to be imported (controller.jit.use_aot)")
+        numba = _import_numba()
+        _load_numba_without_blas_probe()
+        _NUMBA.append(numba)
+    return _NUMBA[0]
+
+
+def use_aot(module) -> None:
+    """From now on `jit` hands back ``module``'s function of a kernel's name (or the plain
+    function where it has none) and never imports numba. Only before any kernel was compiled
+    here: a process is one or the other."""
+    if _NUMBA:
+        raise RuntimeError("use_aot: numba's kernels are already loaded in this process")
+    _AOT[:] = [module]
+
+
+def aot_module():
+    """The module `use_aot` chose, or None (numba compiles the kernels)."""
+    return _AOT[0] if _AOT else None
+
+
+def jit(fn=None, *, inline=False, error_model="numpy"):
     # cache=True writes the machine code next to the source, so a second process starts
     # without recompiling. fastmath stays off: the plain-Python run must agree to rounding.
     # inline="always" is for the small per-edge helpers: a compiled call that passes arrays
     # increments and decrements each array's reference count (atomic operations), which cost
     # more than the helper's arithmetic; inlining at numba's IR level removes them.
     def wrap(f):
+        if _AOT:
+            return getattr(_AOT[0], f.__name__, f)
+        options = dict(cache=True, nogil=True, error_model=error_model)
         if inline:
-            return numba.njit(cache=True, nogil=True, error_model="numpy", inline="always")(f)
-        return numba.njit(cache=True, nogil=True, error_model="numpy")(f)
+            options["inline"] = "always"
+        return numba_module().njit(**options)(f)
 
     return wrap(fn) if fn is not None else wrap

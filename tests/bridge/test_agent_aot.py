@@ -1,0 +1,267 @@
+"""The agent's kernels compiled ahead of time (`bridge.swarm.aot`) against numba's JIT of the same
+source: every exported kernel gives the same bits on random inputs (the jump branch, stale
+neighbours, fail-safe and rejected datagrams included), a lockstep swarm gives the same run
+either way, an agent process on them never imports numba, and where they cannot be had the
+process says why and stays on the JIT."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bridge.swarm import aot
+from controller import kernels as K
+from controller import layout
+
+ROOT = Path(__file__).resolve().parents[2]
+HIL = ROOT / "scenarios" / "hil_6uav.toml"
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture(scope="module")
+def ahead():
+    try:
+        return aot.load(aot.ensure())
+    except aot.AotError as exc:
+        pytest.skip(f"the ahead-of-time module cannot be built here: {exc}")
+
+
+@pytest.fixture(scope="module")
+def P():
+    from cosim.controllers import hybrid
+    from cosim.scenario import load_scenario
+
+    return np.ascontiguousarray(hybrid(load_scenario(HIL)).P)
+
+
+def _states(rng, n):
+    S = np.empty((n, layout.S_WIDTH))
+    S[:, layout.P] = rng.normal(size=(n, 3)) * 3.0
+    S[:, layout.R] = Rotation.random(n, random_state=int(rng.integers(1 << 31))).as_matrix() \
+        .reshape(n, 9)
+    S[:, layout.XI] = rng.normal(size=(n, 6))
+    return S
+
+
+def _same(a, b, what):
+    """Every bit: values (NaN where NaN) and types."""
+    if isinstance(a, tuple):
+        assert isinstance(b, tuple) and len(a) == len(b), what
+        for x, y in zip(a, b):
+            _same(x, y, what)
+        return
+    a, b = np.asarray(a), np.asarray(b)
+    assert a.dtype == b.dtype and a.shape == b.shape, what
+    assert a.tobytes() == b.tobytes(), what
+
+
+def _both(jit_f, aot_f, args, what):
+    """Call each on its own copies of ``args``; the returns and every array after the call
+    agree bit for bit."""
+    a1 = [x.copy() if isinstance(x, np.ndarray) else x for x in args]
+    a2 = [x.copy() if isinstance(x, np.ndarray) else x for x in args]
+    r1, r2 = jit_f(*a1), aot_f(*a2)
+    _same(r1, r2, f"{what}: return")
+    for k, (x, y) in enumerate(zip(a1, a2)):
+        if isinstance(x, np.ndarray):
+            _same(x, y, f"{what}: argument {k}")
+    return r1
+
+
+def test_the_module_holds_every_export_and_no_numba(ahead):
+    assert sorted(n for n in dir(ahead) if not n.startswith("_")) == sorted(aot.EXPORTS)
+    code = f"""
+        import sys
+        from bridge.swarm import aot
+        aot.load({str(aot.module_path())!r})
+        print("numba" in sys.modules, "llvmlite" in sys.modules)
+    """
+    r = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True,
+                       text=True, cwd=ROOT, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["False", "False"]
+
+
+def test_agent_step_equals_the_jit(ahead, P):
+    """agent_step over random neighbourhoods: stages 1, 2, 3, hybrid or not, fresh or stale
+    neighbours, fail-safe; rows at random attitudes, so the jump stage fires."""
+    rng = np.random.default_rng(31)
+    jumps = stale = 0
+    for trial in range(300):
+        nn = int(rng.integers(1, 5))               # neighbours
+        S = _states(rng, nn + 1)
+        E = nn + int(rng.integers(0, 2))
+        ea, eb, owned, nbr = [], [], [], []
+        for r in range(E):
+            j = 1 + r % nn
+            own = bool(rng.integers(2))
+            ea.append(0 if own else j)
+            eb.append(j if own else 0)
+            owned.append(own)
+            nbr.append(j)
+        mode = rng.integers(0, 2, size=nn + 1) * (rng.random() < 0.5)
+        stale += int(np.any(mode[nbr] != K.FRESH))
+        theta = rng.uniform(-3, 3, E)
+        args = (S, np.array(ea, np.int64), np.array(eb, np.int64), np.array(owned),
+                np.array(nbr, np.int64), mode.astype(np.int64), bool(rng.integers(2)), P,
+                0.004, int(rng.integers(1, 4)), bool(rng.random() < 0.1), theta,
+                rng.uniform(-3, 3, E), np.zeros(E), np.zeros(E), np.zeros(E),
+                np.zeros(E, np.bool_), rng.normal(size=(E, 6)), rng.normal(size=(E, 12)),
+                np.zeros((nn + 1, 6)))
+        jumps += _both(K.agent_step, ahead.agent_step, args, f"agent_step trial {trial}")
+    assert jumps > 20 and stale > 20     # both branches were exercised
+
+
+def test_the_network_kernels_equal_the_jit(ahead, P):
+    rng = np.random.default_rng(7)
+    for trial in range(100):
+        N = int(rng.integers(2, 9))
+        S = _states(rng, N)
+        edges = np.array([(int(rng.integers(0, k)), k) for k in range(1, N)], np.int64)
+        M = len(edges)
+        theta = rng.uniform(-3, 3, M)
+        U = _both(lambda *a: (K.network_U(*a), a[-1])[1],
+                  lambda *a: (ahead.network_U(*a), a[-1])[1],
+                  (S, theta, edges, P, np.zeros(M)), f"network_U {trial}")
+        _both(K.metrics, ahead.metrics,
+              (S, edges, U, 0.7, rng.uniform(0.5, 2, N), rng.normal(size=(N, 3, 3)),
+               np.zeros(M), np.zeros(M), np.zeros((N, 4))), f"metrics {trial}")
+        R9 = np.ascontiguousarray(S[:, layout.R])
+        R9[0] = np.diag([1.0, -1.0, -1.0]).ravel()         # half turns: Shepperd's branches
+        R9[1] = np.diag([-1.0, 1.0, -1.0]).ravel()
+        _both(K.rot_to_quat_rows, ahead.rot_to_quat_rows, (R9, np.zeros((N, 4))),
+              f"rot_to_quat_rows {trial}")
+        i, j = (int(x) for x in rng.integers(0, N, 2))
+        _both(K.relative_pose, ahead.relative_pose,
+              (S, i, S, j, np.zeros((3, 3)), np.zeros(3)), f"relative_pose {trial}")
+
+
+def test_the_one_edge_pieces_equal_the_jit(ahead, P):
+    rng = np.random.default_rng(8)
+    for trial in range(200):
+        Rb = Rotation.random(random_state=trial).as_matrix()
+        pb = rng.normal(size=3)
+        th = float(rng.uniform(-3, 3))
+        _both(K.edge_term, ahead.edge_term,
+              (Rb, pb, th, rng.normal(size=6), rng.normal(size=6), bool(trial % 2), P,
+               np.zeros(6)), f"edge_term {trial}")
+        _both(K.edge_flow, ahead.edge_flow, (Rb, pb, th, P, 0.004), f"edge_flow {trial}")
+        _both(K.wrench_sum, ahead.wrench_sum,
+              (rng.normal(size=6), rng.normal(size=(int(rng.integers(0, 5)), 6)), P,
+               np.zeros(6)), f"wrench_sum {trial}")
+
+
+@pytest.mark.parametrize("signed", [False, True])
+def test_scan_sample_equals_the_jit(ahead, signed):
+    """The neighbour-sample decoder over honest datagrams and every irregular kind the
+    reference path refuses or treats specially (test_sample_wire's), as a link calls it."""
+    from test_agent_link import KEY, scenario
+    from test_sample_wire import _Neighbour
+
+    from bridge.swarm.agent_link import AgentLink
+    from bridge.swarm.sample_wire import scan_sample
+
+    rng = np.random.default_rng(5 + signed)
+    link = AgentLink.from_scenario(scenario(), 2, compiled=True, key=KEY if signed else None)
+    try:
+        taken = refused = 0
+        for j in link.neighbours:
+            nb = _Neighbour(link, j, rng, key=KEY if signed else None)
+            nt = link._scan_nt[j]
+            for s in range(1, 200):
+                data = nb.honest(s) if s % 3 else nb.irregular(s)
+                args = (np.frombuffer(data, np.uint8), len(data), link._signed, j, nt, link.h_us,
+                        s + link.future_steps, link._scratch, link._scan_out, link._scan_seqs)
+                r = _both(scan_sample, ahead.scan_sample, args, f"scan_sample {j} {s}")
+                taken += r >= 0
+                refused += r < 0
+        assert taken > 100 and refused > 30
+    finally:
+        link.close()
+
+
+def _swarm(tmp_path, kernels, extra=()):
+    from bridge.mavlink.link import free_base_port
+
+    d = tmp_path / kernels
+    d.mkdir()
+    sets = [f"network.base_port={free_base_port(6)}", f"bridge.base_port={free_base_port(6)}"]
+    cmd = [sys.executable, "-m", "cosim.cli", "swarm", str(HIL), "--vehicles", "loopback",
+           "--lockstep", "--duration", "0.6", "--kernels", kernels, "--dir", str(d),
+           "--summary", str(tmp_path / f"{kernels}.json"), *extra]
+    for s in sets:
+        cmd += ["--set", s]
+    r = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=240)
+    assert r.returncode == 0, r.stderr
+    return json.loads((tmp_path / f"{kernels}.json").read_text()), {
+        i: json.loads((d / f"agent_{i}.json").read_text()) for i in range(1, 7)}
+
+
+@pytest.mark.realtime
+@pytest.mark.slow
+def test_a_lockstep_swarm_is_the_same_run_on_either_kernels(ahead, tmp_path):
+    """hil_6uav in lockstep, 150 steps, jumps included: the ahead-of-time agents and the JIT
+    agents give the same merged run, every sample's every number; the former never import
+    numba and hold less memory."""
+    m_aot, a_aot = _swarm(tmp_path, "aot")
+    m_jit, a_jit = _swarm(tmp_path, "jit")
+    assert m_aot["n_jumps"] == m_jit["n_jumps"] > 0
+    for key in ("final", "samples", "jumps"):
+        assert json.dumps(m_aot[key]) == json.dumps(m_jit[key]), key
+    for i in range(1, 7):
+        assert a_aot[i]["startup"]["kernels"] == "aot"
+        assert a_aot[i]["startup"]["numba_loaded"] is False
+        assert a_jit[i]["startup"]["kernels"] == "jit"
+        assert a_jit[i]["startup"]["numba_loaded"] is True
+        assert a_aot[i]["own"] == a_jit[i]["own"]
+        assert a_aot[i]["memory"]["vm_hwm_mb"] < a_jit[i]["memory"]["vm_hwm_mb"]
+
+
+def _use(env_extra, code="print(aot.use())"):
+    env = dict(os.environ)
+    env.pop("NUMBA_DISABLE_JIT", None)
+    env.update(env_extra)
+    r = subprocess.run([sys.executable, "-c", "import sys\nfrom bridge.swarm import aot\n" + code
+                        + "\nprint('numba' in sys.modules)"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=240, env=env)
+    assert r.returncode == 0, r.stderr
+    return r.stdout.splitlines()
+
+
+def test_without_a_compiler_the_agent_stays_on_the_jit_and_says_why(tmp_path):
+    """A build that fails (no C compiler: CC is /bin/false) is reported on one line, kept (the
+    next caller is told at once, without building), and leaves numba unimported until a kernel
+    is: the process then runs on the JIT."""
+    env = {"NUMBA_CACHE_DIR": str(tmp_path), "CC": "/bin/false"}
+    first = _use(env)
+    assert first[0].startswith("jit: the build failed: ") and first[1] == "False"
+    assert len(first[0].splitlines()) == 1
+    failed = list((tmp_path / "se3sync_aot").glob("*.failed"))
+    assert len(failed) == 1 and not list((tmp_path / "se3sync_aot").glob("*.so"))
+    again = _use(env, "import time\nt = time.monotonic()\nprint(aot.use())\n"
+                      "print(time.monotonic() - t < 1.0)\nimport controller.kernels")
+    assert again[0] == first[0] and again[1] == "True" and again[2] == "True"
+
+
+def test_kernels_loaded_before_the_choice_keep_the_jit():
+    out = _use({}, "import controller.kernels\nprint(aot.use())")
+    assert out == ["jit: the kernels were loaded before the choice", "True"]
+
+
+def test_the_choice_in_an_aot_process_never_loads_numba(ahead):
+    out = _use({}, "print(aot.use())\nimport controller.kernels, bridge.swarm.agent")
+    assert out == ["aot", "False"]
+
+
+def test_numba_is_refused_once_the_process_chose_aot(ahead):
+    code = ("print(aot.use())\nfrom controller import jit as _jit\ntry:\n    _jit.numba_module()\n"
+            "except RuntimeError as e:\n    print('refused')")
+    assert _use({}, code) == ["aot", "refused", "False"]
