@@ -14,7 +14,8 @@ other data (`cosim.network_step`: each agent on its neighbours' delayed samples)
 the caller: ``rel_pose_rows(A, i, B, j)`` (X̄ as (R̄ 9-tuple, p̄ 3-tuple)), ``edge_update(R̄, p̄,
 θ, hybrid, P, h)`` (jump, ψ̄_∇, Ad⁻ᵀψ̄_∇ and the flow of θ), ``prepare(R̄, θ, P)``,
 ``gradient_core(R̄, p̄, θ, P, R_a, R_g)`` and ``Ad_inv_T(R̄, p̄, g)``; ``P_KX``, ``P_KXI``,
-``P_KE`` are the offsets of k_X, k_ξ, k_e in P.
+``P_KE`` are the offsets of k_X, k_ξ, k_e in P; ``quat_of(r00, …, r22)`` the quaternion (w, x,
+y, z) of a rotation matrix, as `rot_to_quat_rows` computes it (the MAVLink encoder's).
 
 The per-agent view (`controller._agent_kernels`): ``agent_step(S, ea, eb, owned, nbr, mode,
 hybrid, P, h, stages, failsafe, theta, theta_rx, theta_prev, theta_jump, mu, jumped, term, rel,
@@ -28,9 +29,10 @@ place, so a caller can keep its buffers across calls.
 """
 from ._agent_kernels import FRESH, agent_step, edge_flow, edge_term, wrench_sum
 from ._kernels import (P_KE, P_KX, P_KXI, Ad_inv_T, edge_update, gradient_core, metrics,
-                       network_step, network_U, prepare, rel_pose_rows, relative_pose,
+                       network_step, network_U, prepare, quat_of, rel_pose_rows, relative_pose,
                        rot_to_quat_rows)
 
 __all__ = ["network_step", "network_U", "metrics", "rot_to_quat_rows", "relative_pose",
            "rel_pose_rows", "edge_update", "prepare", "gradient_core", "Ad_inv_T", "P_KX",
-           "P_KXI", "P_KE", "agent_step", "FRESH", "edge_term", "edge_flow", "wrench_sum"]
+           "P_KXI", "P_KE", "agent_step", "FRESH", "edge_term", "edge_flow", "wrench_sum",
+           "quat_of"]

@@ -39,8 +39,8 @@ except ImportError:  # pragma: no cover - fastcrc is a dependency of the mavlink
     _mcrf4xx = None
 
 __all__ = ["Message", "Outgoing", "CodecError", "MESSAGES", "BY_ID", "CRC_EXTRA", "frame", "decode",
-           "crc_x25", "crc_matches", "signature", "setup_signing", "HEADER_LEN", "SIG_LEN",
-           "MAGIC_V2"]
+           "crc_x25", "crc_matches", "signature", "sign_frame", "setup_signing", "HEADER_LEN",
+           "SIG_LEN", "MAGIC_V2"]
 
 MAGIC_V2 = 0xFD
 HEADER_LEN = 10
@@ -211,6 +211,19 @@ def frame(mav, msg: Message, payload: bytes) -> bytes:
     body += bytes((sg.link_id & 0xFF,)) + (ts & _TS_MASK).to_bytes(6, "little")
     sg.timestamp = ts + 1
     return body + hashlib.sha256(sg.secret_key + body).digest()[:6]
+
+
+def sign_frame(mav, buf, start: int, end: int) -> None:
+    """Signs, in place, a frame that ends in SIG_LEN bytes left for it, buf[start:end] (a
+    writable buffer: bytearray, numpy uint8): link id, own timestamp and signature as `frame`
+    writes them (the own timestamp then moves on by one)."""
+    sg = mav.signing
+    ts = sg.timestamp
+    m = memoryview(buf)
+    s = end - SIG_LEN
+    m[s:s + 7] = bytes((sg.link_id & 0xFF,)) + (ts & _TS_MASK).to_bytes(6, "little")
+    sg.timestamp = ts + 1
+    m[end - 6:end] = hashlib.sha256(sg.secret_key + m[start:end - 6].tobytes()).digest()[:6]
 
 
 _EXTRA_BYTE = [bytes((i,)) for i in range(256)]

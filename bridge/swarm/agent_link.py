@@ -72,7 +72,7 @@ from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlin
 from bridge.mavlink.state import QUAT_TOL
 from bridge.mavlink.transport import wire_row_to_state
 
-from .sample_wire import SCAN_WIDTH, scan_sample
+from .sample_wire import PACK_BYTES, SCAN_WIDTH, pack_sample, scan_sample
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -325,6 +325,15 @@ class AgentLink:
             self._scan_seqs = np.zeros(4, np.int64)
             self._signed = int(key is not None)
             self._scan = self._take_sample
+        # …and its mirror for what this agent sends (`sample_wire.pack_sample`)
+        self._pack = None
+        if compiled and self.peer.tlog is None and len(self.owned) <= THETA_PER_MESSAGE:
+            self._pbuf = np.zeros(PACK_BYTES, np.uint8)
+            self._pf32 = np.zeros(THETA_PER_MESSAGE, np.float32)
+            self._ends = np.zeros(2, np.int64)
+            self._pth = np.zeros(max(1, len(self.owned)))
+            self._pnull = np.zeros(layout.S_WIDTH)
+            self._pack = self._pack_sample
 
     def warm_up(self) -> None:
         """Loads (or compiles) the compiled sample decoder now, with the argument types of the
@@ -366,12 +375,17 @@ class AgentLink:
         if n < 0:
             raise Se3SyncError(f"agent_link: sample step must be ≥ 0, got {n}")
         self.release(n)
-        theta = None if theta_owned is None else [theta_owned[k] for k in self.owned]
-        msgs = encode_sample(self.peer.mav, n, self.h_us, S_row, theta, self.world)
-        if not msgs:
+        got = None if self._pack is None else self._pack(n, S_row, theta_owned)
+        if got is not None:
+            data, n_msgs = got
+        else:
+            theta = None if theta_owned is None else [theta_owned[k] for k in self.owned]
+            msgs = encode_sample(self.peer.mav, n, self.h_us, S_row, theta, self.world)
+            bufs = [self.peer.pack(m) for m in msgs]
+            data = b"".join(bytes(b) for b in bufs)
+            n_msgs = len(bufs)
+        if not n_msgs:
             return 0
-        bufs = [self.peer.pack(m) for m in msgs]
-        data = b"".join(bytes(b) for b in bufs)
         if S_row is not None and n > self._last_published:   # a new sample (not a resend)
             self._last_published = n
             for j in self.neighbours:
@@ -388,11 +402,45 @@ class AgentLink:
                 wait = d + (min(jmax, _steps(x[1] * jitter, self.h_us * 1e-6)) if jitter > 0 else 0)
                 if wait > 0:
                     self._qseq += 1
-                    heapq.heappush(self._queue, (n + wait, self._qseq, j, data, len(bufs)))
+                    heapq.heappush(self._queue, (n + wait, self._qseq, j, data, n_msgs))
                     ok += 1
                     continue
-            ok += self._send(j, data, len(bufs))
+            ok += self._send(j, data, n_msgs)
         return ok
+
+    def _pack_sample(self, n: int, S_row, theta_owned):
+        """`encode_sample` and `Peer.pack` of sample n compiled (`sample_wire.pack_sample`, the
+        same bytes): (datagram, messages in it), or None for a value beyond float32, which the
+        reference path refuses as `struct.pack` does."""
+        nt = 0
+        th = self._pth
+        if theta_owned is not None:
+            for r, k in enumerate(self.owned):
+                th[r] = theta_owned[k]
+            nt = len(self.owned)
+        if S_row is None:
+            S = self._pnull
+        else:
+            S = np.asarray(S_row, float).reshape(layout.S_WIDTH)
+            if self.world != "ned":
+                S = frames.state_world_to_ned(S.reshape(1, layout.S_WIDTH), self.world)[0]
+            S = np.ascontiguousarray(S)
+        mav = self.peer.mav
+        signed = 1 if mav.signing.sign_outgoing else 0
+        buf, ends = self._pbuf, self._ends
+        nf = pack_sample(buf, stamp_us(n, self.h_us), S, S_row is not None, th, nt,
+                         mav.srcSystem, mav.seq, signed, self._pf32, ends)
+        if nf < 0:
+            return None
+        if nf == 0:
+            return b"", 0
+        if signed:
+            start = 0
+            for k in range(nf):
+                codec.sign_frame(mav, buf, start, int(ends[k]))
+                start = int(ends[k])
+        mav.seq = (mav.seq + nf) & 0xFF
+        return buf[:ends[nf - 1]].tobytes(), nf
 
     def _send(self, j: int, data: bytes, n_msgs: int) -> int:
         c = self.counters

@@ -51,6 +51,8 @@ EXPORTS = {
     "scan_sample": ("bridge.swarm.sample_wire",
                     "i8(Array(uint8, 1, 'C', readonly=True), i8, i8, i8, i8, i8, i8, u1[::1], "
                     "f8[::1], i8[::1])"),
+    "pack_sample": ("bridge.swarm.sample_wire",
+                    "i8(u1[::1], i8, f8[::1], b1, f8[::1], i8, i8, i8, i8, f4[::1], i8[::1])"),
     "rot_to_quat_rows": ("controller._kernels", "void(f8[:, ::1], f8[:, ::1])"),
     "network_U": ("controller._kernels",
                   "void(f8[:, ::1], f8[::1], i8[:, ::1], f8[::1], f8[::1])"),

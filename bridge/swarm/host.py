@@ -54,9 +54,10 @@ class _Run:
         self.exc = None
         self.done = threading.Event()
 
-    def step(self) -> bool:
-        """One step; False once the loop has ended (``value`` or ``exc`` set)."""
-        c0 = time.thread_time()
+    def step(self, c0: float) -> tuple:
+        """One step, begun at the stepping thread's CPU time ``c0``: (False once the loop has
+        ended, ``value`` or ``exc`` set; the thread's CPU time after it). One clock reading per
+        step: the next step begins where this one ended (each reading is a system call)."""
         try:
             try:
                 self.plant.resume()
@@ -67,14 +68,16 @@ class _Run:
             else:
                 next(self.steps)
             self.due = self.plant.due
-            return True
+            ok = True
         except StopIteration as end:
             self.value = end.value
+            ok = False
         except BaseException as exc:  # noqa: BLE001 - handed to the agent's thread
             self.exc = exc
-        finally:
-            self.cpu_s += time.thread_time() - c0
-        return False
+            ok = False
+        c1 = time.thread_time()
+        self.cpu_s += c1 - c0
+        return ok, c1
 
 
 class Host:
@@ -145,7 +148,13 @@ class Host:
                     self._cv.wait(wait)
                     continue
             now = time.monotonic() + DUE_SLACK_S
-            ended = [r for r in runs if r.due <= now and not r.step()]
+            ended = []
+            c = time.thread_time()
+            for r in runs:
+                if r.due <= now:
+                    ok, c = r.step(c)
+                    if not ok:
+                        ended.append(r)
             if ended:
                 with self._cv:
                     for r in ended:

@@ -175,7 +175,7 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
     bound = jump_bound(V0, sc.gains.k_X, sc.design.delta)   # as `run`'s master computes it
     return {
         "scenario": sc.name, "scenario_path": str(sc.path), "controller": law,
-        "plant": "mavlink (one agent process per vehicle)", "lockstep": bool(lockstep),
+        "plant": "mavlink (one agent per vehicle)", "lockstep": bool(lockstep),
         "step": h, "steps": steps, "sim_time_s": steps * h, "wall_time_s": wall,
         "interrupted": bool(interrupted or any(s["interrupted"] for s in summaries.values())),
         "agents_missing": missing,
@@ -280,7 +280,7 @@ def merge_logs(scenario, logs: dict, out_path, *, law: str = "hybrid",
     common = sorted(set.intersection(*(set(r) for r in recs.values()))) if recs else []
     mx = NetworkMetrics(sc)
     logger = McapLogger(out_path, sc, controller=law, encoding=encoding, extra_metadata={
-        "plant": "mavlink (one agent process per vehicle)",
+        "plant": "mavlink (one agent per vehicle)",
         "merged_from": json.dumps({str(i): [str(p) for p in logs.get(i, [])] for i in logs}),
         **(extra_metadata or {})})
     failed = True

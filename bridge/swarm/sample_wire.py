@@ -1,5 +1,5 @@
-"""A neighbour's sample datagram checked and decoded by compiled code (issue 31): the receive
-path's common case at the cost of its bytes.
+"""A neighbour's sample datagram checked and decoded, and the agent's own encoded, by compiled
+code (issue 31): the link's common case at the cost of its bytes.
 
 `scan_sample` takes one datagram that is exactly what an honest neighbour j sends once per
 step, ODOMETRY then (if j owns edges) one DEBUG_FLOAT_ARRAY "theta", signed or not as the link
@@ -16,6 +16,13 @@ here. The values are the float32 fields widened to float64, exactly what `struct
 the reference path; nothing is computed from them here except the decisions, and a decision
 that rounding could tip (the quaternion's norm near the tolerance) is left to the reference
 path.
+
+`pack_sample` is the send side's mirror: what `agent_link.encode_sample` and `Peer.pack` make of
+one sample (ODOMETRY and θ, the quaternion by `controller.kernels.quat_of`, the payloads'
+trailing zeros dropped, the checksums), written into a preallocated buffer in one call; a signed
+link's signatures are then filled by `bridge.mavlink.codec.sign_frame` (SHA-256 stays with
+hashlib). tests/bridge/test_sample_wire.py checks its datagrams against the reference path's,
+byte for byte, signed and unsigned.
 """
 from __future__ import annotations
 
@@ -24,8 +31,11 @@ import numpy as np
 from bridge.mavlink import codec
 from bridge.mavlink.state import QUAT_TOL
 from controller.jit import jit
+from controller.kernels import quat_of
+from controller.layout import S_OMEGA, S_P, S_R, S_V
 
-__all__ = ["scan_sample", "SCAN_WIDTH", "ODOMETRY_SIZE", "THETA_SIZE"]
+__all__ = ["scan_sample", "pack_sample", "SCAN_WIDTH", "ODOMETRY_SIZE", "THETA_SIZE",
+           "PACK_BYTES"]
 
 MAGIC = 0xFD
 COMPONENT = 191                       # agent_link.AGENT_COMPONENT (MAV_COMP_ID_ONBOARD_COMPUTER)
@@ -40,6 +50,9 @@ FRAME_BODY_FRD = 12
 SIG_LEN = 13
 THETA_NAME = np.frombuffer(b"theta\0", np.uint8).copy()
 SCAN_WIDTH = 13 + 58                  # wire row, then at most one chunk of θ
+PACK_BYTES = 2 * (12 + SIG_LEN) + ODOMETRY_SIZE + THETA_SIZE   # pack_sample's most
+ESTIMATOR_NAIVE = 1                   # MAV_ESTIMATOR_TYPE_NAIVE
+QUALITY = 100
 # the norm test is left to the reference path this close to the tolerance (a double's rounding
 # of the sum of squares is ~1e-16; this margin is far beyond it and costs no genuine sample)
 QUAT_MARGIN = 1e-9
@@ -149,3 +162,97 @@ def scan_sample(buf, n, signed, sysid, n_theta, h_us, limit, scratch, out, seqs)
         out[13 + k] = d[k]
     return s
 
+
+
+@jit(error_model="python")
+def _frame(buf, o, plen_full, signed, seq, sysid, msgid, extra):
+    """Frames the payload at buf[o + 10:o + 10 + plen_full] in place: its trailing zeros dropped
+    (one byte kept), the header before it and the checksum after it, SIG_LEN bytes left for the
+    signature when ``signed``. Returns the frame's end."""
+    plen = plen_full
+    while plen > 1 and buf[o + 10 + plen - 1] == 0:
+        plen -= 1
+    buf[o] = MAGIC
+    buf[o + 1] = plen
+    buf[o + 2] = signed
+    buf[o + 3] = 0
+    buf[o + 4] = seq & 0xFF
+    buf[o + 5] = sysid
+    buf[o + 6] = COMPONENT
+    buf[o + 7] = msgid & 0xFF
+    buf[o + 8] = (msgid >> 8) & 0xFF
+    buf[o + 9] = (msgid >> 16) & 0xFF
+    c = o + 10 + plen
+    crc = _crc(buf, o + 1, c, extra)
+    buf[c] = crc & 0xFF
+    buf[c + 1] = crc >> 8
+    return c + 2 + SIG_LEN * signed
+
+
+@jit(error_model="python")
+def _put_u64(buf, o, v):
+    for k in range(8):
+        buf[o + k] = (v >> (8 * k)) & 0xFF
+
+
+@jit(error_model="python")
+def _put_f32(buf, o, f32, m):
+    """f32[:m] as little-endian bytes at buf[o:]."""
+    b = f32[:m].view(np.uint8)
+    for k in range(4 * m):
+        buf[o + k] = b[k]
+
+
+@jit(error_model="numpy")
+def pack_sample(buf, t_us, S, pose, theta, n_theta, sysid, seq, signed, f32, ends):
+    """The datagram of one sample as `bridge.swarm.agent_link.encode_sample` and `Peer.pack`
+    make it, byte for byte, into buf (≥ PACK_BYTES): ODOMETRY of the NED row S (18,) if
+    ``pose``, then one DEBUG_FLOAT_ARRAY "theta" of theta[:n_theta] (0 < n_theta ≤ 58; none if
+    0), sequence numbers from ``seq`` on, from (sysid, COMPONENT). ``signed`` (0 or 1): each
+    frame ends in SIG_LEN bytes that the caller fills (`bridge.mavlink.codec.sign_frame`).
+    ends[k]: the end of frame k. Returns the number of frames, or −1 when a value does not fit
+    a float32 (the caller's reference path then raises as `struct.pack` does). ``f32``: ≥ 58
+    float32 of scratch."""
+    nf = 0
+    o = 0
+    if pose:
+        w, x, y, z = quat_of(S[S_R], S[S_R + 1], S[S_R + 2], S[S_R + 3], S[S_R + 4],
+                             S[S_R + 5], S[S_R + 6], S[S_R + 7], S[S_R + 8])
+        vals = (S[S_P], S[S_P + 1], S[S_P + 2], w, x, y, z, S[S_V], S[S_V + 1], S[S_V + 2],
+                S[S_OMEGA], S[S_OMEGA + 1], S[S_OMEGA + 2])
+        for k in range(13):
+            f32[k] = vals[k]
+            if np.isinf(f32[k]) and not np.isinf(vals[k]):
+                return -1
+        for k in range(13, 55):                 # covariances unknown: NaN, then zeros
+            f32[k] = np.nan if k == 13 or k == 34 else 0.0
+        p = o + 10
+        _put_u64(buf, p, t_us)
+        _put_f32(buf, p + 8, f32, 55)
+        buf[p + 228] = FRAME_LOCAL_NED
+        buf[p + 229] = FRAME_BODY_FRD
+        buf[p + 230] = 0
+        buf[p + 231] = ESTIMATOR_NAIVE
+        buf[p + 232] = QUALITY
+        o = _frame(buf, o, ODOMETRY_SIZE, signed, seq, sysid, ID_ODOMETRY, EXTRA_ODOMETRY)
+        ends[nf] = o
+        nf += 1
+    if n_theta > 0:
+        for k in range(58):
+            if k < n_theta:
+                f32[k] = theta[k]
+                if np.isinf(f32[k]) and not np.isinf(theta[k]):
+                    return -1
+            else:
+                f32[k] = np.nan
+        p = o + 10
+        _put_u64(buf, p, t_us)
+        buf[p + 8] = sysid & 0xFF
+        buf[p + 9] = (sysid >> 8) & 0xFF
+        for k in range(10):
+            buf[p + 10 + k] = THETA_NAME[k] if k < 6 else 0
+        _put_f32(buf, p + 20, f32, 58)
+        o = _frame(buf, o, THETA_SIZE, signed, seq + nf, sysid, ID_THETA, EXTRA_THETA)
+        ends[nf] = o
+        nf += 1
+    return nf

@@ -188,6 +188,24 @@ def test_scan_sample_equals_the_jit(ahead, signed):
         link.close()
 
 
+def test_pack_sample_equals_the_jit(ahead):
+    from bridge.swarm.sample_wire import PACK_BYTES, pack_sample
+
+    rng = np.random.default_rng(9)
+    for trial in range(300):
+        nt = int(rng.integers(0, 59))
+        S = _states(rng, 1)[0]
+        S[layout.XI] *= 10.0 ** rng.integers(-30, 30)
+        theta = rng.normal(size=max(nt, 1)) * 10.0 ** rng.integers(-30, 30)
+        if trial % 50 == 0:
+            theta[0] = 1e39                     # beyond float32: refused by both
+        args = (np.zeros(PACK_BYTES, np.uint8), int(rng.integers(0, 1 << 50)), S,
+                bool(rng.integers(2)), theta, nt, int(rng.integers(1, 256)),
+                int(rng.integers(0, 256)), int(rng.integers(2)), np.zeros(58, np.float32),
+                np.zeros(2, np.int64))
+        _both(pack_sample, ahead.pack_sample, args, f"pack_sample {trial}")
+
+
 def _swarm(tmp_path, kernels, extra=()):
     from bridge.mavlink.link import free_base_port
 
