@@ -155,6 +155,13 @@ class FleetMapping:
         return c
 
     # ------------------------------------------------------------------ controls -> wrench
+    def decode_row(self, c: list) -> list:
+        """`decode` for one vehicle with the ``direct`` mapping (``one_direct``), the controls a
+        list of 6 floats: the same products (so the same bits), without numpy's per-call cost
+        (a vehicle's every command)."""
+        mw = self._mw
+        return [c[i] * mw[i] for i in range(6)]
+
     def decode(self, c: np.ndarray) -> np.ndarray:
         """(n,6) controls -> (n,6) FRD wrenches (the loopback vehicle's actuators)."""
         c = np.asarray(c, dtype=np.float64)
