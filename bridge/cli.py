@@ -270,7 +270,7 @@ def _choose_kernels(kernels: str, law: str) -> str:
         return f"jit: the law {law!r} has kernels of its own"
     from bridge.swarm import aot
 
-    return aot.use()
+    return aot.use(progress=lambda s: print(f"se3sync agent: {s}", file=sys.stderr, flush=True))
 
 
 def _cmd_agent(args) -> int:

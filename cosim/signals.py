@@ -11,12 +11,14 @@ signal is still noted, and the master stops as soon as it starts: nothing is los
 """
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
 
 __all__ = ["install", "uninstall", "note", "requested", "pending", "received", "exit_status", "reset",
-           "catching", "deferred", "interruptible", "set_stage", "stage_at_signal", "MAX_BLOCK"]
+           "catching", "deferred", "interruptible", "set_stage", "stage_at_signal", "MAX_BLOCK",
+           "die_with"]
 
 _received: list = []
 _installed: list = []
@@ -24,6 +26,7 @@ _stage: list = [None]      # what the command is doing (`set_stage`), for a stop
 _stage_at: list = []       # ... when the first signal arrived
 STATUS = {"SIGINT": 130, "SIGTERM": 143}
 MAX_BLOCK = 1000  # steps of the master loop between two checks for a signal / progress updates
+PR_SET_PDEATHSIG = 1      # linux/prctl.h
 
 
 def note(signum) -> None:
@@ -173,3 +176,23 @@ def interruptible(fn, *args):
     if "error" in box:
         raise box["error"]
     return box["value"]
+
+
+def die_with(parent: int):
+    """A child process's set-up before exec (``preexec_fn``; Linux, else None): the kernel kills
+    it (SIGKILL) when ``parent`` dies, however it dies (SIGKILL, OOM, a crash): a parent that
+    cannot stop its children cannot finish their outputs either, and a child left running would
+    hold the next run's ports or files. prctl survives exec; the parent dying between fork and
+    prctl is caught by the parent id check. (The swarm's agents and vehicles, an agent's kernel
+    build: `bridge.swarm.aot`.)"""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes      # (only a process that starts children pays its import)
+
+    libc = ctypes.CDLL(None, use_errno=True)
+
+    def setup():
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        if os.getppid() != parent:
+            os._exit(1)
+    return setup

@@ -2,7 +2,7 @@
 
 numba and LLVM were two thirds of an agent process's memory: importing numba maps 67 MB, and
 its first compiled call (even from the on-disk cache) builds numba's runtime helpers with LLVM,
-28 MB more of LLVM's pages: 150 MB in all, of which the agent's own work is ~50. The agent calls
+28 MB more of LLVM's pages: 154 MB in all, of which the agent's own work is ~50. The agent calls
 a handful of kernels (`EXPORTS`); numba's ahead-of-time compiler (`numba.pycc`) compiles those
 same functions, with what they call inlined as in the JIT, into one extension module that needs
 numpy and nothing of numba's. Its code is for the architecture's generic CPU; the kernels are
@@ -11,8 +11,9 @@ either target and the two agree bit for bit (tests/bridge/test_agent_aot.py chec
 kernel on random inputs, and lockstep swarms either way).
 
 The module is built once per source (`key`: the kernels' sources, numba's, numpy's and Python's
-versions) by a child process (`python -m bridge.swarm.aot`), under a lock so that a swarm's
-agents starting together build it once, into the directory of numba's cache (`cache_dir`). A
+versions) by a child process (`python -m bridge.swarm.aot`, which dies with the process that
+started it), under a lock so that a swarm's agents starting together build it once, into the
+directory of numba's cache (`cache_dir`); it appears there whole or not at all. A
 process calls `use` before it imports any kernel: from then on `controller.jit.jit` hands out
 the module's functions (`controller.jit.use_aot`). Where the module cannot be built (no C
 compiler), `use` says why and the process stays on numba's JIT.
@@ -25,6 +26,7 @@ import importlib
 import importlib.machinery
 import importlib.util
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -34,6 +36,7 @@ import warnings
 from pathlib import Path
 
 from controller import jit
+from cosim import signals
 
 __all__ = ["EXPORTS", "key", "cache_dir", "module_path", "ensure", "load", "use", "AotError"]
 
@@ -164,7 +167,8 @@ def _build(k: str, path: Path, failed: Path, deadline: float) -> None:
         try:
             r = subprocess.run([sys.executable, "-m", "bridge.swarm.aot", tmp, _name(k)],
                                capture_output=True, text=True, env=env, cwd=tmp,
-                               timeout=max(1.0, deadline - time.monotonic()))
+                               timeout=max(1.0, deadline - time.monotonic()),
+                               preexec_fn=signals.die_with(os.getpid()))
         except subprocess.TimeoutExpired:
             raise AotError("the build ran past its time") from None
         built = Path(tmp) / path.name
@@ -178,7 +182,9 @@ def _build(k: str, path: Path, failed: Path, deadline: float) -> None:
 
 
 def _prune(keep: Path, age_s: float = 86400.0) -> None:
-    """Builds of other sources (an edited kernel, another numba) left a day ago or more."""
+    """Builds of other sources (an edited kernel, another numba) left a day ago or more, and
+    the build directories of builds killed an hour ago or more (a process killed while it
+    built: its builder died with it, `cosim.signals.die_with`)."""
     now = time.time()
     for old in keep.parent.glob("agent_kernels_*"):
         if old.name.split(".")[0] == keep.name.split(".")[0]:
@@ -186,6 +192,12 @@ def _prune(keep: Path, age_s: float = 86400.0) -> None:
         try:
             if now - old.stat().st_mtime > age_s:
                 old.unlink()
+        except OSError:
+            pass
+    for old in keep.parent.glob(".build-*"):
+        try:
+            if now - old.stat().st_mtime > 3600.0:
+                shutil.rmtree(old, ignore_errors=True)
         except OSError:
             pass
 

@@ -16,7 +16,6 @@ one's log, summary and stderr into a work directory, waits, and merges:
 """
 from __future__ import annotations
 
-import ctypes
 import json
 import math
 import os
@@ -325,33 +324,17 @@ START_LEAD_S = 1.0        # from "all ready" to step 0: the start file reaches e
 LOOPBACK_CONNECT_S = 120.0   # an agent's wait for a loopback vehicle the launcher started
 
 
-PR_SET_PDEATHSIG = 1      # linux/prctl.h
 PORT_LISTEN_S = 0.5       # start-up: how long the swarm's ports must be silent (lockstep
 #                           vehicles repeat their state every 0.2 s, real-time ones stream)
 
 
-def _die_with(parent: int):
-    """The child's set-up before exec (Linux): the kernel kills it (SIGKILL) when the launcher
-    dies, however it dies (SIGKILL, OOM, a crash): a launcher that cannot stop its children
-    cannot merge their outputs either, and a vehicle or agent left running would corrupt the
-    next run on the same ports. prctl survives exec; the launcher dying between fork and prctl
-    is caught by the parent id check. The agents start no processes of their own."""
-    libc = ctypes.CDLL(None, use_errno=True)
-
-    def setup():
-        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
-        if os.getppid() != parent:
-            os._exit(1)
-    return setup
-
-
 class _Children:
     """The child processes, stopped together (SIGTERM, then SIGKILL after a grace period), and
-    killed by the kernel if the launcher dies first (Linux: `_die_with`)."""
+    killed by the kernel if the launcher dies first (Linux: `cosim.signals.die_with`)."""
 
     def __init__(self):
         self.procs: dict = {}   # name -> (Popen, stderr path)
-        self._setup = _die_with(os.getpid()) if sys.platform.startswith("linux") else None
+        self._setup = signals.die_with(os.getpid())
 
     def start(self, name: str, argv: list, err_path: Path) -> subprocess.Popen:
         f = open(err_path, "wb")

@@ -283,3 +283,42 @@ def test_numba_is_refused_once_the_process_chose_aot(ahead):
     code = ("print(aot.use())\nfrom controller import jit as _jit\ntry:\n    _jit.numba_module()\n"
             "except RuntimeError as e:\n    print('refused')")
     assert _use({}, code) == ["aot", "refused", "False"]
+
+
+def _builders(tag: str) -> list:
+    out = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                argv = (d / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"bridge.swarm.aot" in argv and any(tag.encode() in a for a in argv):
+                out.append(int(d.name))
+    return out
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_build_dies_with_the_process_that_started_it(tmp_path):
+    """SIGKILL to a process while its kernels build: the builder (a child) dies with it, and
+    nothing half-built is left where a later process would load it."""
+    import signal
+    import time
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))
+    env.pop("NUMBA_DISABLE_JIT", None)
+    p = subprocess.Popen([sys.executable, "-c", "from bridge.swarm import aot; aot.ensure()"],
+                         cwd=ROOT, env=env)
+    try:
+        end = time.monotonic() + 60
+        while not _builders(str(tmp_path)) and time.monotonic() < end and p.poll() is None:
+            time.sleep(0.05)
+        assert _builders(str(tmp_path)), "the build never started"
+    finally:
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+    end = time.monotonic() + 10
+    while _builders(str(tmp_path)) and time.monotonic() < end:
+        time.sleep(0.05)
+    assert not _builders(str(tmp_path))
+    assert not list((tmp_path / "se3sync_aot").glob("*.so"))
