@@ -866,7 +866,6 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
         startup["connected_s"] = _process_age()   # …and the vehicle's first state
         startup["ready_s"] = _process_age()       # …ready to step: the swarm's start awaited
         startup["frozen_objects"] = _freeze_heap()
-        startup["numba_loaded"] = "numba" in sys.modules
         if start_file is not None and not lockstep:
             start = node.wait_start(start_file)
         spl = max(1, int(round(1.0 / h)))
@@ -931,7 +930,8 @@ def run_agent(scenario, agent_id: int, *, law: str = "hybrid", lockstep: bool = 
         "edges": list(node.edge_ids), "owned_edges": list(node.owned),
         "first_step": node.first_step, "start": start, "duration_steps": sc.n_steps(),
         "cpu_s": cpu, "cpu_fraction": cpu / summary["wall_time_s"] if summary["wall_time_s"] else None,
-        "max_rss_mb": _max_rss_mb(), "memory": _memory(), "startup": startup,
+        "max_rss_mb": _max_rss_mb(), "memory": _memory(),
+        "startup": {**startup, "numba_loaded": "numba" in sys.modules},   # (at the end)
         **({"host": {"agents": list(host.ids), "cpu_s": pcpu,
                      "cpu_fraction": pcpu / summary["wall_time_s"] if summary["wall_time_s"]
                      else None}} if hosted else {}),

@@ -43,9 +43,10 @@ __all__ = ["EXPORTS", "key", "cache_dir", "module_path", "ensure", "load", "use"
 ROOT = Path(__file__).resolve().parents[2]
 BUILD_TIMEOUT_S = 600.0
 
-# name -> (module, numba signature): the kernels an agent process calls (its compiled step, the
-# neighbour samples' decoder, the metrics of its samples, the quaternions it sends, and the
-# reference view's one-edge pieces). The hot ones take the exact layouts their callers pass.
+# name -> ("module" or "module:function", numba signature): the kernels an agent process calls
+# (its compiled step, the neighbour samples' decoder and encoder, the metrics of its samples, the
+# quaternions, the reference view's one-edge pieces, the CDR log's scatter). The hot ones take
+# the exact layouts their callers pass.
 EXPORTS = {
     "agent_step": ("controller._agent_kernels",
                    "i8(f8[:, ::1], i8[::1], i8[::1], b1[::1], i8[::1], i8[::1], b1, f8[::1], "
@@ -67,12 +68,16 @@ EXPORTS = {
                   "f8(f8[:, :], f8[:], f8, f8[:], f8[:], b1, f8[::1], f8[:])"),
     "edge_flow": ("controller._agent_kernels", "f8(f8[:, :], f8[:], f8, f8[::1], f8)"),
     "wrench_sum": ("controller._agent_kernels", "void(f8[:], f8[:, :], f8[::1], f8[:])"),
+    # the CDR log's scatter (`cosim.log.cdr`: `--log-encoding cdr`)
+    "cdr_scatter": ("cosim.log.cdr:_scatter_py",
+                    "void(f8[:, ::1], u4[:, ::1], i8, i8[::1], f8[:, ::1], i8[::1], i8[::1], "
+                    "i8[::1], i8[::1], u4[:, ::1])"),
 }
 
 # what the module is compiled from: every source its kernels read (constants included)
 SOURCES = ("controller/jit.py", "controller/_kernels.py", "controller/_agent_kernels.py",
            "controller/layout.py", "bridge/swarm/sample_wire.py", "bridge/mavlink/codec.py",
-           "bridge/mavlink/state.py", "bridge/swarm/aot.py")
+           "bridge/mavlink/state.py", "cosim/log/cdr.py", "bridge/swarm/aot.py")
 
 
 class AotError(Exception):
@@ -243,9 +248,10 @@ def _compile(out_dir: str, name: str) -> None:
     cc = CC(name)
     cc.output_dir = out_dir
     cc.verbose = False
-    for export, (mod, sig) in EXPORTS.items():
-        dispatcher = getattr(importlib.import_module(mod), export)
-        cc.export(export, sig)(dispatcher.py_func)
+    for export, (target, sig) in EXPORTS.items():
+        mod, _, attr = target.partition(":")
+        f = getattr(importlib.import_module(mod), attr or export)
+        cc.export(export, sig)(getattr(f, "py_func", f))
     cc.compile()
 
 

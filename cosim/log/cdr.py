@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from controller import jit
+
 from .cdr_decode import decoder, parse_msg
 
 __all__ = ["SCHEMA", "schema_text", "compile_layout", "Layout", "decode", "decode_reference",
@@ -126,11 +128,16 @@ _compiled = []
 
 def _scatter(*args):
     if not _compiled:
-        # numba is loaded here, not when the module is: reading a log (`se3sync plot`) or
-        # writing a JSON one does not need it
-        import numba
+        # an agent process runs it from its ahead-of-time kernels (`bridge.swarm.aot`), without
+        # numba; elsewhere numba is loaded here, not when the module is: reading a log
+        # (`se3sync plot`) or writing a JSON one does not need it
+        aot = jit.aot_module()
+        f = getattr(aot, "cdr_scatter", None) if aot is not None else None
+        if f is None:
+            import numba
 
-        _compiled.append(numba.njit(cache=True, nogil=True)(_scatter_py))
+            f = numba.njit(cache=True, nogil=True)(_scatter_py)
+        _compiled.append(f)
     _compiled[0](*args)
 
 

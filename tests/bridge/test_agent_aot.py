@@ -206,6 +206,29 @@ def test_pack_sample_equals_the_jit(ahead):
         _both(pack_sample, ahead.pack_sample, args, f"pack_sample {trial}")
 
 
+def test_the_cdr_scatter_equals_numbas(ahead):
+    """The CDR log's scatter (an agent's `--log-encoding cdr`) against numba's JIT of it."""
+    import numba
+
+    from cosim.log import cdr
+
+    jitted = numba.njit(cache=True)(cdr._scatter_py)
+    rng = np.random.default_rng(11)
+    for trial in range(50):
+        R, W = int(rng.integers(1, 6)), 40
+        idx = rng.permutation(np.arange(1, W))
+        f8, sec, nsec, mode = (np.ascontiguousarray(np.sort(x)) for x in
+                               np.split(idx[:16], [8, 10, 12]))
+        a = rng.normal(size=(R, W))
+        args = (a, a.view(np.uint32), R, f8, rng.normal(size=(R, len(f8))), sec, nsec,
+                rng.integers(0, 1 << 62, R), mode,
+                rng.integers(0, 1 << 32, (R, len(mode))).astype(np.uint32))
+        a1, a2 = args[0].copy(), args[0].copy()
+        jitted(a1, a1.view(np.uint32), *args[2:])
+        ahead.cdr_scatter(a2, a2.view(np.uint32), *args[2:])
+        assert a1.tobytes() == a2.tobytes()
+
+
 def _swarm(tmp_path, kernels, extra=()):
     from bridge.mavlink.link import free_base_port
 
@@ -226,11 +249,13 @@ def _swarm(tmp_path, kernels, extra=()):
 @pytest.mark.realtime
 @pytest.mark.slow
 def test_a_lockstep_swarm_is_the_same_run_on_either_kernels(ahead, tmp_path):
-    """hil_6uav in lockstep, 150 steps, jumps included: the ahead-of-time agents and the JIT
-    agents give the same merged run, every sample's every number; the former never import
-    numba and hold less memory."""
-    m_aot, a_aot = _swarm(tmp_path, "aot")
-    m_jit, a_jit = _swarm(tmp_path, "jit")
+    """hil_6uav in lockstep, 150 steps, jumps included, CDR logs: the ahead-of-time agents and
+    the JIT agents give the same merged run, every sample's every number, and the same merged
+    log; the former never import numba (their log's scatter included) and hold less memory."""
+    m_aot, a_aot = _swarm(tmp_path, "aot", ["--log", str(tmp_path / "aot.mcap"),
+                                            "--log-encoding", "cdr"])
+    m_jit, a_jit = _swarm(tmp_path, "jit", ["--log", str(tmp_path / "jit.mcap"),
+                                            "--log-encoding", "cdr"])
     assert m_aot["n_jumps"] == m_jit["n_jumps"] > 0
     for key in ("final", "samples", "jumps"):
         assert json.dumps(m_aot[key]) == json.dumps(m_jit[key]), key
@@ -241,6 +266,12 @@ def test_a_lockstep_swarm_is_the_same_run_on_either_kernels(ahead, tmp_path):
         assert a_jit[i]["startup"]["numba_loaded"] is True
         assert a_aot[i]["own"] == a_jit[i]["own"]
         assert a_aot[i]["memory"]["vm_hwm_mb"] < a_jit[i]["memory"]["vm_hwm_mb"]
+    from cosim.log.reader import read_log
+
+    msgs = [read_log(tmp_path / f"{k}.mcap")["messages"] for k in ("aot", "jit")]
+    assert sum(len(v) for v in msgs[0].values()) > 150
+    assert json.dumps(msgs[0], sort_keys=True, default=str) == \
+        json.dumps(msgs[1], sort_keys=True, default=str)
 
 
 def _use(env_extra, code="print(aot.use())"):
