@@ -6,9 +6,9 @@ which is how the tests check that both give the same numbers.
 
 numba is imported at the first `jit` (a kernel module's import), not with this module. A process
 that has called `use_aot` before any kernel module was imported never imports it: `jit` hands
-back the ahead-of-time module's compiled function of the same name (`bridge.swarm.aot`: the
-agent process's kernels, built once by numba's AOT compiler), or the plain function for a
-kernel that module does not hold (set-up arithmetic, run once).
+back the ahead-of-time module's compiled function of that kernel (`bridge.swarm.aot`: the agent
+process's kernels, built once by numba's AOT compiler), or the plain function for a kernel that
+module does not hold (set-up arithmetic, run once).
 """
 import os
 import sys
@@ -135,7 +135,7 @@ def _load_numba_without_blas_probe():
 
 
 _NUMBA = []     # numba, once imported here
-_AOT = []       # the ahead-of-time module, once `use_aot` chose it
+_AOT = []       # the ahead-of-time module and its names, once `use_aot` chose it
 
 
 def numba_module():
@@ -150,13 +150,14 @@ def numba_module():
     return _NUMBA[0]
 
 
-def use_aot(module) -> None:
-    """From now on `jit` hands back ``module``'s function of a kernel's name (or the plain
-    function where it has none) and never imports numba. Only before any kernel was compiled
-    here: a process is one or the other."""
+def use_aot(module, names: dict) -> None:
+    """From now on `jit` hands back ``module``'s function for each kernel that ``names`` maps
+    ("module.function" of its source -> the name the module exports it as), the plain function
+    for any other, and never imports numba. Only before any kernel was compiled here: a process
+    is one or the other."""
     if _NUMBA:
         raise RuntimeError("use_aot: numba's kernels are already loaded in this process")
-    _AOT[:] = [module]
+    _AOT[:] = [module, dict(names)]
 
 
 def aot_module():
@@ -172,7 +173,8 @@ def jit(fn=None, *, inline=False, error_model="numpy"):
     # more than the helper's arithmetic; inlining at numba's IR level removes them.
     def wrap(f):
         if _AOT:
-            return getattr(_AOT[0], f.__name__, f)
+            name = _AOT[1].get(f"{f.__module__}.{f.__qualname__}")
+            return f if name is None else getattr(_AOT[0], name)
         options = dict(cache=True, nogil=True, error_model=error_model)
         if inline:
             options["inline"] = "always"

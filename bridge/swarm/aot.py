@@ -235,8 +235,17 @@ def use(progress=None) -> str:
         module = load(ensure(progress=progress))
     except (AotError, ImportError, OSError) as exc:
         return f"jit: {exc}"
-    jit.use_aot(module)
+    jit.use_aot(module, source_names())
     return "aot"
+
+
+def source_names() -> dict:
+    """{"module.function" of each export's source: its name in the module} (`jit.use_aot`)."""
+    out = {}
+    for export, (target, _) in EXPORTS.items():
+        mod, _, attr = target.partition(":")
+        out[f"{mod}.{attr or export}"] = export
+    return out
 
 
 def _compile(out_dir: str, name: str) -> None:

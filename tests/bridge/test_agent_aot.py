@@ -306,7 +306,17 @@ def test_kernels_loaded_before_the_choice_keep_the_jit():
 
 
 def test_the_choice_in_an_aot_process_never_loads_numba(ahead):
-    out = _use({}, "print(aot.use())\nimport controller.kernels, bridge.swarm.agent")
+    """Every export replaces its own source function, and only it (by module and name): the
+    inline helpers stay plain Python, never called."""
+    code = """print(aot.use())
+import importlib, controller.kernels, bridge.swarm.agent
+m = aot.load()
+for src, name in aot.source_names().items():
+    mod, _, fn = src.rpartition(".")
+    f = getattr(importlib.import_module(mod), fn)
+    assert (f is getattr(m, name)) == (mod != "cosim.log.cdr"), src   # cdr's: looked up by name
+assert controller.kernels.quat_of.__module__ == "controller._kernels"   # a plain function"""
+    out = _use({}, code)
     assert out == ["aot", "False"]
 
 
