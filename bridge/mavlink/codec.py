@@ -38,7 +38,7 @@ try:
 except ImportError:  # pragma: no cover - fastcrc is a dependency of the mavlink extra
     _mcrf4xx = None
 
-__all__ = ["Message", "Outgoing", "CodecError", "MESSAGES", "BY_ID", "CRC_EXTRA", "frame", "decode",
+__all__ = ["Message", "Outgoing", "Received", "CodecError", "MESSAGES", "BY_ID", "CRC_EXTRA", "frame", "decode",
            "crc_x25", "crc_matches", "signature", "sign_frame", "setup_signing", "HEADER_LEN",
            "SIG_LEN", "MAGIC_V2"]
 
@@ -160,6 +160,34 @@ class Outgoing:
 
     def get_msgId(self) -> int:
         return self.msg.id
+
+
+class Received:
+    """A received message of a numeric layout (no char arrays) decoded by the layout, as the
+    handlers of pymavlink's messages read it: its fields as attributes (arrays as lists), and
+    ``get_msgId``, ``get_type``, ``get_msgbuf`` (the packet), ``get_srcSystem``,
+    ``get_srcComponent`` (its header's). Built from `Peer.accept_fields`' values: the same
+    numbers as pymavlink's decode (tests/bridge/test_mavlink_codec.py), without its objects."""
+
+    def __init__(self, msg: Message, values, pkt):
+        self.__dict__.update(msg.as_dict(values))
+        self._msg = msg
+        self._pkt = pkt
+
+    def get_msgId(self) -> int:
+        return self._msg.id
+
+    def get_type(self) -> str:
+        return self._msg.name
+
+    def get_msgbuf(self):
+        return self._pkt
+
+    def get_srcSystem(self) -> int:
+        return self._pkt[5]
+
+    def get_srcComponent(self) -> int:
+        return self._pkt[6]
 
 
 EPOCH_2015 = 1420070400   # signing timestamps count 10 µs from 2015-01-01 00:00 UTC

@@ -107,6 +107,9 @@ ACTUATION_MSGS = frozenset((*(mid for mid, cmd in PROFILE_BY_KEY if cmd is None)
                             M.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT,
                             M.MAVLINK_MSG_ID_SET_MODE, M.MAVLINK_MSG_ID_PARAM_SET,
                             M.MAVLINK_MSG_ID_RC_CHANNELS_OVERRIDE))
+# the output profiles' per-step messages, decoded by `bridge.mavlink.codec` (`Peer.accept_fields`)
+_FAST_COMMANDS = {m.id: {m.id: m} for m in (codec.SET_ACTUATOR_CONTROL_TARGET,
+                                            codec.SET_ATTITUDE_TARGET, codec.MANUAL_CONTROL)}
 ACTUATION_COMMANDS = frozenset((*(cmd for _, cmd in PROFILE_BY_KEY if cmd is not None),
                                 M.MAV_CMD_COMPONENT_ARM_DISARM,
                                 M.MAV_CMD_DO_SET_MODE, M.MAV_CMD_DO_SET_SERVO,
@@ -784,7 +787,14 @@ class VehicleServer:
                 else:
                     c.reject("not_commander")
                 return
-            m = v.peer.accept(pkt)
+            fast = _FAST_COMMANDS.get(pkt[7] | (pkt[8] << 8) | (pkt[9] << 16))
+            if fast is not None:
+                # the per-step commands: their fields without pymavlink's objects (a sixth of
+                # this process's time serving 64 vehicles at 100 Hz went to building them)
+                got = v.peer.accept_fields(pkt, fast)
+                m = None if got is None else codec.Received(fast[got[0]], got[1], pkt)
+            else:
+                m = v.peer.accept(pkt)
             if m is None:
                 return
             n0 = c.refusals()
