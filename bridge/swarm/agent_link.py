@@ -72,7 +72,7 @@ from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlin
 from bridge.mavlink.state import QUAT_TOL
 from bridge.mavlink.transport import wire_row_to_state
 
-from .sample_wire import PACK_BYTES, SCAN_WIDTH, pack_sample, scan_sample
+from .sample_wire import PACK_BYTES, SCAN_STATE, SCAN_WIDTH, pack_sample, scan_sample
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -540,7 +540,10 @@ class AgentLink:
             self.peer.took(j, AGENT_COMPONENT, seqs[:npk].tolist())
         self._packets[j] += npk
         self._back[j] = None
-        S = np.array(wire_row_to_state(out[:13].tolist(), self.world))
+        if self.world == "ned":     # the compiled decoder's row: wire_row_to_state's bits
+            S = out[SCAN_STATE:SCAN_STATE + layout.S_WIDTH].copy()
+        else:
+            S = np.array(wire_row_to_state(out[:13].tolist(), self.world))
         self._held[j] = NeighbourSample(s, S, S[layout.XI].copy(),
                                         dict(zip(self.owned_by[j], out[13:13 + nt].tolist())),
                                         self.clock())

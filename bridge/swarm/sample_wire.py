@@ -34,7 +34,7 @@ from controller.jit import jit
 from controller.kernels import quat_of
 from controller.layout import S_OMEGA, S_P, S_R, S_V
 
-__all__ = ["scan_sample", "pack_sample", "SCAN_WIDTH", "ODOMETRY_SIZE", "THETA_SIZE",
+__all__ = ["scan_sample", "pack_sample", "SCAN_WIDTH", "SCAN_STATE", "ODOMETRY_SIZE", "THETA_SIZE",
            "PACK_BYTES"]
 
 MAGIC = 0xFD
@@ -49,7 +49,8 @@ FRAME_LOCAL_NED = 1
 FRAME_BODY_FRD = 12
 SIG_LEN = 13
 THETA_NAME = np.frombuffer(b"theta\0", np.uint8).copy()
-SCAN_WIDTH = 13 + 58                  # wire row, then at most one chunk of θ
+SCAN_STATE = 13 + 58                  # scan_sample's out: wire row, at most one chunk of θ,
+SCAN_WIDTH = SCAN_STATE + 18          # then the state row in NED
 PACK_BYTES = 2 * (12 + SIG_LEN) + ODOMETRY_SIZE + THETA_SIZE   # pack_sample's most
 ESTIMATOR_NAIVE = 1                   # MAV_ESTIMATOR_TYPE_NAIVE
 QUALITY = 100
@@ -103,14 +104,38 @@ def _u64(p, o):
     return v
 
 
+@jit(error_model="python", inline=True)
+def _state_row(out):
+    """out[SCAN_STATE:] = [p, R(q) row-major, ξ] of the wire row out[0:13] (`quat_to_rot_row`)."""
+    w, x, y, z = out[3], out[4], out[5], out[6]
+    nq = np.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / nq, x / nq, y / nq, z / nq
+    o = SCAN_STATE
+    for k in range(3):
+        out[o + k] = out[k]
+    out[o + 3] = 1 - 2 * (y * y + z * z)
+    out[o + 4] = 2 * (x * y - w * z)
+    out[o + 5] = 2 * (x * z + w * y)
+    out[o + 6] = 2 * (x * y + w * z)
+    out[o + 7] = 1 - 2 * (x * x + z * z)
+    out[o + 8] = 2 * (y * z - w * x)
+    out[o + 9] = 2 * (x * z - w * y)
+    out[o + 10] = 2 * (y * z + w * x)
+    out[o + 11] = 1 - 2 * (x * x + y * y)
+    for k in range(6):
+        out[o + 12 + k] = out[7 + k]
+
+
 @jit(error_model="python")
 def scan_sample(buf, n, signed, sysid, n_theta, h_us, limit, scratch, out, seqs):
     """Step s of the sample in datagram buf[:n] from neighbour ``sysid`` (owning ``n_theta`` ≤ 58
     edges), or −1 (see the module docstring). ``signed`` (0 or 1): the link's packets carry
     signatures, which the caller verifies (`bridge.mavlink.link.Peer.take_signed`). On success
     out[0:13] holds the wire row (x y z, q w x y z, body rates, body velocity),
-    out[13:13 + n_theta] θ, seqs[0:2] the packets' sequence numbers and seqs[2:4] their ends.
-    ``limit``: the newest step the receiver takes; ``scratch``: ≥ 252 bytes."""
+    out[13:13 + n_theta] θ, out[SCAN_STATE:SCAN_STATE + 18] the state row of a NED world
+    (`bridge.mavlink.transport.wire_row_to_state`'s operations in its order: the same bits),
+    seqs[0:2] the packets' sequence numbers and seqs[2:4] their ends. ``limit``: the newest
+    step the receiver takes; ``scratch``: ≥ 252 bytes."""
     odo = scratch[0:ODOMETRY_SIZE]
     e = _packet(buf, 0, n, signed, sysid, ID_ODOMETRY, EXTRA_ODOMETRY, ODOMETRY_SIZE, odo)
     if e < 0:
@@ -142,6 +167,7 @@ def scan_sample(buf, n, signed, sysid, n_theta, h_us, limit, scratch, out, seqs)
     s = t // h_us
     if s > limit:
         return -1
+    _state_row(out)
     if n_theta == 0:
         return s if e == n else -1
     th = scratch[0:THETA_SIZE]
