@@ -72,6 +72,12 @@ MAX_AHEAD_US = 1_000_000        # a command may be stamped at most 1 s ahead of 
 # tick's states must reach the agents before their deadline; each command then has the rest of
 # the period to arrive before the tick that applies it)
 TICK_LEAD = 0.3
+# real time: the sockets are read just before each tick (or every 50 ms when idle) instead of at
+# each datagram's arrival: a process blocked in select is woken by every command that arrives (64
+# a tick for 64 vehicles); asleep on a timer it is not, and a command is applied at the next tick
+# however early it is read. While a socket is flooded (a pass read its whole budget) it is read
+# as datagrams come, as before, so that the flood does not fill the kernel's buffer and crowd out
+# the commander's commands.
 
 
 def locked_tick(origin: float, now: float, tick: float, lead: float) -> float:
@@ -657,6 +663,8 @@ class VehicleServer:
         self.repeats = 0
         self.ground_requests = 0          # SET_MESSAGE_INTERVAL of ground stations (their own streams)
         self.drain_deadline_hits = 0      # receive passes cut short by the tick deadline
+        self._flooded = False             # the last receive pass found a socket flooded
+        self.read_passes = 0              # receive passes (real time: one a tick, unless flooded)
         self.ticks = 0                    # real time: physics ticks since the first command
         self.late_ticks = 0               # ... of them more than one tick after they were due
         self.resyncs = 0                  # ... and times it fell 10 ticks behind and skipped them
@@ -741,7 +749,8 @@ class VehicleServer:
         d.update(failsafe=self.failsafe_count, failsafe_active=[v.failsafe for v in self.vehicles],
                  commands=sum(v.commands for v in self.vehicles), steps=[v.k for v in self.vehicles],
                  repeats=self.repeats, encode_errors=self.encode_errors,
-                 drain_deadline_hits=self.drain_deadline_hits, commander=list(self.commander),
+                 drain_deadline_hits=self.drain_deadline_hits, read_passes=self.read_passes,
+                 commander=list(self.commander),
                  ticks=self.ticks, late_ticks=self.late_ticks, resyncs=self.resyncs,
                  tick_s=self.odom_period, cpu_s=self.cpu_s, wall_s=self.wall_s,
                  tick_lead_s=self.tick_lead if self.tick_origin is not None else None,
@@ -830,9 +839,10 @@ class VehicleServer:
         one cannot always go first. Returns time.monotonic() after the pass."""
         now = time.monotonic()
         n = len(ready)
+        flooded = False
+        self.read_passes += 1
         if n:
             self._rr = (getattr(self, "_rr", 0) + 1) % n
-            flooded = False
             for j in range(n):
                 flooded |= self._receive(self._by_fd[ready[(self._rr + j) % n]], now) >= DRAIN_BUDGET
                 now = time.monotonic()
@@ -840,6 +850,7 @@ class VehicleServer:
                 if flooded and now >= deadline and j < n - 1:
                     self.drain_deadline_hits += 1
                     break
+        self._flooded = flooded
         return now
 
     def run(self, duration: float | None = None) -> dict:
@@ -876,7 +887,13 @@ class VehicleServer:
                         self.locked_at = origin
                         next_tick = locked_tick(origin, now, tick, self.tick_lead)
                 timeout = max(0.0, min(next_tick - now, 0.05))
-                r, _, _ = select.select(fds, [], [], timeout)
+                if self.lockstep or self._flooded:
+                    # lockstep: each command steps the vehicles, read it as it comes
+                    r, _, _ = select.select(fds, [], [], timeout)
+                else:
+                    if timeout > 0:
+                        time.sleep(timeout)
+                    r, _, _ = select.select(fds, [], [], 0.0)
                 now = self._drain(r, next_tick)
                 if self.signing is not None:
                     self.signing.tick(now)

@@ -169,3 +169,33 @@ def test_vehicle_odometry_is_pymavlinks_bytes(key):
             assert (mine[2] & 1) == (key is not None)
     finally:
         srv.close()
+
+
+@pytest.mark.realtime
+def test_real_time_reads_once_a_tick_and_takes_every_command():
+    """Real time: the sockets are read just before each physics tick, not at each datagram (a
+    process blocked in select is woken by every command, and so is its sender's sendto). A
+    commander sending four commands a tick: every one is taken, in about one read pass a tick
+    (at most one more per 50 ms of idling), not one per command."""
+    from bridge.mavlink.output import ACTUATOR_CONTROL_TARGET, profile
+
+    sock, port = bound_udp()
+    with VehicleThread(count=1, base_port=port, rate=100, aux_rate=0) as srv:
+        sock.settimeout(60)   # its first datagram: a guard, not a deadline
+        _, addr = sock.recvfrom(65535)
+        gcs = Peer(255, 191, Counters())
+        prof = profile(ACTUATOR_CONTROL_TARGET, h=0.01, max_wrench=np.ones(6))
+        sent = 0
+        t0 = time.monotonic()
+        p0, k0 = srv.read_passes, srv.ticks
+        while time.monotonic() - t0 < 1.0:
+            msg = prof.message(gcs.mav, np.full(6, 0.01), target=1, k=sent + 1, lockstep=False)
+            sock.sendto(gcs.pack(msg), addr)
+            sent += 1
+            time.sleep(0.0025)
+        time.sleep(0.05)
+        passes, ticks = srv.read_passes - p0, srv.ticks - k0
+        taken = srv.vehicles[0].commands
+        sock.close()
+    assert taken == sent > 100
+    assert passes <= ticks + 25, (passes, ticks, sent)
