@@ -29,6 +29,8 @@ import struct
 import time
 from collections import defaultdict
 
+import numpy as np
+
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 
@@ -162,6 +164,8 @@ class Peer:
         self.key = key
         self.allow_unsigned_heartbeat = allow_unsigned_heartbeat
         self._last_seq: dict = {}
+        self._seq_slot: dict = {}      # keys kept in _seq_arr instead (`sequence_array`)
+        self._seq_arr = None
         if key is not None:
             allow = (lambda mav, msgid: msgid == MSG_HEARTBEAT) if allow_unsigned_heartbeat else None
             codec.setup_signing(self.mav, key, allow_unsigned_callback=allow, link_id=link_id)
@@ -184,12 +188,40 @@ class Peer:
     # ------------------------------------------------------------------ in
     def _count_seq(self, sysid, compid, seq) -> None:
         key = (sysid, compid)
-        last = self._last_seq.get(key)
+        slot = self._seq_slot.get(key) if self._seq_slot else None
+        if slot is not None:
+            last = int(self._seq_arr[slot])
+            last = None if last < 0 else last
+        else:
+            last = self._last_seq.get(key)
         if last is not None:
             gap = (seq - last - 1) & 0xFF
             if gap < 128:  # larger "gaps" are duplicates/reordering, not losses
                 self.counters.dropped += gap
-        self._last_seq[key] = seq
+        if slot is not None:
+            self._seq_arr[slot] = seq
+        else:
+            self._last_seq[key] = seq
+
+    def sequence_array(self, keys) -> np.ndarray:
+        """From now on the last sequence number of each of ``keys`` ((system, component)) lives
+        in the returned int64 array (−1: none yet), in that order, where compiled code that
+        takes packets itself (`bridge.swarm.sample_wire.drain_samples`) counts them as
+        `_count_seq` does; the rest of this peer reads and moves the same numbers."""
+        keys = [tuple(int(x) for x in k) for k in keys]
+        arr = np.array([self._last_seq.pop(k, -1) for k in keys], np.int64)
+        self._seq_slot = {k: i for i, k in enumerate(keys)}
+        self._seq_arr = arr
+        return arr
+
+    def sequences(self) -> dict:
+        """{(system, component): the last sequence number counted} (what `commit` and `took`
+        have recorded, wherever it is kept)."""
+        out = dict(self._last_seq)
+        for k, i in self._seq_slot.items():
+            if self._seq_arr[i] >= 0:
+                out[k] = int(self._seq_arr[i])
+        return out
 
     def commit(self) -> None:
         """The latest packet this peer passed was accepted in full by the application (target,
@@ -457,32 +489,39 @@ def receive_datagrams(sock, counters, on_packet, limit: int = DRAIN_BUDGET,
         if nb > c.drain_max:
             c.drain_max = nb
         for data, addr in batch:
-            c.datagrams += 1
-            if not data or data[0] != MAGIC_V2:
-                c.malformed += 1
-                continue
-            if accept_from is not None and not accept_from(addr):
-                c.reject("wrong_address")
-                continue
-            if fast is not None and fast(data, addr):
-                continue
-            try:
-                pkts, err = split_datagram(data)
-                if err is not None:
-                    c.malformed += 1
-                    continue
-                m0 = c.malformed
-                for pkt in pkts:
-                    on_packet(pkt, addr)
-                if c.malformed > m0 + 1:
-                    c.malformed = m0 + 1  # one bad datagram counts once
-            except Exception:  # noqa: BLE001 - untrusted input never crashes us
-                c.malformed += 1
+            take_datagram(data, addr, c, on_packet, accept_from, fast)
         if nb < limit:
             return total
         if deadline is None or time.monotonic() >= deadline:
             c.drain_capped += 1
             return total
+
+
+def take_datagram(data, addr, counters, on_packet, accept_from=None, fast=None) -> None:
+    """One datagram read from a socket, as `receive_datagrams` takes each (counted, checked,
+    split into frames, each frame to ``on_packet``); never raises."""
+    c = counters
+    c.datagrams += 1
+    if not data or data[0] != MAGIC_V2:
+        c.malformed += 1
+        return
+    if accept_from is not None and not accept_from(addr):
+        c.reject("wrong_address")
+        return
+    if fast is not None and fast(data, addr):
+        return
+    try:
+        pkts, err = split_datagram(data)
+        if err is not None:
+            c.malformed += 1
+            return
+        m0 = c.malformed
+        for pkt in pkts:
+            on_packet(pkt, addr)
+        if c.malformed > m0 + 1:
+            c.malformed = m0 + 1  # one bad datagram counts once
+    except Exception:  # noqa: BLE001 - untrusted input never crashes us
+        c.malformed += 1
 
 
 def parse_endpoint(ep: str):

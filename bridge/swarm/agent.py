@@ -53,6 +53,7 @@ from cosim.scenario import restrict
 from cosim.threads import AGENT_THREADS, limit_process
 
 from .agent_link import AgentLink
+from .sample_wire import SCAN_STATE
 from bridge.mavlink.config import check_endpoint, default_config, read_key_file
 from bridge.mavlink.link import require_key_or_insecure
 from bridge.live import feed_logger
@@ -243,6 +244,7 @@ class AgentNode:
         self.used: dict = {j: (None, None) for j in self.neighbours}   # (sample step, age)
         self.own_samples: list = []
         self.compiled = bool(compiled) and type(self.stepper) is AgentStepper
+        self._held_values = None
         if self.compiled:
             self._tables()
         self.plant = _NeighbourhoodPlant(self)
@@ -274,6 +276,11 @@ class AgentNode:
                                         if k not in self.owned and self.ends[k][0] == j))
                               for j in self.neighbours)
         self._seen = [None] * len(self.neighbours)   # the sample θ was last taken from
+        # …or, where the link holds its samples in arrays (`AgentLink.held_values`), the held θ
+        # of neighbour q's edge k (its column c of row q) goes to rx[r]: [(r, c), …] per q
+        self._held_values = None if self.lockstep else self.link.held_values
+        self._rx_cols = tuple(tuple((r, 13 + self.link.owned_by[j].index(k)) for k, r in pairs)
+                              for j, pairs in self._rx_rows)
         self._pub = {k: 0.0 for k in self.owned}     # θ after the jump, as published
 
     # ------------------------------------------------------------------ set-up
@@ -414,6 +421,13 @@ class AgentNode:
                 S[self.row[j]] = self.link.pose_at(j, n)
                 self.used[j] = (n, 0)
             return S
+        hv = self._held_values
+        if hv is not None:       # the link's arrays: row q + 1 is neighbour q's
+            steps = self.link.held_step
+            for q, j in enumerate(self.neighbours):
+                if steps(j) is not None:
+                    S[q + 1] = hv[q, SCAN_STATE:SCAN_STATE + layout.S_WIDTH]
+            return S
         for j in self.neighbours:
             smp = self.link.neighbour(j)
             if smp is not None:
@@ -542,12 +556,11 @@ class AgentNode:
         fs = hold = False
         if not self.lockstep:
             state = self._state
+            hv = self._held_values
             q = 0
             for j, pairs in self._rx_rows:
-                age = link.age_steps(j, n)
-                smp = link.neighbour(j)
-                self.used[j] = (None if smp is None else smp.step, n if age is None else age)
-                m = link.freshness(j, n)
+                s, age, m = link.age_rule(j, n)
+                self.used[j] = (s, n if age is None else age)
                 if m != state[j]:
                     state[j] = m
                     self.transitions.append((n, j, m))
@@ -561,11 +574,18 @@ class AgentNode:
                         fs = True
                     else:
                         hold = True
-                if smp is not None and smp is not self._seen[q]:
-                    self._seen[q] = smp
-                    th = smp.theta
-                    for k, r in pairs:
-                        rx[r] = th[k]
+                if s is None:
+                    pass
+                elif hv is not None:     # θ of the held sample, from the link's arrays
+                    for r, c in self._rx_cols[q]:
+                        rx[r] = hv[q, c]
+                else:
+                    smp = link.neighbour(j)
+                    if smp is not self._seen[q]:
+                        self._seen[q] = smp
+                        th = smp.theta
+                        for k, r in pairs:
+                            rx[r] = th[k]
                 q += 1
         call = self._calls if S is self._S and h == self.h else self._agent_step_calls(S, h)
         pub = self._pub

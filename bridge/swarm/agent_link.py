@@ -68,11 +68,13 @@ from controller.kernels import rot_to_quat_rows
 
 from bridge.mavlink import codec, frames
 from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlink2, packet_ids,
-                   receive_datagrams)
+                   receive_datagrams, take_datagram)
 from bridge.mavlink.state import QUAT_TOL
 from bridge.mavlink.transport import wire_row_to_state
 
-from .sample_wire import PACK_BYTES, SCAN_STATE, SCAN_WIDTH, pack_sample, scan_sample
+from .sample_wire import (D_BATCH, D_DATAGRAMS, D_DROPPED, D_K, D_LEN, D_RECEIVED, D_WIDTH,
+                          PACK_BYTES, SCAN_STATE, SCAN_WIDTH, drain_samples, pack_sample,
+                          scan_sample, send_sample)
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -291,7 +293,7 @@ class AgentLink:
         self._packets = {j: 0 for j in self.neighbours}      # accepted packets per neighbour
         self._samples = {j: 0 for j in self.neighbours}      # complete samples taken
         self._sent = {j: 0 for j in self.neighbours}         # datagrams sent per neighbour
-        self._published = {j: 0 for j in self.neighbours}    # samples (steps) published to it
+        self._published = 0        # samples (steps) published to every neighbour
         self._last_published = -1
         self._restarts = {j: 0 for j in self.neighbours}     # restarts recognised (RESTART_SAMPLES)
         self._back = {j: None for j in self.neighbours}      # (newest far-back step, run length)
@@ -325,7 +327,36 @@ class AgentLink:
             self._scan_seqs = np.zeros(4, np.int64)
             self._signed = int(key is not None)
             self._scan = self._take_sample
-        # …and its mirror for what this agent sends (`sample_wire.pack_sample`)
+        # …and, unsigned, the neighbours' own sockets read by compiled code too
+        # (`sample_wire.drain_samples`): the reads, the checks and the counts of a step's
+        # samples in one call; held samples then live in arrays until asked for (`neighbour`)
+        self._drain = None
+        if self._scan is not None and key is None and world == "ned" \
+                and len(self._nsock) == len(self._scan_nt) == len(self.neighbours):
+            nb = self.neighbours
+            m = len(nb)
+            self._dq = {j: q for q, j in enumerate(nb)}
+            self._dfds = np.array([self._nsock[j].fileno() for j in nb], np.int64)
+            self._dsys = np.array(nb, np.int64)
+            self._dnt = np.array([self._scan_nt.get(j, -1) for j in nb], np.int64)
+            self._dnt_now = self._dnt.copy()     # −1 while j's sample is in assembly
+            self._dbuf = np.zeros(65535, np.uint8)
+            self._hstep = np.full(m, -1, np.int64)     # the held sample's step (−1: none)
+            self._hrow = np.zeros((m, SCAN_WIDTH))     # …its values (scan_sample's out)
+            self._htime = np.zeros(m)                  # …its arrival (clock())
+            self._dcount = np.zeros((m, 2), np.int64)  # packets and samples taken compiled
+            self._dseen = [0] * m                      # _dcount[q, 1] when last read
+            self._dtot = np.zeros(D_WIDTH, np.int64)
+            self._dseq = self.peer.sequence_array([(j, AGENT_COMPONENT) for j in nb])
+            self._drain = self._drain_neighbours
+            self.drain_kernel = drain_samples    # (the ahead-of-time module's, in a test)
+        # …and its mirror for what this agent sends (`sample_wire.pack_sample`), sent on the
+        # neighbours' connected sockets by one compiled call (`sample_wire.send_sample`)
+        self._sfds = None
+        if compiled and len(self._nsock) == len(self.neighbours) and self.neighbours:
+            self._sfds = np.array([self._nsock[j].fileno() for j in self.neighbours], np.int64)
+            self._sok = np.zeros(len(self.neighbours), np.int64)
+            self.send_kernel = send_sample
         self._pack = None
         if compiled and self.peer.tlog is None and len(self.owned) <= THETA_PER_MESSAGE:
             self._pbuf = np.zeros(PACK_BYTES, np.uint8)
@@ -335,10 +366,18 @@ class AgentLink:
             self._pnull = np.zeros(layout.S_WIDTH)
             self._pack = self._pack_sample
 
+    @property
+    def drained(self) -> int:
+        """Samples the compiled drain took whole (`sample_wire.drain_samples`; of `scanned`)."""
+        return 0 if self._drain is None else int(self._dcount[:, 1].sum())
+
     def warm_up(self) -> None:
         """Loads (or compiles) the compiled sample decoder now, with the argument types of the
         run, rather than at the first neighbour sample of step 0: on a cold cache that took
         about a second while the swarm stepped."""
+        if self._sfds is not None:      # to no socket: its types, no send
+            none = np.zeros(0, np.int64)
+            send_sample(none, np.zeros(1, np.uint8), 0, none)
         if self._scan is None or not self._scan_nt:
             return
         nt = next(iter(self._scan_nt.values()))
@@ -346,6 +385,12 @@ class AgentLink:
         scan_sample(np.frombuffer(junk, np.uint8), len(junk), self._signed, 1, nt, self.h_us,
                     int(self._limit), self._scratch.copy(), self._scan_out.copy(),
                     self._scan_seqs.copy())
+        if self._drain is not None:     # over no socket: its types, no read
+            none = np.zeros(0, np.int64)
+            drain_samples(0, 0, none, none, none, self.h_us, int(self._limit), 1, 0.0,
+                          self._dbuf, self._scratch.copy(), self._scan_out.copy(),
+                          self._scan_seqs.copy(), none, np.zeros((0, SCAN_WIDTH)), np.zeros(0),
+                          np.zeros((0, 2), np.int64), none, np.zeros(D_WIDTH, np.int64))
 
     @classmethod
     def from_scenario(cls, scenario, agent_id: int, **kw) -> "AgentLink":
@@ -388,8 +433,20 @@ class AgentLink:
             return 0
         if S_row is not None and n > self._last_published:   # a new sample (not a resend)
             self._last_published = n
-            for j in self.neighbours:
-                self._published[j] += 1
+            self._published += 1
+        if got is not None and self._sfds is not None and not self._emu:
+            # the datagram is in _pbuf: one compiled call sends it to every neighbour
+            ok = self.send_kernel(self._sfds, self._pbuf, len(data), self._sok)
+            c = self.counters
+            c.sent += ok * n_msgs
+            if ok == len(self.neighbours):
+                for j in self.neighbours:
+                    self._sent[j] += 1
+            else:
+                c.send_errors += len(self.neighbours) - ok
+                for j, y in zip(self.neighbours, self._sok.tolist()):
+                    self._sent[j] += y
+            return ok
         ok = 0
         for j in self.neighbours:
             emu = self._emu.get(j)
@@ -496,15 +553,22 @@ class AgentLink:
         lim = self.drain_budget if limit is None else int(limit)
         t = time.monotonic()
         deadline = t + self.poll_budget_s
-        n = 0
-        for s in self._nsock.values():          # the neighbours first: never behind junk
-            n += receive_datagrams(s, self.counters, self._on_packet, lim, deadline=deadline,
-                                   accept_from=self._accept_from, fast=self._scan)
+        if self._drain is not None:             # the neighbours first: never behind junk
+            n = self._drain(lim, deadline)
+        else:
+            n = 0
+            for s in self._nsock.values():
+                n += receive_datagrams(s, self.counters, self._on_packet, lim, deadline=deadline,
+                                       accept_from=self._accept_from, fast=self._scan)
         # the catch-all: what is left of its budget (the rest of a flood waits, then the kernel
         # drops it and `kernel_drops` says how much)
-        return n + receive_datagrams(self.sock, self.counters, self._on_packet, lim,
-                                     deadline=min(deadline, time.monotonic() + self.junk_budget_s),
-                                     accept_from=self._accept_from, fast=self._scan)
+        got = receive_datagrams(self.sock, self.counters, self._on_packet, lim,
+                                deadline=min(deadline, time.monotonic() + self.junk_budget_s),
+                                accept_from=self._accept_from, fast=self._scan)
+        if got and self._drain is not None:
+            for j in self.neighbours:   # a neighbour's datagram may have come this way too
+                self._resync(j)
+        return n + got
 
     def fds(self) -> list:
         """The sockets to wait on (select) before a `poll`."""
@@ -529,7 +593,7 @@ class AgentLink:
         seqs = self._scan_seqs
         s = scan_sample(np.frombuffer(data, np.uint8), len(data), self._signed, j, nt, self.h_us,
                         self._limit, self._scratch, out, seqs)
-        held = self._held[j]
+        held = self.neighbour(j)
         if s < 0 or (held is not None and s <= held.step):
             return False
         npk = 2 if nt else 1
@@ -540,16 +604,79 @@ class AgentLink:
             self.peer.took(j, AGENT_COMPONENT, seqs[:npk].tolist())
         self._packets[j] += npk
         self._back[j] = None
+        self._hold(j, self._sample_of(j, s, out, self.clock()))
+        self._samples[j] += 1
+        self.scanned += 1
+        return True
+
+    def _sample_of(self, j: int, s: int, out, t: float) -> NeighbourSample:
+        """The held sample of `scan_sample`'s ``out`` (sample s of j)."""
         if self.world == "ned":     # the compiled decoder's row: wire_row_to_state's bits
             S = out[SCAN_STATE:SCAN_STATE + layout.S_WIDTH].copy()
         else:
             S = np.array(wire_row_to_state(out[:13].tolist(), self.world))
-        self._held[j] = NeighbourSample(s, S, S[layout.XI].copy(),
-                                        dict(zip(self.owned_by[j], out[13:13 + nt].tolist())),
-                                        self.clock())
-        self._samples[j] += 1
-        self.scanned += 1
-        return True
+        nt = len(self.owned_by[j])
+        return NeighbourSample(s, S, S[layout.XI].copy(),
+                               dict(zip(self.owned_by[j], out[13:13 + nt].tolist())), t)
+
+    def _hold(self, j: int, sample: NeighbourSample | None) -> None:
+        """j's held sample is now ``sample`` (the compiled drain's arrays follow)."""
+        self._held[j] = sample
+        if self._drain is not None:
+            q = self._dq[j]
+            self._dseen[q] = int(self._dcount[q, 1])
+            if sample is None:
+                self._hstep[q] = -1
+                return
+            self._hstep[q] = sample.step
+            row = self._hrow[q]
+            row[SCAN_STATE:SCAN_STATE + layout.S_WIDTH] = sample.S
+            for i, k in enumerate(self.owned_by[j]):
+                row[13 + i] = sample.theta[k]
+
+    def _drain_neighbours(self, lim: int, deadline: float) -> int:
+        """The neighbours' sockets read by `drain_samples`, each datagram it does not take
+        handed to the reference path in its turn; returns the datagrams read."""
+        tot = self._dtot
+        c = self.counters
+        n = 0
+        q = k = 0
+        now = self.clock()
+        while True:
+            r = self.drain_kernel(q, k, self._dfds, self._dsys, self._dnt_now, self.h_us, self._limit,
+                              lim, now, self._dbuf, self._scratch, self._scan_out,
+                              self._scan_seqs, self._hstep, self._hrow, self._htime,
+                              self._dcount, self._dseq, tot)
+            if r < 0:
+                break
+            q = r >> 1
+            if r & 1:       # a full batch: on while the poll's time lasts
+                k = 0
+                if time.monotonic() >= deadline:
+                    c.drain_capped += 1
+                    q += 1
+                continue
+            k = int(tot[D_K])
+            j = self.neighbours[q]
+            n += 1
+            take_datagram(self._dbuf[:tot[D_LEN]].tobytes(), self.addr[j], c, self._on_packet)
+            self._resync(j)
+        d = tot.tolist()
+        tot[:] = 0
+        c.datagrams += d[D_DATAGRAMS]
+        c.received += d[D_RECEIVED]
+        c.dropped += d[D_DROPPED]
+        if d[D_BATCH] > c.drain_max:
+            c.drain_max = d[D_BATCH]
+        self.scanned += d[D_DATAGRAMS]
+        return n + d[D_DATAGRAMS]
+
+    def _resync(self, j: int) -> None:
+        """After the reference path took (or refused) a datagram of j: the drain's view of j."""
+        q = self._dq[j]
+        held = self.neighbour(j)
+        self._hstep[q] = -1 if held is None else held.step
+        self._dnt_now[q] = -1 if self._asm[j] is not None else self._dnt[q]
 
     def _on_packet(self, pkt, addr) -> None:
         c = self.counters
@@ -597,10 +724,10 @@ class AgentLink:
         of `RESTART_SAMPLES` distinct increasing steps with nothing newer between them, are j
         restarting on another timeline: the last one is taken, counted in ``restarts``."""
         c = self.counters
+        held = self.neighbour(j)      # (first: it settles what the compiled drain took)
         a = self._asm[j]
         if a is not None and a.step == s:
             return a
-        held = self._held[j]
         steps = [x.step for x in (held, a) if x is not None]
         newest = max(steps) if steps else None
         if newest is not None and s <= newest:
@@ -617,7 +744,7 @@ class AgentLink:
                 c.reject("out_of_order")
                 return None
             self._restarts[j] += 1
-            self._held[j] = None
+            self._hold(j, None)
         self._back[j] = None
         if a is not None:
             c.reject("incomplete")   # a newer sample starts before the older one was complete
@@ -742,9 +869,9 @@ class AgentLink:
         # are float32 values already (f32 is the identity on them)
         S = np.array(wire_row_to_state(a.wire, self.world))
         theta_vals = [v for i in sorted(a.chunks) for v in a.chunks[i]]
-        self._held[j] = NeighbourSample(a.step, S, S[layout.XI].copy(),
-                                        {k: float(v) for k, v in zip(owned, theta_vals)},
-                                        self.clock())
+        self._hold(j, NeighbourSample(a.step, S, S[layout.XI].copy(),
+                                      {k: float(v) for k, v in zip(owned, theta_vals)},
+                                      self.clock()))
         self._asm[j] = None
         self._samples[j] += 1
 
@@ -754,15 +881,52 @@ class AgentLink:
         if j not in self._held:
             raise Se3SyncError(f"agent_link: agent {j} is not a neighbour of agent {self.id} "
                                f"(neighbours: {list(self.neighbours)})")
+        if self._drain is not None:
+            q = self._dq[j]
+            taken = int(self._dcount[q, 1])
+            if taken != self._dseen[q]:     # the compiled drain took a newer one since
+                self._dseen[q] = taken
+                self._back[j] = None
+                self._held[j] = self._sample_of(j, int(self._hstep[q]), self._hrow[q],
+                                                float(self._htime[q]))
         return self._held[j]
+
+    def held_step(self, j: int) -> int | None:
+        """The step of j's newest complete sample (None before the first one), without building
+        the sample (`neighbour`)."""
+        if self._drain is not None:
+            q = self._dq.get(j)
+            if q is not None:
+                s = int(self._hstep[q])
+                return None if s < 0 else s
+        held = self.neighbour(j)
+        return None if held is None else held.step
+
+    @property
+    def held_values(self):
+        """The held samples as one array, or None where the link keeps them as objects only
+        (no compiled drain): row q is neighbour q's (`neighbours` order) newest sample while
+        its `held_step` is not None, θ of the edges it owns (ascending) at [13:13 + count] and
+        its state row S_j at [SCAN_STATE:SCAN_STATE + 18]. It changes as samples arrive."""
+        return None if self._drain is None else self._hrow
+
+    def age_rule(self, j: int, n: int) -> tuple:
+        """(`held_step`, `age_steps`, `freshness`) of j at step n, the age recorded: what a
+        control step asks of each neighbour, in one call."""
+        s = self.held_step(j)
+        age = None
+        if s is not None:
+            age = int(n) - s
+            self._ages[j][max(age, 0)] += 1
+        return s, age, self._verdict(s, n)
 
     def age_steps(self, j: int, n: int, record: bool = True) -> int | None:
         """n − (step of j's newest sample), or None before the first one. With ``record`` the age
         counts as "used at step n" in the link's age percentiles (call it once per control step)."""
-        held = self.neighbour(j)
-        if held is None:
+        s = self.held_step(j)
+        if s is None:
             return None
-        age = int(n) - held.step
+        age = int(n) - s
         if record:
             self._ages[j][max(age, 0)] += 1
         return age
@@ -773,10 +937,13 @@ class AgentLink:
         "failsafe" (older still: zero wrench until fresh data arrives, then rejoin). Before the
         first sample the age counts from step 0, as if the sender's S0 and θ(0) had arrived then
         (the delay contract of `cosim.network`). Does not record the age."""
-        held = self.neighbour(j)
-        age = int(n) - (0 if held is None else held.step)
+        return self._verdict(self.held_step(j), n)
+
+    def _verdict(self, held: int | None, n: int) -> str:
+        """`freshness` of a neighbour whose newest sample is of step ``held``."""
+        age = int(n) - (0 if held is None else held)
         if held is not None and age < -self.future_steps \
-                and held.step - self.current_step() > self.future_steps:
+                and held - self.current_step() > self.future_steps:
             # from the future even for the wall clock: never data to steer by (the receive path
             # refuses such stamps; this holds whatever moved the receiver's step back)
             return "failsafe"
@@ -798,10 +965,12 @@ class AgentLink:
         out["neighbours"] = list(self.neighbours)
         links = {}
         for j in self.neighbours:
-            held = self._held[j]
-            links[str(j)] = {"sent": self._sent[j], "published": self._published[j],
-                             "received": self._packets[j],
-                             "samples": self._samples[j], "restarts": self._restarts[j],
+            held = self.neighbour(j)
+            fast = (0, 0) if self._drain is None else self._dcount[self._dq[j]].tolist()
+            links[str(j)] = {"sent": self._sent[j], "published": self._published,
+                             "received": self._packets[j] + fast[0],
+                             "samples": self._samples[j] + fast[1],
+                             "restarts": self._restarts[j],
                              "conflicts": self._conflicts[j],
                              "last_step": None if held is None else held.step,
                              "age_p50_steps": _nearest_rank(self._ages[j], 50),

@@ -34,8 +34,11 @@ from controller.jit import jit
 from controller.kernels import quat_of
 from controller.layout import S_OMEGA, S_P, S_R, S_V
 
-__all__ = ["scan_sample", "pack_sample", "SCAN_WIDTH", "SCAN_STATE", "ODOMETRY_SIZE", "THETA_SIZE",
-           "PACK_BYTES"]
+from .udp_io import ECONNREFUSED, EINTR, MSG_DONTWAIT, errno, recv, send
+
+__all__ = ["scan_sample", "pack_sample", "drain_samples", "send_sample", "SCAN_WIDTH", "SCAN_STATE",
+           "ODOMETRY_SIZE", "THETA_SIZE", "PACK_BYTES", "D_DATAGRAMS", "D_RECEIVED", "D_DROPPED",
+           "D_LEN", "D_BATCH", "D_WIDTH"]
 
 MAGIC = 0xFD
 COMPONENT = 191                       # agent_link.AGENT_COMPONENT (MAV_COMP_ID_ONBOARD_COMPUTER)
@@ -188,6 +191,92 @@ def scan_sample(buf, n, signed, sysid, n_theta, h_us, limit, scratch, out, seqs)
         out[13 + k] = d[k]
     return s
 
+
+# drain_samples' totals: datagrams and packets taken, sequence gaps (losses), the length of the
+# datagram handed to the reference path and how many its socket had given in this batch, the
+# most datagrams read from one socket in one batch
+D_DATAGRAMS, D_RECEIVED, D_DROPPED, D_LEN, D_K, D_BATCH = range(6)
+D_WIDTH = 6
+
+
+@jit(error_model="python")
+def drain_samples(q0, k0, fds, sysids, n_thetas, h_us, limit, batch, now, buf, scratch, out, seqs,
+                  held_step, held, held_t, counts, last_seq, totals):
+    """Reads the neighbours' sockets fds[q0:] (connected, unsigned: the kernel hands socket q
+    neighbour q's datagrams only) with libc's recv, each until it is empty or ``batch``
+    datagrams were read (k0 of socket q0's already), and takes every datagram that
+    `scan_sample` takes whole (``n_thetas[q]`` ≥ 0 edges owned; −1: none) and that is newer
+    than held_step[q], as `AgentLink._take_sample` takes it: the sample into held_step[q],
+    held[q] (scan_sample's ``out``) and held_t[q] = ``now``, counts[q] += (packets, 1), its
+    packets' sequence numbers through last_seq[q] (−1: none yet) as `Peer._count_seq` counts
+    them, and the `D_*` totals. Returns −1 once every socket is empty; 2q when the datagram in
+    buf[:totals[D_LEN]] (from neighbour q, the totals[D_K]-th of its batch) is for the reference
+    path; 2q + 1 when socket q gave ``batch`` datagrams (the caller's deadline decides whether
+    to read on)."""
+    m = fds.shape[0]
+    cap = buf.shape[0]
+    for q in range(q0, m):
+        k = k0 if q == q0 else 0
+        while k < batch:
+            r = recv(fds[q], buf, cap, MSG_DONTWAIT)
+            if r < 0:
+                e = errno()
+                if e == EINTR:
+                    continue
+                if e == ECONNREFUSED:     # an ICMP error reported on the connected socket
+                    k += 1
+                    continue
+                break                     # empty (EAGAIN), or an error Python's read stops at
+            k += 1
+            if k > totals[D_BATCH]:
+                totals[D_BATCH] = k
+            nt = n_thetas[q]
+            s = -1
+            if nt >= 0:
+                s = scan_sample(buf, r, 0, sysids[q], nt, h_us, limit, scratch, out, seqs)
+            if s < 0 or (held_step[q] >= 0 and s <= held_step[q]):
+                totals[D_LEN] = r
+                totals[D_K] = k
+                return 2 * q
+            npk = 2 if nt > 0 else 1
+            for p in range(npk):
+                sq = seqs[p]
+                if last_seq[q] >= 0:
+                    gap = (sq - last_seq[q] - 1) & 0xFF
+                    if gap < 128:        # larger "gaps" are duplicates or reordering
+                        totals[D_DROPPED] += gap
+                last_seq[q] = sq
+            totals[D_DATAGRAMS] += 1
+            totals[D_RECEIVED] += npk
+            counts[q, 0] += npk
+            counts[q, 1] += 1
+            held_step[q] = s
+            held_t[q] = now
+            for i in range(out.shape[0]):
+                held[q, i] = out[i]
+        if k >= batch:
+            return 2 * q + 1
+    return -1
+
+
+@jit(error_model="python")
+def send_sample(fds, buf, n, ok):
+    """buf[:n] sent on each connected socket of ``fds`` with libc's send, as
+    `bridge.mavlink.link.UdpSocket.send` sends (once more after an ICMP error the socket
+    reported, never waiting): ok[q] = 1 if socket q took it, else 0. Returns how many took it."""
+    sent = 0
+    for q in range(fds.shape[0]):
+        ok[q] = 0
+        for _ in range(2):
+            r = send(fds[q], buf, n, MSG_DONTWAIT)
+            if r >= 0:
+                ok[q] = 1
+                sent += 1
+                break
+            e = errno()
+            if e != ECONNREFUSED and e != EINTR:
+                break
+    return sent
 
 
 @jit(error_model="python")

@@ -188,6 +188,68 @@ def test_scan_sample_equals_the_jit(ahead, signed):
         link.close()
 
 
+def test_drain_and_send_equal_the_jit(ahead):
+    """The compiled drain (libc's recv, the decoder, the held arrays and the counts) through a
+    link of each kind over the same honest and irregular traffic: the same held samples,
+    counters, refusals and sequence bookkeeping at every step; and what each link publishes
+    (libc's send to every neighbour) arrives the same."""
+    import socket
+    import time
+
+    from test_agent_link import endpoint, scenario
+    from test_sample_wire import _Neighbour, _state
+
+    from bridge.swarm.agent_link import AgentLink
+
+    rng = np.random.default_rng(17)
+    links, socks = [], []
+    try:
+        for _ in range(2):
+            sc = scenario()
+            link = AgentLink.from_scenario(sc, 2, compiled=True)
+            links.append(link)
+            s = {}
+            for j in link.neighbours:
+                s[j] = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                s[j].bind(endpoint(sc, j))
+            socks.append((sc, s))
+        links[1].drain_kernel = ahead.drain_samples
+        links[1].send_kernel = ahead.send_sample
+        for _, s in socks:
+            for x in s.values():
+                x.settimeout(5.0)
+        nbs = [_Neighbour(links[0], j, np.random.default_rng(30 + j)) for j in links[0].neighbours]
+        sent = 0
+        for n in range(200):
+            for link in links:
+                link.set_step(n)
+            for nb in nbs:
+                r = rng.random()
+                data = nb.honest(n) if r < 0.6 else nb.irregular(n)
+                for sc, s in socks:
+                    s[nb.j].sendto(data, endpoint(sc, 2))
+                sent += 1
+            for link in links:
+                end = time.monotonic() + 5.0
+                while link.counters.datagrams < sent and time.monotonic() < end:
+                    link.poll()
+            assert _state(links[0]) == _state(links[1]), n
+            S = _states(rng, 1)[0]
+            theta = {k: float(x) for k, x in zip(links[0].owned, rng.normal(size=8))}
+            got = []
+            for link, (_, s) in zip(links, socks):
+                assert link.publish(n, S, theta) == len(link.neighbours)
+                got.append({j: x.recv(65535) for j, x in s.items()})
+            assert got[0] == got[1], n
+        assert links[1].drained > 50 and links[1].counters.datagrams == sent
+    finally:
+        for link in links:
+            link.close()
+        for _, s in socks:
+            for x in s.values():
+                x.close()
+
+
 def test_pack_sample_equals_the_jit(ahead):
     from bridge.swarm.sample_wire import PACK_BYTES, pack_sample
 

@@ -11,7 +11,7 @@ import pytest
 
 from bridge.mavlink.link import Counters, Peer, mavlink2
 from bridge.swarm.agent_link import AgentLink, encode_sample
-from bridge.swarm.sample_wire import SCAN_WIDTH, scan_sample
+from bridge.swarm.sample_wire import SCAN_STATE, SCAN_WIDTH, scan_sample
 from controller import layout
 from test_agent_link import H_US, drain_raw, endpoint, random_row, scenario
 
@@ -52,8 +52,14 @@ def _poll_both(pair, expected):
 
 def _state(link):
     held = {}
-    for j in link.neighbours:
+    hv = link.held_values
+    for q, j in enumerate(link.neighbours):
         h = link.neighbour(j)
+        assert link.held_step(j) == (None if h is None else h.step)
+        if hv is not None and h is not None:   # the drain's arrays hold the same sample
+            nt = len(link.owned_by[j])
+            assert hv[q, SCAN_STATE:SCAN_STATE + 18].tobytes() == h.S.tobytes()
+            assert hv[q, 13:13 + nt].tolist() == [h.theta[k] for k in link.owned_by[j]]
         held[j] = None if h is None else (h.step, h.S.tobytes(), h.xi.tobytes(),
                                           sorted(h.theta.items()))
     st = link.stats()
@@ -61,7 +67,7 @@ def _state(link):
     for v in st["links"].values():
         v.pop("kernel_drops", None)
     sig = link.peer.mav.signing
-    return (held, st, link.peer._last_seq, link.peer.last_signed,
+    return (held, st, link.peer.sequences(), link.peer.last_signed,
             (dict(sig.stream_timestamps), sig.timestamp) if link.peer.key is not None else None)
 
 
@@ -184,6 +190,9 @@ def test_compiled_receive_path_equals_the_reference(receiver, world, key):
         comp, ref = pair[0][1], pair[1][1]
         # both paths were taken, and every kind of refusal was met
         assert comp.scanned > 100 and ref.scanned == 0
+        # unsigned, the neighbours' sockets were read by the compiled drain (libc's recv)
+        # (NED, unsigned: the state row it decodes is the scenario's)
+        assert (comp.drained > 100) if key is None and world == "ned" else comp.drained == 0
         st = ref.stats()
         assert st["malformed"] > 0 and {"out_of_order", "future", "bad_stamp", "nan",
                                         "non_unit_quaternion", "not_neighbour",
