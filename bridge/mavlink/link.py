@@ -337,6 +337,15 @@ class Peer:
         self._accepted(pkt, seq, sysid, compid, signed)
         return msgid, fields
 
+    def accepted(self, pkt, seq: int, sysid: int, compid: int) -> None:
+        """An unsigned packet (sequence ``seq`` from sysid:compid) that compiled code checked as
+        `accept_fields` checks one on a link without a key (framing, checksum, its fields):
+        recorded as `accept_fields` records it, for `commit`."""
+        if self.key is not None:
+            raise Se3SyncError("Peer.accepted: only for a link without a key")
+        self._pending_sig = None
+        self._accepted(pkt, seq, sysid, compid, False)
+
     def took(self, sysid: int, compid: int, seqs) -> None:
         """Unsigned packets of (sysid, compid) with sequence numbers ``seqs`` were checked and
         accepted in full by the application without `accept_fields` (a compiled decoder,

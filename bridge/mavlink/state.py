@@ -136,6 +136,10 @@ class StateTracker:
         if abs(math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]) - 1.0) > QUAT_TOL:
             self.c.reject("non_unit_quaternion")
             return False
+        return self._store(vals, t_us, t_wall, source)
+
+    def _store(self, vals, t_us, t_wall, source) -> bool:
+        """A state whose values passed the checks: taken if its time does."""
         if not self._time_ok(t_us, t_wall):
             return False
         self.wire[:] = vals
@@ -161,15 +165,24 @@ class StateTracker:
             n2 = q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]
             if n2 > 0:
                 vals[10:13] = _rot_T_apply(q, vals[10:13])
+        return self._odometry(vals, int(m.time_usec), t_wall, self._accept)
+
+    def on_odometry_row(self, row, t_us: int, t_wall: float) -> bool:
+        """`on_odometry` of a state whose frames (child MAV_FRAME_BODY_FRD) and values compiled
+        code has checked as `on_odometry` checks them (`bridge.mavlink.state_wire`): row, its
+        wire row; the time checks and the rest are the same."""
+        return self._odometry(row, int(t_us), t_wall, self._store)
+
+    def _odometry(self, vals, t_us: int, t_wall: float, accept) -> bool:
         if not self.n_odometry and self.source == "fallback":
             # the first ODOMETRY after states from the fallback: its time_usec is another clock
             # than their time_boot_ms (often the Unix epoch), so it starts the clock estimate
             # afresh; checked against theirs it was refused as `future` for good, and the vehicle
             # stayed on the fallback's rate
             self.reset_clock()
-        ok = self._accept(vals, int(m.time_usec), t_wall, "odometry")
+        ok = accept(vals, t_us, t_wall, "odometry")
         if ok and not self.n_odometry:
-            self.time_usec = int(m.time_usec)
+            self.time_usec = t_us
         self.n_odometry += ok
         return ok
 

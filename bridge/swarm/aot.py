@@ -59,6 +59,8 @@ EXPORTS = {
                       "i8(i8, i8, i8[::1], i8[::1], i8[::1], i8, i8, i8, f8, u1[::1], u1[::1], "
                       "f8[::1], i8[::1], i8[::1], f8[:, ::1], f8[::1], i8[:, ::1], i8[::1], "
                       "i8[::1])"),
+    "scan_odometry": ("bridge.mavlink.state_wire",
+                      "i8(Array(uint8, 1, 'C', readonly=True), i8, u1[::1], f8[::1], i8[::1])"),
     "send_sample": ("bridge.swarm.sample_wire", "i8(i8[::1], u1[::1], i8, i8[::1])"),
     "pack_sample": ("bridge.swarm.sample_wire",
                     "i8(u1[::1], i8, f8[::1], b1, f8[::1], i8, i8, i8, i8, f4[::1], i8[::1])"),
@@ -82,7 +84,7 @@ EXPORTS = {
 # what the module is compiled from: every source its kernels read (constants included)
 SOURCES = ("controller/jit.py", "controller/_kernels.py", "controller/_agent_kernels.py",
            "controller/layout.py", "bridge/swarm/sample_wire.py", "bridge/swarm/udp_io.py",
-           "bridge/mavlink/codec.py",
+           "bridge/mavlink/codec.py", "bridge/mavlink/state_wire.py",
            "bridge/mavlink/state.py", "cosim/log/cdr.py", "bridge/swarm/aot.py")
 
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from bridge.mavlink import codec
 from bridge.mavlink.state import QUAT_TOL
+from bridge.mavlink.state_wire import QUAT_MARGIN, _crc, _u64
 from controller.jit import jit
 from controller.kernels import quat_of
 from controller.layout import S_OMEGA, S_P, S_R, S_V
@@ -57,21 +58,6 @@ SCAN_WIDTH = SCAN_STATE + 18          # then the state row in NED
 PACK_BYTES = 2 * (12 + SIG_LEN) + ODOMETRY_SIZE + THETA_SIZE   # pack_sample's most
 ESTIMATOR_NAIVE = 1                   # MAV_ESTIMATOR_TYPE_NAIVE
 QUALITY = 100
-# the norm test is left to the reference path this close to the tolerance (a double's rounding
-# of the sum of squares is ~1e-16; this margin is far beyond it and costs no genuine sample)
-QUAT_MARGIN = 1e-9
-
-
-@jit(error_model="python")
-def _crc(buf, start, end, extra):
-    """MAVLink's X.25 (MCRF4XX) checksum of buf[start:end] followed by CRC_EXTRA."""
-    crc = 0xFFFF
-    for i in range(start, end + 1):
-        b = buf[i] if i < end else extra
-        tmp = (b ^ (crc & 0xFF)) & 0xFF
-        tmp = (tmp ^ (tmp << 4)) & 0xFF
-        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
-    return crc
 
 
 @jit(error_model="python")
@@ -97,14 +83,6 @@ def _packet(buf, i, n, signed, sysid, msgid, extra, size, payload):
     for k in range(plen, size):
         payload[k] = 0
     return end
-
-
-@jit(error_model="python")
-def _u64(p, o):
-    v = np.uint64(0)
-    for k in range(7, -1, -1):
-        v = (v << np.uint64(8)) | np.uint64(p[o + k])
-    return v
 
 
 @jit(error_model="python", inline=True)

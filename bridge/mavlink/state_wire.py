@@ -1,0 +1,102 @@
+"""A vehicle's state datagram checked and decoded by compiled code (issue 31): the common case
+of `bridge.mavlink.plant`'s receive path, at the cost of its bytes.
+
+`scan_odometry` takes one datagram that is exactly what a vehicle streams at every step, one
+unsigned ODOMETRY in the frames `bridge.mavlink.state.StateTracker` takes without a rotation,
+and makes every check the tracker makes before its time checks (framing, checksum with
+CRC_EXTRA, frame ids, finite values, a unit quaternion). It returns the wire row or says "not
+this case", and the plant then hands the datagram to its reference path (`Peer.accept_fields`,
+`StateTracker.on_odometry`), so every refusal has one implementation; a decision that rounding
+could tip (the quaternion's norm near the tolerance) is left to the reference path. The values
+are the float32 fields widened to float64, what `struct.unpack` gives the reference path.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from controller.jit import jit
+
+from . import codec
+from .state import QUAT_TOL
+
+__all__ = ["scan_odometry", "QUAT_MARGIN", "ODOMETRY_SIZE"]
+
+MAGIC = 0xFD
+ID_ODOMETRY = codec.ODOMETRY.id
+EXTRA_ODOMETRY = codec.ODOMETRY.crc_extra
+ODOMETRY_SIZE = 233                   # the payload with its extensions (wire order, see codec)
+FRAME_LOCAL_NED = 1
+FRAME_LOCAL_FRD = 20
+FRAME_BODY_FRD = 12
+# the norm test is left to the reference path this close to the tolerance (a double's rounding
+# of the sum of squares is ~1e-16; this margin is far beyond it and costs no genuine sample)
+QUAT_MARGIN = 1e-9
+
+
+@jit(error_model="python")
+def _crc(buf, start, end, extra):
+    """MAVLink's X.25 (MCRF4XX) checksum of buf[start:end] followed by CRC_EXTRA."""
+    crc = 0xFFFF
+    for i in range(start, end + 1):
+        b = buf[i] if i < end else extra
+        tmp = (b ^ (crc & 0xFF)) & 0xFF
+        tmp = (tmp ^ (tmp << 4)) & 0xFF
+        crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
+    return crc
+
+
+@jit(error_model="python")
+def _u64(p, o):
+    v = np.uint64(0)
+    for k in range(7, -1, -1):
+        v = (v << np.uint64(8)) | np.uint64(p[o + k])
+    return v
+
+
+@jit(error_model="python")
+def scan_odometry(buf, n, scratch, out, meta):
+    """A vehicle's state datagram, the common case of `bridge.mavlink.plant`'s receive path:
+    exactly one unsigned ODOMETRY (any system and component), checksum right, frame_id
+    MAV_FRAME_LOCAL_NED or _FRD, child_frame_id MAV_FRAME_BODY_FRD, finite values and a unit
+    quaternion (the decisions `bridge.mavlink.state.StateTracker.on_odometry` makes before its
+    time checks). Returns 1 with out[0:13] its wire row (x y z, q w x y z, body rates, body
+    velocity: the float32 fields widened) and meta = (sequence, system, component, time_usec,
+    frame_id), or 0 for anything else (the reference path's). ``scratch``: ≥ 233 bytes."""
+    if n < 12 or buf[0] != MAGIC or buf[2] != 0:
+        return 0
+    plen = np.int64(buf[1])
+    if n != 12 + plen or plen > ODOMETRY_SIZE:
+        return 0
+    if (np.int64(buf[7]) | (np.int64(buf[8]) << 8) | (np.int64(buf[9]) << 16)) != ID_ODOMETRY:
+        return 0
+    c = 10 + plen
+    if _crc(buf, 1, c, EXTRA_ODOMETRY) != (np.int64(buf[c]) | (np.int64(buf[c + 1]) << 8)):
+        return 0
+    odo = scratch[0:ODOMETRY_SIZE]
+    for k in range(plen):
+        odo[k] = buf[10 + k]
+    for k in range(plen, ODOMETRY_SIZE):
+        odo[k] = 0
+    if (odo[228] != FRAME_LOCAL_NED and odo[228] != FRAME_LOCAL_FRD) or odo[229] != FRAME_BODY_FRD:
+        return 0
+    f = odo[8:60].view(np.float32)
+    for k in range(7):
+        out[k] = f[k]
+    for k in range(3):
+        out[7 + k] = f[10 + k]               # body rates
+        out[10 + k] = f[7 + k]               # body velocity
+    for k in range(13):
+        if not np.isfinite(out[k]):
+            return 0
+    nq = np.sqrt(out[3] * out[3] + out[4] * out[4] + out[5] * out[5] + out[6] * out[6])
+    if abs(nq - 1.0) > QUAT_TOL - QUAT_MARGIN:
+        return 0
+    t = _u64(odo, 0)
+    if t > np.uint64(1 << 62):
+        return 0
+    meta[0] = buf[4]
+    meta[1] = buf[5]
+    meta[2] = buf[6]
+    meta[3] = np.int64(t)
+    meta[4] = odo[228]
+    return 1
