@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from controller import layout
 from controller.errors import Se3SyncError
 from cosim import signals
 
@@ -22,7 +23,7 @@ from .link import (IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, crc_ok, mavlin
                    parse_endpoint, receive_datagrams, require_key_or_insecure)
 from .signing_state import open_signing_state
 from .state import StateTracker
-from .state_wire import ODOMETRY_SIZE, scan_odometry
+from .state_wire import ODOMETRY_SIZE, scan_odometry, wire_to_state_ned
 from .transport import WIRE, Transport, profiles_for, wire_to_state
 
 M = mavlink2
@@ -603,7 +604,11 @@ class MavlinkPlant:
     # ------------------------------------------------------------------ Plant protocol
     def read(self) -> np.ndarray:
         if self._S is None:
-            self._S = wire_to_state(self.wire, self.world)
+            if self.world == "ned":     # compiled, the same bits (`state_wire`)
+                self._S = np.empty((self.n, layout.S_WIDTH))
+                wire_to_state_ned(self.wire, self._S)
+            else:
+                self._S = wire_to_state(self.wire, self.world)
         return self._S
 
     def apply(self, u) -> None:

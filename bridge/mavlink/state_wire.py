@@ -19,7 +19,7 @@ from controller.jit import jit
 from . import codec
 from .state import QUAT_TOL
 
-__all__ = ["scan_odometry", "QUAT_MARGIN", "ODOMETRY_SIZE"]
+__all__ = ["scan_odometry", "wire_to_state_ned", "QUAT_MARGIN", "ODOMETRY_SIZE"]
 
 MAGIC = 0xFD
 ID_ODOMETRY = codec.ODOMETRY.id
@@ -31,6 +31,37 @@ FRAME_BODY_FRD = 12
 # the norm test is left to the reference path this close to the tolerance (a double's rounding
 # of the sum of squares is ~1e-16; this margin is far beyond it and costs no genuine sample)
 QUAT_MARGIN = 1e-9
+
+
+@jit(error_model="python", inline=True)
+def row_to_state(w, i, S, o):
+    """S[o:o + 18] = [p, R(q) row-major, ξ] of the wire row w[i:i + 13] in a NED world:
+    `bridge.mavlink.transport.wire_row_to_state`'s operations in its order (`quat_to_rot_row`),
+    so its bits."""
+    qw, qx, qy, qz = w[i + 3], w[i + 4], w[i + 5], w[i + 6]
+    nq = np.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    qw, qx, qy, qz = qw / nq, qx / nq, qy / nq, qz / nq
+    for k in range(3):
+        S[o + k] = w[i + k]
+    S[o + 3] = 1 - 2 * (qy * qy + qz * qz)
+    S[o + 4] = 2 * (qx * qy - qw * qz)
+    S[o + 5] = 2 * (qx * qz + qw * qy)
+    S[o + 6] = 2 * (qx * qy + qw * qz)
+    S[o + 7] = 1 - 2 * (qx * qx + qz * qz)
+    S[o + 8] = 2 * (qy * qz - qw * qx)
+    S[o + 9] = 2 * (qx * qz - qw * qy)
+    S[o + 10] = 2 * (qy * qz + qw * qx)
+    S[o + 11] = 1 - 2 * (qx * qx + qy * qy)
+    for k in range(6):
+        S[o + 12 + k] = w[i + 7 + k]
+
+
+@jit(error_model="python")
+def wire_to_state_ned(wire, S):
+    """`bridge.mavlink.transport.wire_to_state` of (n, 13) wire rows in a NED world into S
+    (n, 18), row by row as `wire_row_to_state`: the same bits."""
+    for r in range(wire.shape[0]):
+        row_to_state(wire[r], 0, S[r], 0)
 
 
 @jit(error_model="python")

@@ -222,8 +222,8 @@ class AgentNode:
         except BaseException:
             self.vehicle.close()
             raise
-        for fd in self.link.fds():
-            self.vehicle.add_reader(fd, self.link.poll)
+        for fd, read in self.link.readers():
+            self.vehicle.add_reader(fd, read)
         self.vehicle.drain_per_step = True
         self.lockstep_timeout = float(cfg.lockstep_timeout)
         design = sc.design if self.stepper.hybrid else None

@@ -549,30 +549,40 @@ class AgentLink:
         ``POLL_BUDGET`` of a step has been spent, then from the catch-all socket for at most
         ``JUNK_BUDGET`` of a step (the rest waits for the next poll). Never raises on network
         input. Returns the number of datagrams read."""
+        return self.poll_neighbours(limit) + self.poll_catch_all(limit)
+
+    def poll_neighbours(self, limit: int | None = None) -> int:
+        """`poll`'s first half: the neighbours' own sockets (never behind junk)."""
         self._limit = self.current_step() + self.future_steps
         lim = self.drain_budget if limit is None else int(limit)
-        t = time.monotonic()
-        deadline = t + self.poll_budget_s
-        if self._drain is not None:             # the neighbours first: never behind junk
-            n = self._drain(lim, deadline)
-        else:
-            n = 0
-            for s in self._nsock.values():
-                n += receive_datagrams(s, self.counters, self._on_packet, lim, deadline=deadline,
-                                       accept_from=self._accept_from, fast=self._scan)
-        # the catch-all: what is left of its budget (the rest of a flood waits, then the kernel
-        # drops it and `kernel_drops` says how much)
+        deadline = time.monotonic() + self.poll_budget_s
+        if self._drain is not None:
+            return self._drain(lim, deadline)
+        n = 0
+        for s in self._nsock.values():
+            n += receive_datagrams(s, self.counters, self._on_packet, lim, deadline=deadline,
+                                   accept_from=self._accept_from, fast=self._scan)
+        return n
+
+    def poll_catch_all(self, limit: int | None = None) -> int:
+        """`poll`'s second half: the catch-all socket (strangers, junk, and a neighbour's
+        datagrams where the kernel does not prefer connected sockets) for at most its budget
+        (the rest of a flood waits, then the kernel drops it and `kernel_drops` says how much)."""
+        self._limit = self.current_step() + self.future_steps
+        lim = self.drain_budget if limit is None else int(limit)
         got = receive_datagrams(self.sock, self.counters, self._on_packet, lim,
-                                deadline=min(deadline, time.monotonic() + self.junk_budget_s),
+                                deadline=time.monotonic() + self.junk_budget_s,
                                 accept_from=self._accept_from, fast=self._scan)
         if got and self._drain is not None:
             for j in self.neighbours:   # a neighbour's datagram may have come this way too
                 self._resync(j)
-        return n + got
+        return got
 
-    def fds(self) -> list:
-        """The sockets to wait on (select) before a `poll`."""
-        return [self.sock.fileno(), *(s.fileno() for s in self._nsock.values())]
+    def readers(self) -> list:
+        """[(socket, what reads it)] to wait on (select) and call when it is readable, the
+        neighbours' sockets first; `poll` reads them all."""
+        return [*((s.fileno(), self.poll_neighbours) for s in self._nsock.values()),
+                (self.sock.fileno(), self.poll_catch_all)]
 
     receive = poll
 

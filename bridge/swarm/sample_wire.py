@@ -30,7 +30,7 @@ import numpy as np
 
 from bridge.mavlink import codec
 from bridge.mavlink.state import QUAT_TOL
-from bridge.mavlink.state_wire import QUAT_MARGIN, _crc, _u64
+from bridge.mavlink.state_wire import QUAT_MARGIN, _crc, _u64, row_to_state
 from controller.jit import jit
 from controller.kernels import quat_of
 from controller.layout import S_OMEGA, S_P, S_R, S_V
@@ -85,28 +85,6 @@ def _packet(buf, i, n, signed, sysid, msgid, extra, size, payload):
     return end
 
 
-@jit(error_model="python", inline=True)
-def _state_row(out):
-    """out[SCAN_STATE:] = [p, R(q) row-major, ξ] of the wire row out[0:13] (`quat_to_rot_row`)."""
-    w, x, y, z = out[3], out[4], out[5], out[6]
-    nq = np.sqrt(w * w + x * x + y * y + z * z)
-    w, x, y, z = w / nq, x / nq, y / nq, z / nq
-    o = SCAN_STATE
-    for k in range(3):
-        out[o + k] = out[k]
-    out[o + 3] = 1 - 2 * (y * y + z * z)
-    out[o + 4] = 2 * (x * y - w * z)
-    out[o + 5] = 2 * (x * z + w * y)
-    out[o + 6] = 2 * (x * y + w * z)
-    out[o + 7] = 1 - 2 * (x * x + z * z)
-    out[o + 8] = 2 * (y * z - w * x)
-    out[o + 9] = 2 * (x * z - w * y)
-    out[o + 10] = 2 * (y * z + w * x)
-    out[o + 11] = 1 - 2 * (x * x + y * y)
-    for k in range(6):
-        out[o + 12 + k] = out[7 + k]
-
-
 @jit(error_model="python")
 def scan_sample(buf, n, signed, sysid, n_theta, h_us, limit, scratch, out, seqs):
     """Step s of the sample in datagram buf[:n] from neighbour ``sysid`` (owning ``n_theta`` ≤ 58
@@ -148,7 +126,7 @@ def scan_sample(buf, n, signed, sysid, n_theta, h_us, limit, scratch, out, seqs)
     s = t // h_us
     if s > limit:
         return -1
-    _state_row(out)
+    row_to_state(out, 0, out, SCAN_STATE)
     if n_theta == 0:
         return s if e == n else -1
     th = scratch[0:THETA_SIZE]

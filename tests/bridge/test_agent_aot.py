@@ -267,6 +267,16 @@ def test_scan_odometry_equals_the_jit(ahead):
     assert 200 < taken < 400
 
 
+def test_wire_to_state_ned_equals_the_jit(ahead):
+    from bridge.mavlink.state_wire import wire_to_state_ned
+
+    rng = np.random.default_rng(29)
+    for trial in range(100):
+        wire = rng.normal(size=(int(rng.integers(1, 8)), 13)) * 10.0 ** rng.integers(-3, 4)
+        _both(wire_to_state_ned, ahead.wire_to_state_ned, (wire, np.zeros((wire.shape[0], 18))),
+              f"wire_to_state_ned {trial}")
+
+
 def test_pack_sample_equals_the_jit(ahead):
     from bridge.swarm.sample_wire import PACK_BYTES, pack_sample
 
