@@ -95,6 +95,7 @@ class FleetMapping:
         # one vehicle with the direct mapping (an agent's): `encode_row` in plain floats
         self.one_direct = n == 1 and self.direct.size == 1
         self._mw = self.max_wrench[0].tolist()
+        self.last_saturated = np.zeros(n, dtype=bool)   # per vehicle: the last encode saturated
 
     def subset(self, idx) -> "FleetMapping":
         return FleetMapping([self.specs[i] for i in np.atleast_1d(idx)])
@@ -151,7 +152,8 @@ class FleetMapping:
         if sat:
             self.saturations += 1
             self.saturated_vehicles[0] += 1
-        self.last_saturated = np.array([sat])
+        if self.last_saturated[0] != sat:     # (a new array each step cost more than the rest)
+            self.last_saturated = np.array([sat])
         return c
 
     # ------------------------------------------------------------------ controls -> wrench

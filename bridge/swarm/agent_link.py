@@ -246,6 +246,7 @@ class AgentLink:
         self.clock = clock
         self.neighbours = tuple(graph.neighbours(self.id))
         self.owned = tuple(graph.M_plus(self.id))                       # M_i⁺, ascending
+        self._owned_set = frozenset(self.owned)
         self.owned_by = {j: tuple(graph.M_plus(j)) for j in self.neighbours}
         self.addr = {j: _resolve(j, *network.endpoints[j - 1]) for j in self.neighbours}
         # the age rule in steps, rounded as cosim.network rounds it (⌈s/h − 1e-9⌉)
@@ -411,7 +412,7 @@ class AgentLink:
         queued by the emulated delay). ``S_row=None`` sends θ only, ``theta_owned=None`` the pose
         only: lockstep sends the two in turn, since θ after the jump needs the neighbours'
         poses of the same step."""
-        if theta_owned is not None:
+        if theta_owned is not None and theta_owned.keys() != self._owned_set:
             missing = [k for k in self.owned if k not in theta_owned]
             extra = [k for k in theta_owned if k not in self.owned]
             if missing or extra:
