@@ -67,6 +67,7 @@ def _hist_add(hist, seconds: float) -> None:
 
 def _hist_pct(hist, q: float):
     """The q-quantile (0..1) of a histogram, in milliseconds (bin centre), or None if empty."""
+    hist = np.asarray(hist)
     total = int(hist.sum())
     if total == 0:
         return None
@@ -170,8 +171,9 @@ class MavlinkPlant:
         self._controls = np.zeros((n, 6))
         self.k = 0
         self.t0 = None
-        self.lat_hist = np.zeros(HIST_N, dtype=np.int64)   # command sent -> next state received
-        self.age_hist = np.zeros(HIST_N, dtype=np.int64)   # age of the oldest state used at a step
+        # (lists: a numpy element's increment cost more than the rest of `_hist_add`)
+        self.lat_hist = [0] * HIST_N     # command sent -> next state received
+        self.age_hist = [0] * HIST_N     # age of the oldest state used at a step
         self.events: list = []
         self.late_steps = 0          # real time: steps whose deadline had already passed
         self.late_first = []         # …the first LATE_KEPT of them (when: at the start, or later)
@@ -613,12 +615,18 @@ class MavlinkPlant:
 
     def apply(self, u) -> None:
         S = self.read()
-        c = self.transport.controls(u, S)
-        self._controls[:] = c
+        tr = self.transport
+        if tr.mapping.one_direct:   # one vehicle (an agent's): plain floats, the same bits
+            c = (tr.controls_row(u, S),)
+            self._controls[0] = c[0]
+        else:
+            c = tr.controls(u, S)
+            self._controls[:] = c
         now = time.monotonic()
         if self.k == 0 and not self.lockstep and self._paced_from is None:
             self.t0 = now  # pacing starts with the first command (not at connect)
-        oldest = min((v.tracker.t_arrival or now) for v in self.vehicles)
+        oldest = min((v.tracker.t_arrival or now) for v in self.vehicles) if self.n > 1 \
+            else (self.vehicles[0].tracker.t_arrival or now)
         _hist_add(self.age_hist, now - oldest)
         self._commanded = True
         for v in self.vehicles:
@@ -718,7 +726,7 @@ class MavlinkPlant:
         d = self.counters.as_dict()
         d["latency_ms_p50"] = _hist_pct(self.lat_hist, 0.50)
         d["latency_ms_p99"] = _hist_pct(self.lat_hist, 0.99)
-        d["latency_samples"] = int(self.lat_hist.sum())
+        d["latency_samples"] = sum(self.lat_hist)
         d["state_age_ms_p50"] = _hist_pct(self.age_hist, 0.50)
         d["state_age_ms_p99"] = _hist_pct(self.age_hist, 0.99)
         d["saturations"] = int(self.transport.mapping.saturations)

@@ -98,7 +98,7 @@ class Transport:
         """Controller wrench u (n,6) [τ; f] in the scenario body frame, at state S (scenario
         frames) -> actuator controls (n,6), float64 (the wire rounds them to float32)."""
         if self.mapping.one_direct:
-            return np.array([self._controls_row(u, S)])
+            return np.array([self.controls_row(u, S)])
         u = np.asarray(u, dtype=np.float64)
         if not np.all(np.isfinite(u)):
             self.nan_commands += 1
@@ -111,9 +111,10 @@ class Transport:
             base = frames.body_to_frd(ff, self.world)
         return self.mapping.encode(w, base)
 
-    def _controls_row(self, u, S) -> list:
-        """`controls` of one vehicle with the direct mapping, in plain floats (the same
-        operations in the same order as the fleet's numpy path, so the same bits)."""
+    def controls_row(self, u, S) -> list:
+        """`controls` of one vehicle with the direct mapping (``mapping.one_direct``), in plain
+        floats (the same operations in the same order as the fleet's numpy path, so the same
+        bits)."""
         u = np.asarray(u, dtype=np.float64).reshape(6).tolist()
         if not all(math.isfinite(x) for x in u):
             self.nan_commands += 1

@@ -99,7 +99,7 @@ def _state(plant):
     tr = v.tracker
     return (plant.wire.tobytes(), tr.wire.tobytes(), tr.time_usec, tr.n_states, tr.n_odometry,
             tr.have, tr.duplicates, tr.reboots, tr.source, plant.counters.as_dict(),
-            v.peer.sequences(), v.src is None, v.connected, plant.lat_hist.sum())
+            v.peer.sequences(), v.src is None, v.connected, sum(plant.lat_hist))
 
 
 def test_compiled_state_path_equals_the_reference():
