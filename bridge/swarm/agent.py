@@ -52,7 +52,7 @@ from cosim.run import finish_summary
 from cosim.scenario import restrict
 from cosim.threads import AGENT_THREADS, limit_process
 
-from .agent_link import AgentLink
+from .agent_link import VERDICTS, AgentLink
 from .sample_wire import SCAN_STATE
 from bridge.mavlink.config import check_endpoint, default_config, read_key_file
 from bridge.mavlink.link import require_key_or_insecure
@@ -279,8 +279,10 @@ class AgentNode:
         # …or, where the link holds its samples in arrays (`AgentLink.held_values`), the held θ
         # of neighbour q's edge k (its column c of row q) goes to rx[r]: [(r, c), …] per q
         self._held_values = None if self.lockstep else self.link.held_values
-        self._rx_cols = tuple(tuple((r, 13 + self.link.owned_by[j].index(k)) for k, r in pairs)
-                              for j, pairs in self._rx_rows)
+        cols = [(q, r, 13 + self.link.owned_by[j].index(k))
+                for q, (j, pairs) in enumerate(self._rx_rows) for k, r in pairs]
+        self._rx_index = tuple(np.array([c[i] for c in cols], np.int64) for i in range(3))
+        self._verdict = np.zeros(len(self.neighbours), np.int64)
         self._pub = {k: 0.0 for k in self.owned}     # θ after the jump, as published
 
     # ------------------------------------------------------------------ set-up
@@ -554,9 +556,27 @@ class AgentNode:
         mode = self._mode
         rx = self._rx
         fs = hold = False
-        if not self.lockstep:
+        if self._held_values is not None:
+            # the link's arrays: the age rule and the held θ in one compiled call
+            ages = link.age_rules(n, self._verdict, mode, rx, self._rx_index).tolist()
             state = self._state
-            hv = self._held_values
+            used = self.used
+            for j, v, s, age in zip(self.neighbours, self._verdict.tolist(),
+                                    link.held_steps.tolist(), ages):
+                used[j] = (None, n) if s < 0 else (s, age)
+                if v:
+                    if v == 2:
+                        fs = True
+                    else:
+                        hold = True
+                m = VERDICTS[v]
+                if m != state[j]:
+                    state[j] = m
+                    self.transitions.append((n, j, m))
+                    if len(self.transitions) > 1000:
+                        del self.transitions[:500]
+        elif not self.lockstep:
+            state = self._state
             q = 0
             for j, pairs in self._rx_rows:
                 s, age, m = link.age_rule(j, n)
@@ -574,12 +594,7 @@ class AgentNode:
                         fs = True
                     else:
                         hold = True
-                if s is None:
-                    pass
-                elif hv is not None:     # θ of the held sample, from the link's arrays
-                    for r, c in self._rx_cols[q]:
-                        rx[r] = hv[q, c]
-                else:
+                if s is not None:
                     smp = link.neighbour(j)
                     if smp is not self._seen[q]:
                         self._seen[q] = smp

@@ -64,7 +64,7 @@ import numpy as np
 
 from controller import layout
 from controller.errors import Se3SyncError
-from controller.kernels import rot_to_quat_rows
+from controller.kernels import FRESH, rot_to_quat_rows
 
 from bridge.mavlink import codec, frames
 from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlink2, packet_ids,
@@ -72,9 +72,9 @@ from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlin
 from bridge.mavlink.state import QUAT_TOL
 from bridge.mavlink.transport import wire_row_to_state
 
-from .sample_wire import (D_BATCH, D_DATAGRAMS, D_DROPPED, D_K, D_LEN, D_RECEIVED, D_WIDTH,
-                          PACK_BYTES, SCAN_STATE, SCAN_WIDTH, drain_samples, pack_sample,
-                          scan_sample, send_sample)
+from .sample_wire import (AGE_BINS, D_BATCH, D_DATAGRAMS, D_DROPPED, D_K, D_LEN, D_RECEIVED,
+                          D_WIDTH, PACK_BYTES, SCAN_STATE, SCAN_WIDTH, age_rules, drain_samples,
+                          pack_sample, scan_sample, send_sample)
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -97,6 +97,7 @@ _ODO_TAIL = (*NAN21, *NAN21, mavlink2.MAV_FRAME_LOCAL_NED, mavlink2.MAV_FRAME_BO
              mavlink2.MAV_ESTIMATOR_TYPE_NAIVE, 100)
 _NAN58 = (math.nan,) * THETA_PER_MESSAGE
 _ODO_FRAME = 56   # ODOMETRY's wire order: time_usec, x y z, q[4], vx vy vz, rates, 2×21 cov, frame ids
+VERDICTS = ("fresh", "hold", "failsafe")     # `age_rules`' verdict codes
 LINK_REASONS = ("not_neighbour", "wrong_address", "bad_stamp", "future", "bad_theta",
                 "unexpected_message", "duplicate", "incomplete")
 
@@ -349,6 +350,8 @@ class AgentLink:
             self._dseen = [0] * m                      # _dcount[q, 1] when last read
             self._dtot = np.zeros(D_WIDTH, np.int64)
             self._dseq = self.peer.sequence_array([(j, AGENT_COMPONENT) for j in nb])
+            self._age_hist = np.zeros((m, AGE_BINS), np.int64)   # ages used (`age_rules`)
+            self._ages_now = np.zeros(m, np.int64)
             self._drain = self._drain_neighbours
             self.drain_kernel = drain_samples    # (the ahead-of-time module's, in a test)
         # …and its mirror for what this agent sends (`sample_wire.pack_sample`), sent on the
@@ -388,6 +391,8 @@ class AgentLink:
                     self._scan_seqs.copy())
         if self._drain is not None:     # over no socket: its types, no read
             none = np.zeros(0, np.int64)
+            age_rules(0, none, 0, 0, 0, none, none, none, np.zeros((0, AGE_BINS), np.int64),
+                      np.zeros((0, SCAN_WIDTH)), np.zeros(0), none, none, none)
             drain_samples(0, 0, none, none, none, self.h_us, int(self._limit), 1, 0.0,
                           self._dbuf, self._scratch.copy(), self._scan_out.copy(),
                           self._scan_seqs.copy(), none, np.zeros((0, SCAN_WIDTH)), np.zeros(0),
@@ -921,6 +926,40 @@ class AgentLink:
         its state row S_j at [SCAN_STATE:SCAN_STATE + 18]. It changes as samples arrive."""
         return None if self._drain is None else self._hrow
 
+    @property
+    def held_steps(self):
+        """`held_step` of every neighbour (`neighbours` order; −1: none yet) as the array the
+        compiled drain keeps, or None where there is none (`held_values`)."""
+        return None if self._drain is None else self._hstep
+
+    def age_rules(self, n: int, verdict, mode, rx, rx_index) -> np.ndarray:
+        """`age_rule` of every neighbour at step n in one compiled call (`held_values` links):
+        verdict[q] the index of its verdict in `VERDICTS`, mode[q] `agent_step`'s mode, and the
+        held θ copied into rx (rx_index: arrays (q, r, column): rx[r] = held_values[q, column]).
+        Returns the ages (where `held_steps` is not −1), valid until the next call."""
+        ages = self._ages_now
+        q_, r_, c_ = rx_index
+        if age_rules(n, self._hstep, -1 if self.max_age_steps is None else self.max_age_steps,
+                     self.hold_steps, self.future_steps, ages, verdict, mode, self._age_hist,
+                     self._hrow, rx, q_, r_, c_):
+            for q, j in enumerate(self.neighbours):    # what the kernel left to this path
+                s, age = int(self._hstep[q]), int(ages[q])
+                if s >= 0 and (max(age, 0) >= AGE_BINS - 1 or age < -self.future_steps):
+                    self._ages[j][max(age, 0)] += 1
+                    v = VERDICTS.index(self._verdict(s, n))
+                    verdict[q] = v
+                    mode[q] = FRESH if v == 0 else FRESH + 1
+        return ages
+
+    def _age_counts(self, j: int) -> Counter:
+        """The ages recorded for j: `age_steps`' and `age_rules`'."""
+        if self._drain is None:
+            return self._ages[j]
+        row = self._age_hist[self._dq[j]]
+        out = Counter({int(a): int(row[a]) for a in np.flatnonzero(row)})
+        out.update(self._ages[j])
+        return out
+
     def age_rule(self, j: int, n: int) -> tuple:
         """(`held_step`, `age_steps`, `freshness`) of j at step n, the age recorded: what a
         control step asks of each neighbour, in one call."""
@@ -978,14 +1017,15 @@ class AgentLink:
         for j in self.neighbours:
             held = self.neighbour(j)
             fast = (0, 0) if self._drain is None else self._dcount[self._dq[j]].tolist()
+            ages = self._age_counts(j)
             links[str(j)] = {"sent": self._sent[j], "published": self._published,
                              "received": self._packets[j] + fast[0],
                              "samples": self._samples[j] + fast[1],
                              "restarts": self._restarts[j],
                              "conflicts": self._conflicts[j],
                              "last_step": None if held is None else held.step,
-                             "age_p50_steps": _nearest_rank(self._ages[j], 50),
-                             "age_p99_steps": _nearest_rank(self._ages[j], 99),
+                             "age_p50_steps": _nearest_rank(ages, 50),
+                             "age_p99_steps": _nearest_rank(ages, 99),
                              "rejected": int(sum(self._rej[j].values())),
                              "kernel_drops": self._nsock[j].kernel_drops() if j in self._nsock
                              else None,

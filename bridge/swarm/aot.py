@@ -62,6 +62,9 @@ EXPORTS = {
     "scan_odometry": ("bridge.mavlink.state_wire",
                       "i8(Array(uint8, 1, 'C', readonly=True), i8, u1[::1], f8[::1], i8[::1])"),
     "wire_to_state_ned": ("bridge.mavlink.state_wire", "void(f8[:, ::1], f8[:, ::1])"),
+    "age_rules": ("bridge.swarm.sample_wire",
+                  "i8(i8, i8[::1], i8, i8, i8, i8[::1], i8[::1], i8[::1], i8[:, ::1], "
+                  "f8[:, ::1], f8[::1], i8[::1], i8[::1], i8[::1])"),
     "send_sample": ("bridge.swarm.sample_wire", "i8(i8[::1], u1[::1], i8, i8[::1])"),
     "pack_sample": ("bridge.swarm.sample_wire",
                     "i8(u1[::1], i8, f8[::1], b1, f8[::1], i8, i8, i8, i8, f4[::1], i8[::1])"),

@@ -32,12 +32,12 @@ from bridge.mavlink import codec
 from bridge.mavlink.state import QUAT_TOL
 from bridge.mavlink.state_wire import QUAT_MARGIN, _crc, _u64, row_to_state
 from controller.jit import jit
-from controller.kernels import quat_of
+from controller.kernels import FRESH, quat_of
 from controller.layout import S_OMEGA, S_P, S_R, S_V
 
 from .udp_io import ECONNREFUSED, EINTR, MSG_DONTWAIT, errno, recv, send
 
-__all__ = ["scan_sample", "pack_sample", "drain_samples", "send_sample", "SCAN_WIDTH", "SCAN_STATE",
+__all__ = ["scan_sample", "pack_sample", "drain_samples", "send_sample", "age_rules", "AGE_BINS", "SCAN_WIDTH", "SCAN_STATE",
            "ODOMETRY_SIZE", "THETA_SIZE", "PACK_BYTES", "D_DATAGRAMS", "D_RECEIVED", "D_DROPPED",
            "D_LEN", "D_BATCH", "D_WIDTH"]
 
@@ -213,6 +213,49 @@ def drain_samples(q0, k0, fds, sysids, n_thetas, h_us, limit, batch, now, buf, s
         if k >= batch:
             return 2 * q + 1
     return -1
+
+# age_rules' histogram of the ages used, per neighbour: ages 0 … AGE_BINS − 2 (older ones are
+# recorded by the caller, who knows them exactly)
+AGE_BINS = 4096
+
+
+@jit(error_model="python")
+def age_rules(n, held_step, max_age, hold, future, ages, verdict, mode, hist, held, rx, rx_q,
+              rx_r, rx_c):
+    """`AgentLink.age_rule` of every neighbour q at step n over the drain's arrays: its age
+    (ages[q] = n − held_step[q]; 0 before its first sample, when the rule counts from step 0),
+    recorded in hist[q] as `age_steps` records it; its verdict (0 fresh, 1 hold, 2 fail-safe;
+    ``max_age`` < 0: none) and `agent_step`'s mode[q] (`FRESH` or stale); then the held θ of
+    each received edge, rx[rx_r[i]] = held[rx_q[i], rx_c[i]], where q holds a sample. Returns 1
+    when the caller must look again (an age past the histogram, or a sample stamped more than
+    ``future`` steps after n: `AgentLink._verdict` decides those), else 0."""
+    again = 0
+    for q in range(held_step.shape[0]):
+        s = held_step[q]
+        if s < 0:
+            age = n
+            ages[q] = 0
+        else:
+            age = n - s
+            ages[q] = age
+            a = age if age > 0 else 0
+            if a >= AGE_BINS - 1 or age < -future:
+                again = 1
+            else:
+                hist[q, a] += 1
+        if max_age < 0 or age <= max_age:
+            v = 0
+        elif age <= max_age + hold:
+            v = 1
+        else:
+            v = 2
+        verdict[q] = v
+        mode[q] = FRESH if v == 0 else FRESH + 1
+    for i in range(rx_q.shape[0]):
+        q = rx_q[i]
+        if held_step[q] >= 0:
+            rx[rx_r[i]] = held[q, rx_c[i]]
+    return again
 
 
 @jit(error_model="python")

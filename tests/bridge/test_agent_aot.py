@@ -267,6 +267,24 @@ def test_scan_odometry_equals_the_jit(ahead):
     assert 200 < taken < 400
 
 
+def test_age_rules_equals_the_jit(ahead):
+    from bridge.swarm.sample_wire import AGE_BINS, SCAN_WIDTH, age_rules
+
+    rng = np.random.default_rng(31)
+    for trial in range(200):
+        m, e = int(rng.integers(1, 6)), int(rng.integers(0, 8))
+        n = int(rng.integers(0, 3 * AGE_BINS))
+        steps = np.where(rng.random(m) < 0.2, -1,
+                         n - rng.choice([-9, -1, 0, 3, 12, 40, AGE_BINS], m)).astype(np.int64)
+        args = (n, steps, int(rng.choice([-1, 10])), 5, 5, np.zeros(m, np.int64),
+                np.zeros(m, np.int64), np.zeros(m, np.int64),
+                rng.integers(0, 9, (m, AGE_BINS)).astype(np.int64),
+                rng.normal(size=(m, SCAN_WIDTH)), np.zeros(e),
+                rng.integers(0, m, e).astype(np.int64), rng.permutation(e).astype(np.int64),
+                rng.integers(13, 71, e).astype(np.int64))
+        _both(age_rules, ahead.age_rules, args, f"age_rules {trial}")
+
+
 def test_wire_to_state_ned_equals_the_jit(ahead):
     from bridge.mavlink.state_wire import wire_to_state_ned
 

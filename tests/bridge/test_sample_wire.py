@@ -13,7 +13,8 @@ from bridge.mavlink.link import Counters, Peer, mavlink2
 from bridge.swarm.agent_link import AgentLink, encode_sample
 from bridge.swarm.sample_wire import SCAN_STATE, SCAN_WIDTH, scan_sample
 from controller import layout
-from test_agent_link import H_US, drain_raw, endpoint, random_row, scenario
+from test_agent_link import HIL, H_US, drain_raw, endpoint, parse_scenario, random_row, scenario
+from bridge.mavlink.link import free_base_port
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -419,3 +420,89 @@ def test_take_signed_is_accept_fields_and_commit_packet_by_packet():
             assert taker.counters.received == ref.counters.received
         taker.counters.received = ref.counters.received
     assert taken > 100 and refused > 50
+
+
+def test_age_rules_are_the_age_rule_of_each_neighbour():
+    """`AgentLink.age_rules` (one compiled call over the drain's arrays) against `age_rule` per
+    neighbour on a twin link fed the same samples: the same ages, verdicts and recorded age
+    percentiles, the held θ copied, through no sample yet, fresh, hold, fail-safe, ages past the
+    compiled histogram and a sample from the future (the receiver's step moved back)."""
+    import time
+
+    from bridge.swarm.agent_link import VERDICTS
+    from bridge.swarm.sample_wire import AGE_BINS
+    from controller.kernels import FRESH
+
+    rng = np.random.default_rng(41)
+    links, socks = [], []
+    try:
+        for _ in range(2):
+            sc = parse_scenario(HIL + f"\n[network]\nbase_port = {free_base_port(6)}\n"
+                                "max_age = 0.04\nhold = 0.02\n", name="ar", path="ar.toml")
+            link = AgentLink.from_scenario(sc, 2, compiled=True)
+            links.append(link)
+            s = {}
+            for j in link.neighbours:
+                s[j] = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                s[j].bind(endpoint(sc, j))
+            socks.append((sc, s))
+        a, b = links
+        assert a.held_values is not None and a.max_age_steps is not None
+        nbs = [_Neighbour(a, j, np.random.default_rng(50 + j)) for j in a.neighbours]
+        # received edges: (q, r, column) with r in a small rx of its own
+        index = [(q, len(idx), 13 + c) for q, j in enumerate(a.neighbours)
+                 for c, _ in enumerate(a.owned_by[j]) for idx in [[]]]
+        index = [(q, r, col) for r, (q, _, col) in enumerate(index)]
+        rx_index = tuple(np.array([x[i] for x in index], np.int64) for i in range(3))
+        m = len(a.neighbours)
+        verdict, mode, rx = np.zeros(m, np.int64), np.zeros(m, np.int64), np.zeros(len(index))
+        sent = 0
+        stamps = {j: None for j in a.neighbours}
+        seen = set()
+        n = 10
+        for trial in range(80):
+            n += int(rng.choice([1, 2, 5, 30, AGE_BINS]))
+            for nb in nbs:
+                if rng.random() < 0.5:
+                    s = n - int(rng.choice([-2, 0, 1, 3, 9, 11, 13, 16, 40, AGE_BINS]))
+                    if s < 0 or (stamps[nb.j] is not None and s <= stamps[nb.j]):
+                        continue
+                    data = nb.honest(s)
+                    for link in links:
+                        link.set_step(s + 1)
+                    for sc, ss in socks:
+                        ss[nb.j].sendto(data, endpoint(sc, 2))
+                    sent += 1
+                    stamps[nb.j] = s
+            for link in links:
+                end = time.monotonic() + 5.0
+                while link.counters.datagrams < sent and time.monotonic() < end:
+                    link.poll()
+            if trial % 7 == 3 and any(x is not None for x in stamps.values()):
+                n = max(x for x in stamps.values() if x is not None) - 50   # a step moved back
+            for link in links:
+                link.set_step(n)
+            ages = a.age_rules(n, verdict, mode, rx, rx_index).tolist()
+            for q, j in enumerate(a.neighbours):
+                s, age, v = b.age_rule(j, n)
+                assert (None if a.held_steps[q] < 0 else ages[q]) == age
+                assert VERDICTS[verdict[q]] == v and (None if a.held_steps[q] < 0 else
+                                                      int(a.held_steps[q])) == s
+                assert mode[q] == (FRESH if v == "fresh" else FRESH + 1)
+                seen.add(v)
+                held = a.neighbour(j)
+                for (qq, r, col), k in zip(index, [k for jj in a.neighbours
+                                                   for k in a.owned_by[jj]]):
+                    if qq == q and held is not None:
+                        assert rx[r] == held.theta[k]
+        sa, sb = a.stats()["links"], b.stats()["links"]
+        assert {j: (x["age_p50_steps"], x["age_p99_steps"]) for j, x in sa.items()} == \
+            {j: (x["age_p50_steps"], x["age_p99_steps"]) for j, x in sb.items()}
+        assert max(x["age_p99_steps"] for x in sa.values()) >= AGE_BINS - 1
+        assert seen == set(VERDICTS)
+    finally:
+        for link in links:
+            link.close()
+        for _, s in socks:
+            for x in s.values():
+                x.close()
