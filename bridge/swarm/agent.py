@@ -277,7 +277,8 @@ class AgentNode:
                               for j in self.neighbours)
         self._seen = [None] * len(self.neighbours)   # the sample θ was last taken from
         # …or, where the link holds its samples in arrays (`AgentLink.held_values`), the held θ
-        # of neighbour q's edge k (its column c of row q) goes to rx[r]: [(r, c), …] per q
+        # of neighbour q's edge k (column c of its row) goes to rx[r]: arrays (q, r, c), for
+        # `AgentLink.age_rules`
         self._held_values = None if self.lockstep else self.link.held_values
         cols = [(q, r, 13 + self.link.owned_by[j].index(k))
                 for q, (j, pairs) in enumerate(self._rx_rows) for k, r in pairs]
@@ -425,9 +426,8 @@ class AgentNode:
             return S
         hv = self._held_values
         if hv is not None:       # the link's arrays: row q + 1 is neighbour q's
-            steps = self.link.held_step
-            for q, j in enumerate(self.neighbours):
-                if steps(j) is not None:
+            for q, s in enumerate(self.link.held_steps.tolist()):
+                if s >= 0:
                     S[q + 1] = hv[q, SCAN_STATE:SCAN_STATE + layout.S_WIDTH]
             return S
         for j in self.neighbours:

@@ -659,10 +659,10 @@ class AgentLink:
         q = k = 0
         now = self.clock()
         while True:
-            r = self.drain_kernel(q, k, self._dfds, self._dsys, self._dnt_now, self.h_us, self._limit,
-                              lim, now, self._dbuf, self._scratch, self._scan_out,
-                              self._scan_seqs, self._hstep, self._hrow, self._htime,
-                              self._dcount, self._dseq, tot)
+            r = self.drain_kernel(q, k, self._dfds, self._dsys, self._dnt_now, self.h_us,
+                                  self._limit, lim, now, self._dbuf, self._scratch,
+                                  self._scan_out, self._scan_seqs, self._hstep, self._hrow,
+                                  self._htime, self._dcount, self._dseq, tot)
             if r < 0:
                 break
             q = r >> 1

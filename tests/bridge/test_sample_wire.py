@@ -450,9 +450,8 @@ def test_age_rules_are_the_age_rule_of_each_neighbour():
         assert a.held_values is not None and a.max_age_steps is not None
         nbs = [_Neighbour(a, j, np.random.default_rng(50 + j)) for j in a.neighbours]
         # received edges: (q, r, column) with r in a small rx of its own
-        index = [(q, len(idx), 13 + c) for q, j in enumerate(a.neighbours)
-                 for c, _ in enumerate(a.owned_by[j]) for idx in [[]]]
-        index = [(q, r, col) for r, (q, _, col) in enumerate(index)]
+        pairs = [(q, 13 + c) for q, j in enumerate(a.neighbours) for c in range(len(a.owned_by[j]))]
+        index = [(q, r, col) for r, (q, col) in enumerate(pairs)]
         rx_index = tuple(np.array([x[i] for x in index], np.int64) for i in range(3))
         m = len(a.neighbours)
         verdict, mode, rx = np.zeros(m, np.int64), np.zeros(m, np.int64), np.zeros(len(index))
@@ -491,10 +490,9 @@ def test_age_rules_are_the_age_rule_of_each_neighbour():
                 assert mode[q] == (FRESH if v == "fresh" else FRESH + 1)
                 seen.add(v)
                 held = a.neighbour(j)
-                for (qq, r, col), k in zip(index, [k for jj in a.neighbours
-                                                   for k in a.owned_by[jj]]):
+                for qq, r, col in index:
                     if qq == q and held is not None:
-                        assert rx[r] == held.theta[k]
+                        assert rx[r] == held.theta[a.owned_by[j][col - 13]]
         sa, sb = a.stats()["links"], b.stats()["links"]
         assert {j: (x["age_p50_steps"], x["age_p99_steps"]) for j, x in sa.items()} == \
             {j: (x["age_p50_steps"], x["age_p99_steps"]) for j, x in sb.items()}
