@@ -73,8 +73,8 @@ from bridge.mavlink.state import QUAT_TOL
 from bridge.mavlink.transport import wire_row_to_state
 
 from .sample_wire import (AGE_BINS, D_BATCH, D_DATAGRAMS, D_DROPPED, D_K, D_LEN, D_RECEIVED,
-                          D_WIDTH, PACK_BYTES, SCAN_STATE, SCAN_WIDTH, age_rules, drain_samples,
-                          pack_sample, scan_sample, send_sample)
+                          D_STEP, D_WIDTH, PACK_BYTES, SCAN_STATE, SCAN_WIDTH, age_rules,
+                          drain_samples, pack_sample, scan_sample, send_sample)
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -329,11 +329,12 @@ class AgentLink:
             self._scan_seqs = np.zeros(4, np.int64)
             self._signed = int(key is not None)
             self._scan = self._take_sample
-        # …and, unsigned, the neighbours' own sockets read by compiled code too
+        # …and the neighbours' own sockets read by compiled code too
         # (`sample_wire.drain_samples`): the reads, the checks and the counts of a step's
-        # samples in one call; held samples then live in arrays until asked for (`neighbour`)
+        # samples in one call (signed: the signatures then checked here, by `Peer`); held
+        # samples then live in arrays until asked for (`neighbour`)
         self._drain = None
-        if self._scan is not None and key is None and world == "ned" \
+        if self._scan is not None and world == "ned" \
                 and len(self._nsock) == len(self._scan_nt) == len(self.neighbours):
             nb = self.neighbours
             m = len(nb)
@@ -393,8 +394,8 @@ class AgentLink:
             none = np.zeros(0, np.int64)
             age_rules(0, none, 0, 0, 0, none, none, none, np.zeros((0, AGE_BINS), np.int64),
                       np.zeros((0, SCAN_WIDTH)), np.zeros(0), none, none, none)
-            drain_samples(0, 0, none, none, none, self.h_us, int(self._limit), 1, 0.0,
-                          self._dbuf, self._scratch.copy(), self._scan_out.copy(),
+            drain_samples(0, 0, none, none, none, self.h_us, int(self._limit), self._signed, 1,
+                          0.0, self._dbuf, self._scratch.copy(), self._scan_out.copy(),
                           self._scan_seqs.copy(), none, np.zeros((0, SCAN_WIDTH)), np.zeros(0),
                           np.zeros((0, 2), np.int64), none, np.zeros(D_WIDTH, np.int64))
 
@@ -660,13 +661,13 @@ class AgentLink:
         now = self.clock()
         while True:
             r = self.drain_kernel(q, k, self._dfds, self._dsys, self._dnt_now, self.h_us,
-                                  self._limit, lim, now, self._dbuf, self._scratch,
-                                  self._scan_out, self._scan_seqs, self._hstep, self._hrow,
-                                  self._htime, self._dcount, self._dseq, tot)
+                                  self._limit, self._signed, lim, now, self._dbuf,
+                                  self._scratch, self._scan_out, self._scan_seqs, self._hstep,
+                                  self._hrow, self._htime, self._dcount, self._dseq, tot)
             if r < 0:
                 break
-            q = r >> 1
-            if r & 1:       # a full batch: on while the poll's time lasts
+            q, kind = divmod(r, 3)
+            if kind == 1:       # a full batch: on while the poll's time lasts
                 k = 0
                 if time.monotonic() >= deadline:
                     c.drain_capped += 1
@@ -675,7 +676,19 @@ class AgentLink:
             k = int(tot[D_K])
             j = self.neighbours[q]
             n += 1
-            take_datagram(self._dbuf[:tot[D_LEN]].tobytes(), self.addr[j], c, self._on_packet)
+            data = self._dbuf[:tot[D_LEN]].tobytes()
+            if kind == 2:       # signed, whole and newer: taken if its signatures are
+                npk = 2 if self._dnt[q] > 0 else 1
+                if self.peer.take_signed(data, self._scan_seqs[2:2 + npk].tolist(), j,
+                                         AGENT_COMPONENT):
+                    self._hstep[q] = tot[D_STEP]
+                    self._hrow[q] = self._scan_out
+                    self._htime[q] = now
+                    self._dcount[q] += (npk, 1)
+                    c.datagrams += 1
+                    self.scanned += 1
+                    continue
+            take_datagram(data, self.addr[j], c, self._on_packet)
             self._resync(j)
         d = tot.tolist()
         tot[:] = 0

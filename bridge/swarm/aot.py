@@ -56,7 +56,7 @@ EXPORTS = {
                     "i8(Array(uint8, 1, 'C', readonly=True), i8, i8, i8, i8, i8, i8, u1[::1], "
                     "f8[::1], i8[::1])"),
     "drain_samples": ("bridge.swarm.sample_wire",
-                      "i8(i8, i8, i8[::1], i8[::1], i8[::1], i8, i8, i8, f8, u1[::1], u1[::1], "
+                      "i8(i8, i8, i8[::1], i8[::1], i8[::1], i8, i8, i8, i8, f8, u1[::1], u1[::1], "
                       "f8[::1], i8[::1], i8[::1], f8[:, ::1], f8[::1], i8[:, ::1], i8[::1], "
                       "i8[::1])"),
     "scan_odometry": ("bridge.mavlink.state_wire",

@@ -149,26 +149,28 @@ def scan_sample(buf, n, signed, sysid, n_theta, h_us, limit, scratch, out, seqs)
 
 
 # drain_samples' totals: datagrams and packets taken, sequence gaps (losses), the length of the
-# datagram handed to the reference path and how many its socket had given in this batch, the
-# most datagrams read from one socket in one batch
-D_DATAGRAMS, D_RECEIVED, D_DROPPED, D_LEN, D_K, D_BATCH = range(6)
-D_WIDTH = 6
+# datagram handed back and how many its socket had given in this batch, the most datagrams read
+# from one socket in one batch, the step of a signed sample handed back for its signatures
+D_DATAGRAMS, D_RECEIVED, D_DROPPED, D_LEN, D_K, D_BATCH, D_STEP = range(7)
+D_WIDTH = 7
 
 
 @jit(error_model="python")
-def drain_samples(q0, k0, fds, sysids, n_thetas, h_us, limit, batch, now, buf, scratch, out, seqs,
-                  held_step, held, held_t, counts, last_seq, totals):
-    """Reads the neighbours' sockets fds[q0:] (connected, unsigned: the kernel hands socket q
-    neighbour q's datagrams only) with libc's recv, each until it is empty or ``batch``
-    datagrams were read (k0 of socket q0's already), and takes every datagram that
-    `scan_sample` takes whole (``n_thetas[q]`` ≥ 0 edges owned; −1: none) and that is newer
-    than held_step[q], as `AgentLink._take_sample` takes it: the sample into held_step[q],
-    held[q] (scan_sample's ``out``) and held_t[q] = ``now``, counts[q] += (packets, 1), its
-    packets' sequence numbers through last_seq[q] (−1: none yet) as `Peer._count_seq` counts
-    them, and the `D_*` totals. Returns −1 once every socket is empty; 2q when the datagram in
-    buf[:totals[D_LEN]] (from neighbour q, the totals[D_K]-th of its batch) is for the reference
-    path; 2q + 1 when socket q gave ``batch`` datagrams (the caller's deadline decides whether
-    to read on)."""
+def drain_samples(q0, k0, fds, sysids, n_thetas, h_us, limit, signed, batch, now, buf, scratch,
+                  out, seqs, held_step, held, held_t, counts, last_seq, totals):
+    """Reads the neighbours' sockets fds[q0:] (connected: the kernel hands socket q neighbour
+    q's datagrams only) with libc's recv, each until it is empty or ``batch`` datagrams were
+    read (k0 of socket q0's already), and takes every datagram that `scan_sample` takes whole
+    (``n_thetas[q]`` ≥ 0 edges owned; −1: none) and that is newer than held_step[q], as
+    `AgentLink._take_sample` takes it: the sample into held_step[q], held[q] (scan_sample's
+    ``out``) and held_t[q] = ``now``, counts[q] += (packets, 1), its packets' sequence numbers
+    through last_seq[q] (−1: none yet) as `Peer._count_seq` counts them, and the `D_*` totals.
+    Returns −1 once every socket is empty; 3q when the datagram in buf[:totals[D_LEN]] (from
+    neighbour q, the totals[D_K]-th of its batch) is for the reference path; 3q + 1 when
+    socket q gave ``batch`` datagrams (the caller's deadline decides whether to read on);
+    ``signed`` (1): 3q + 2 when that datagram would be taken but for its signatures, which the
+    caller verifies (scan_sample's ``out`` and ``seqs`` filled, the step in totals[D_STEP]):
+    nothing of it is taken here."""
     m = fds.shape[0]
     cap = buf.shape[0]
     for q in range(q0, m):
@@ -189,11 +191,13 @@ def drain_samples(q0, k0, fds, sysids, n_thetas, h_us, limit, batch, now, buf, s
             nt = n_thetas[q]
             s = -1
             if nt >= 0:
-                s = scan_sample(buf, r, 0, sysids[q], nt, h_us, limit, scratch, out, seqs)
-            if s < 0 or (held_step[q] >= 0 and s <= held_step[q]):
+                s = scan_sample(buf, r, signed, sysids[q], nt, h_us, limit, scratch, out, seqs)
+            if s < 0 or (held_step[q] >= 0 and s <= held_step[q]) or signed:
                 totals[D_LEN] = r
                 totals[D_K] = k
-                return 2 * q
+                totals[D_STEP] = s
+                return 3 * q + (2 if s >= 0 and signed and
+                                (held_step[q] < 0 or s > held_step[q]) else 0)
             npk = 2 if nt > 0 else 1
             for p in range(npk):
                 sq = seqs[p]
@@ -211,7 +215,7 @@ def drain_samples(q0, k0, fds, sysids, n_thetas, h_us, limit, batch, now, buf, s
             for i in range(out.shape[0]):
                 held[q, i] = out[i]
         if k >= batch:
-            return 2 * q + 1
+            return 3 * q + 1
     return -1
 
 # age_rules' histogram of the ages used, per neighbour: ages 0 … AGE_BINS − 2 (older ones are
