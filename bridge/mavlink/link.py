@@ -337,14 +337,20 @@ class Peer:
         self._accepted(pkt, seq, sysid, compid, signed)
         return msgid, fields
 
-    def accepted(self, pkt, seq: int, sysid: int, compid: int) -> None:
-        """An unsigned packet (sequence ``seq`` from sysid:compid) that compiled code checked as
-        `accept_fields` checks one on a link without a key (framing, checksum, its fields):
-        recorded as `accept_fields` records it, for `commit`."""
-        if self.key is not None:
-            raise Se3SyncError("Peer.accepted: only for a link without a key")
-        self._pending_sig = None
-        self._accepted(pkt, seq, sysid, compid, False)
+    def accepted(self, pkt, seq: int, sysid: int, compid: int) -> bool:
+        """A packet (sequence ``seq`` from sysid:compid) whose framing, checksum and fields
+        compiled code checked as `accept_fields` checks them: with a key its signature and
+        replay window are checked here as `accept_fields` checks them (a refusal counted:
+        False); then recorded as `accept_fields` records it, for `commit` (True)."""
+        signed = bool(pkt[2] & IFLAG_SIGNED)
+        self._pending_seq = self._pending_sig = None
+        if not self._authentic(pkt, pkt[7] | (pkt[8] << 8) | (pkt[9] << 16), signed):
+            return False
+        if signed and self.key is not None and not self._fresh(pkt, sysid, compid):
+            self.counters.reject("replay")
+            return False
+        self._accepted(pkt, seq, sysid, compid, signed)
+        return True
 
     def took(self, sysid: int, compid: int, seqs) -> None:
         """Unsigned packets of (sysid, compid) with sequence numbers ``seqs`` were checked and

@@ -226,7 +226,7 @@ class MavlinkPlant:
         except OSError as exc:
             self.close()
             raise Se3SyncError(f"bridge: cannot open {vs.endpoint}: {exc.strerror or exc}") from None
-        # unsigned, the vehicles' ODOMETRY datagrams are decoded by compiled code
+        # the vehicles' ODOMETRY datagrams are decoded by compiled code
         # (`state_wire.scan_odometry`; False: the reference path alone, which tests compare)
         self.compiled_state = True
         self.scanned_states = 0      # datagrams it took
@@ -317,8 +317,8 @@ class MavlinkPlant:
             if row is not None:
                 # the state stream's common case, checked and decoded by `fast` below
                 seq, sysid, compid, t_us, _ = self._scan_meta.tolist()
-                v.peer.accepted(pkt, seq, sysid, compid)
-                used = v.tracker.on_odometry_row(row, t_us, now)
+                used = v.peer.accepted(pkt, seq, sysid, compid) \
+                    and v.tracker.on_odometry_row(row, t_us, now)
                 if used:
                     self._state_taken(v, now)
             elif pkt[7] | (pkt[8] << 8) | (pkt[9] << 16) == ID_ODOMETRY:
@@ -346,15 +346,16 @@ class MavlinkPlant:
                 self._accepted(v, addr)
 
         fast = None
-        if self.key is None and self.compiled_state:
-            # unsigned: a vehicle's ODOMETRY datagrams checked and decoded by
-            # compiled code (`state_wire.scan_odometry`), what that declines by the reference
-            # path above; a datagram is taken by one or the other, whole
+        if self.compiled_state:
+            # a vehicle's ODOMETRY datagrams checked and decoded by compiled code
+            # (`state_wire.scan_odometry`), what that declines by the reference path above; a
+            # datagram is taken by one or the other, whole
             scratch, out, meta = self._scan_scratch, self._scan_row, self._scan_meta
+            keyed = 0 if self.key is None else 1       # (signatures: `Peer.accepted`)
 
             def fast(data, addr):
-                if not scan_odometry(np.frombuffer(data, np.uint8), len(data), scratch, out,
-                                     meta):
+                if not scan_odometry(np.frombuffer(data, np.uint8), len(data), keyed, scratch,
+                                     out, meta):
                     return False
                 self.scanned_states += 1
                 try:

@@ -2,7 +2,7 @@
 of `bridge.mavlink.plant`'s receive path, at the cost of its bytes.
 
 `scan_odometry` takes one datagram that is exactly what a vehicle streams at every step, one
-unsigned ODOMETRY in the frames `bridge.mavlink.state.StateTracker` takes without a rotation,
+ODOMETRY (signed as the link is) in the frames `bridge.mavlink.state.StateTracker` takes without a rotation,
 and makes every check the tracker makes before its time checks (framing, checksum with
 CRC_EXTRA, frame ids, finite values, a unit quaternion). It returns the wire row or says "not
 this case", and the plant then hands the datagram to its reference path (`Peer.accept_fields`,
@@ -22,6 +22,7 @@ from .state import QUAT_TOL
 __all__ = ["scan_odometry", "wire_to_state_ned", "QUAT_MARGIN", "ODOMETRY_SIZE"]
 
 MAGIC = 0xFD
+SIG_LEN = 13
 ID_ODOMETRY = codec.ODOMETRY.id
 EXTRA_ODOMETRY = codec.ODOMETRY.crc_extra
 ODOMETRY_SIZE = 233                   # the payload with its extensions (wire order, see codec)
@@ -85,18 +86,19 @@ def _u64(p, o):
 
 
 @jit(error_model="python")
-def scan_odometry(buf, n, scratch, out, meta):
+def scan_odometry(buf, n, signed, scratch, out, meta):
     """A vehicle's state datagram, the common case of `bridge.mavlink.plant`'s receive path:
-    exactly one unsigned ODOMETRY (any system and component), checksum right, frame_id
+    exactly one ODOMETRY (any system and component), signed if ``signed`` (1) else not (its
+    signature and replay window are the caller's to check), checksum right, frame_id
     MAV_FRAME_LOCAL_NED or _FRD, child_frame_id MAV_FRAME_BODY_FRD, finite values and a unit
     quaternion (the decisions `bridge.mavlink.state.StateTracker.on_odometry` makes before its
     time checks). Returns 1 with out[0:13] its wire row (x y z, q w x y z, body rates, body
     velocity: the float32 fields widened) and meta = (sequence, system, component, time_usec,
     frame_id), or 0 for anything else (the reference path's). ``scratch``: ≥ 233 bytes."""
-    if n < 12 or buf[0] != MAGIC or buf[2] != 0:
+    if n < 12 or buf[0] != MAGIC or buf[2] != signed:
         return 0
     plen = np.int64(buf[1])
-    if n != 12 + plen or plen > ODOMETRY_SIZE:
+    if n != 12 + plen + SIG_LEN * signed or plen > ODOMETRY_SIZE:
         return 0
     if (np.int64(buf[7]) | (np.int64(buf[8]) << 8) | (np.int64(buf[9]) << 16)) != ID_ODOMETRY:
         return 0

@@ -60,7 +60,8 @@ EXPORTS = {
                       "f8[::1], i8[::1], i8[::1], f8[:, ::1], f8[::1], i8[:, ::1], i8[::1], "
                       "i8[::1])"),
     "scan_odometry": ("bridge.mavlink.state_wire",
-                      "i8(Array(uint8, 1, 'C', readonly=True), i8, u1[::1], f8[::1], i8[::1])"),
+                      "i8(Array(uint8, 1, 'C', readonly=True), i8, i8, u1[::1], f8[::1], "
+                      "i8[::1])"),
     "wire_to_state_ned": ("bridge.mavlink.state_wire", "void(f8[:, ::1], f8[:, ::1])"),
     "age_rules": ("bridge.swarm.sample_wire",
                   "i8(i8, i8[::1], i8, i8, i8, i8[::1], i8[::1], i8[::1], i8[:, ::1], "

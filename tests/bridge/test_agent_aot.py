@@ -257,19 +257,20 @@ def test_drain_and_send_equal_the_jit(ahead, signed):
                 x.close()
 
 
-def test_scan_odometry_equals_the_jit(ahead):
+@pytest.mark.parametrize("signed", [False, True])
+def test_scan_odometry_equals_the_jit(ahead, signed):
     """The vehicle-state decoder over honest and irregular vehicle datagrams (test_state_wire's)."""
     from test_state_wire import _Vehicle
 
     from bridge.mavlink.state_wire import ODOMETRY_SIZE, scan_odometry
 
     rng = np.random.default_rng(23)
-    veh = _Vehicle(rng)
+    veh = _Vehicle(rng, key=bytes(32) if signed else None)
     taken = 0
     for n in range(400):
         data = veh.honest(n) if n % 2 else veh.irregular(n)
-        args = (np.frombuffer(data, np.uint8), len(data), np.zeros(ODOMETRY_SIZE, np.uint8),
-                np.zeros(13), np.zeros(5, np.int64))
+        args = (np.frombuffer(data, np.uint8), len(data), int(signed),
+                np.zeros(ODOMETRY_SIZE, np.uint8), np.zeros(13), np.zeros(5, np.int64))
         taken += _both(scan_odometry, ahead.scan_odometry, args, f"scan_odometry {n}")
     assert 200 < taken < 400
 

@@ -39,9 +39,10 @@ def _odometry(peer, t_us, rng, *, q=None, frame=M.MAV_FRAME_LOCAL_NED,
 class _Vehicle:
     """Vehicle 1's datagrams: honest ones (a step apart) and every irregular kind."""
 
-    def __init__(self, rng):
+    def __init__(self, rng, key=None):
         self.rng = rng
-        self.peer = Peer(1, 1, Counters())
+        self.key = key
+        self.peer = Peer(1, 1, Counters(), key=key)
         self.t0 = int(time.time() * 1e6)
         self.last = None
 
@@ -88,8 +89,9 @@ class _Vehicle:
         if kind == 12:                                 # another system, or another component
             other = Peer(int(rng.choice([2, 99])) if rng.random() < 0.5 else 1, 2, Counters())
             return _odometry(other, t, rng)
-        if kind == 13:                                 # signed (by anyone: no key here)
-            signer = Peer(1, 1, Counters(), key=bytes(32))
+        if kind == 13:                                 # signed with another key, or not at all
+            signer = Peer(1, 1, Counters(), key=bytes(32) if self.key is None or
+                          rng.random() < 0.5 else None)
             return _odometry(signer, t, rng)
         return bytes(self.peer.pack(self.peer.mav.heartbeat_encode(2, 0, 0, 0, 4)))
 
@@ -97,12 +99,18 @@ class _Vehicle:
 def _state(plant):
     v = plant.vehicles[0]
     tr = v.tracker
+    sig = v.peer.mav.signing
     return (plant.wire.tobytes(), tr.wire.tobytes(), tr.time_usec, tr.n_states, tr.n_odometry,
             tr.have, tr.duplicates, tr.reboots, tr.source, plant.counters.as_dict(),
-            v.peer.sequences(), v.src is None, v.connected, sum(plant.lat_hist))
+            v.peer.sequences(), v.src is None, v.connected, sum(plant.lat_hist),
+            (dict(sig.stream_timestamps), sig.timestamp) if plant.key is not None else None)
 
 
-def test_compiled_state_path_equals_the_reference():
+KEY = bytes(range(5, 37))
+
+
+@pytest.mark.parametrize("key", [None, KEY])
+def test_compiled_state_path_equals_the_reference(key):
     from bridge.mavlink.plant import MavlinkPlant
 
     rng = np.random.default_rng(3)
@@ -111,13 +119,13 @@ def test_compiled_state_path_equals_the_reference():
         for compiled in (True, False):
             port = free_base_port(6)
             sc = load([f"bridge.base_port={port}", "bridge.stale_after=1000"])
-            p = MavlinkPlant(sc, connect_timeout=1, on_event=lambda s: None)
+            p = MavlinkPlant(sc, connect_timeout=1, on_event=lambda s: None, key=key)
             p.compiled_state = compiled
             plants.append(p)
             s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             s.bind(("127.0.0.1", 0))
             tx.append((s, ("127.0.0.1", port)))
-        veh = _Vehicle(rng)
+        veh = _Vehicle(rng, key)
         sent = 0
         for n in range(400):
             data = veh.honest(n) if rng.random() < 0.5 else veh.irregular(n)
@@ -134,7 +142,9 @@ def test_compiled_state_path_equals_the_reference():
         st = ref.counters.as_dict()
         assert st["malformed"] > 0 and {"out_of_order", "future", "nan", "non_unit_quaternion",
                                         "bad_frame", "wrong_system"} <= set(st["rejected_by_reason"])
-        assert ref.vehicles[0].tracker.duplicates > 0
+        assert ref.vehicles[0].tracker.duplicates > 0 or key is not None
+        if key is not None:
+            assert {"replay", "unsigned", "bad_signature"} <= set(st["rejected_by_reason"])
     finally:
         for p in plants:
             p.close()
@@ -152,7 +162,7 @@ def test_decoder_reads_what_pymavlink_reads(frame):
     for trial in range(200):
         t = int(rng.integers(0, 1 << 62))
         data = _odometry(peer, t, rng, frame=frame)
-        assert scan_odometry(np.frombuffer(data, np.uint8), len(data), scratch, out, meta) == 1
+        assert scan_odometry(np.frombuffer(data, np.uint8), len(data), 0, scratch, out, meta) == 1
         m = dec.decode(bytearray(data))
         want = [m.x, m.y, m.z, *m.q, m.rollspeed, m.pitchspeed, m.yawspeed, m.vx, m.vy, m.vz]
         assert out.tolist() == want
