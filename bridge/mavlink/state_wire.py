@@ -70,7 +70,7 @@ def _crc(buf, start, end, extra):
     """MAVLink's X.25 (MCRF4XX) checksum of buf[start:end] followed by CRC_EXTRA."""
     crc = 0xFFFF
     for i in range(start, end + 1):
-        b = buf[i] if i < end else extra
+        b = np.int64(buf[i]) if i < end else extra    # (as Python: no uint8 arithmetic)
         tmp = (b ^ (crc & 0xFF)) & 0xFF
         tmp = (tmp ^ (tmp << 4)) & 0xFF
         crc = ((crc >> 8) ^ (tmp << 8) ^ (tmp << 3) ^ (tmp >> 4)) & 0xFFFF
