@@ -578,6 +578,8 @@ class UdpSocket:
                 s.close()
                 raise
             self.remote = None
+            # the one address the kernel hands this socket datagrams from (as recvfrom gives it)
+            self.connected_to = connect_to
         else:
             try:
                 s.bind((addr[0] if addr[0] in ("127.0.0.1", "localhost") else "0.0.0.0", 0))
@@ -586,6 +588,7 @@ class UdpSocket:
                 s.close()
                 raise
             self.remote = addr
+            self.connected_to = None    # (recvfrom may spell its address otherwise)
         s.setblocking(False)
         self.sock = s
         self.local = s.getsockname()

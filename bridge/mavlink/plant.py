@@ -19,11 +19,14 @@ from cosim import signals
 
 from . import codec
 from .config import default_config, read_key_file
-from .link import (IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, crc_ok, mavlink2,
-                   parse_endpoint, receive_datagrams, require_key_or_insecure)
+from .link import (DRAIN_BUDGET, IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, crc_ok,
+                   mavlink2, parse_endpoint, receive_datagrams, require_key_or_insecure,
+                   take_datagram)
 from .signing_state import open_signing_state
 from .state import StateTracker
-from .state_wire import ODOMETRY_SIZE, scan_odometry, wire_to_state_ned
+from .state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, recv_state, scan_odometry,
+                         wire_to_state_ned)
+from .udp_io import send_all
 from .transport import WIRE, Transport, profiles_for, wire_to_state
 
 M = mavlink2
@@ -230,9 +233,20 @@ class MavlinkPlant:
         # (`state_wire.scan_odometry`; False: the reference path alone, which tests compare)
         self.compiled_state = True
         self.scanned_states = 0      # datagrams it took
+        self.read_compiled = 0       # datagrams read by compiled code (`state_wire.recv_state`)
         self._scan_scratch = np.zeros(ODOMETRY_SIZE, np.uint8)   # `scan_odometry`'s buffers
         self._scan_row = np.zeros(WIRE)
-        self._scan_meta = np.zeros(5, np.int64)
+        self._scan_meta = np.zeros(6, np.int64)
+        self._rx_buf = np.zeros(1 << 16, np.uint8)    # `recv_state`'s (a datagram's most)
+        # real time, the commands framed by compiled code and sent by libc on the socket
+        # connected to the vehicle (`OutputProfile.pack_into`, `udp_io.send_all`; the
+        # same bytes; False: `Peer.pack` and the socket's `send` alone, which tests compare)
+        self.compiled_command = True
+        self.packed_commands = 0     # commands it sent
+        self._cmd_buf = np.zeros(COMMAND_BYTES, np.uint8)
+        self._cmd_f32 = np.zeros(8, np.float32)
+        self._cmd_fd = np.zeros(1, np.int64)
+        self._cmd_ok = np.zeros(1, np.int64)
         self._readers: dict = {}     # other sockets serviced while waiting: fd -> callback()
         self._refresh_fds()
         # steps between the master's checks for Ctrl-C and SIGTERM: about 0.1 s of the wall
@@ -276,6 +290,62 @@ class MavlinkPlant:
         else:
             self.counters.send_errors += 1
 
+    def _command_out(self, v: _Vehicle, c) -> bool:
+        """Real time: vehicle v's command c framed by its profile's compiled form (signed here,
+        as `Peer.pack` signs) and sent, on the socket connected to the vehicle where there is
+        one; False where the profile has no compiled form or a tlog records the link (the
+        caller then takes `message` and `_send`). (No `last_buf`: only lockstep resends.)"""
+        peer = v.peer
+        if peer.tlog is not None:
+            return False
+        mav = peer.mav
+        signed = 1 if mav.signing.sign_outgoing else 0
+        buf = self._cmd_buf
+        n = self.profiles[v.i].pack_into(buf, self._cmd_f32, c, target=v.sysid, k=self.k,
+                                         lockstep=False, seq=mav.seq, sysid=mav.srcSystem,
+                                         compid=mav.srcComponent, signed=signed)
+        if n < 0:
+            return False
+        if signed:
+            codec.sign_frame(mav, buf, 0, n)
+        mav.seq = (mav.seq + 1) & 0xFF
+        self.packed_commands += 1
+        fd = self._connected_fd(v)
+        if fd < 0:
+            self._send_raw(v, buf[:n].tobytes())
+        else:
+            self._cmd_fd[0] = fd
+            if send_all(self._cmd_fd, buf, n, self._cmd_ok):
+                self.counters.sent += 1
+            else:
+                self.counters.send_errors += 1
+        return True
+
+    def warm_up(self) -> None:
+        """Loads (or compiles) the compiled read and command paths now, with the types of the
+        run, rather than at the first state or step: reads no socket, frames a command into
+        scratch and sends it to no socket."""
+        if self.compiled_state:     # a closed descriptor: EBADF, nothing read
+            recv_state(-1, self._rx_buf, 0, self._scan_scratch, self._scan_row, self._scan_meta)
+        if not self.compiled_command or self.lockstep:
+            return
+        for v, prof in zip(self.vehicles, self.profiles):
+            prof.pack_into(self._cmd_buf, self._cmd_f32, [0.0] * 6, target=v.sysid, k=0,
+                           lockstep=False, seq=0, sysid=1, compid=1, signed=0)
+        none = np.zeros(0, np.int64)
+        send_all(none, self._cmd_buf, 0, none)
+
+    def _connected_fd(self, v: _Vehicle) -> int:
+        """The socket connected to where v's packets go (``v.addr``), or −1: a udpout
+        endpoint's own, or on udpin the source socket of v's source while that is ``v.addr``."""
+        s = v.sock
+        if s.mode != "udpin":
+            return s.fileno()
+        if v.src is None or v.addr != v.src:
+            return -1
+        e = self._src_socks.get((s.fileno(), v.src))
+        return -1 if e is None else e[0].fileno()
+
     def _heartbeats(self, now: float) -> None:
         if now < self._next_hb:
             return
@@ -316,7 +386,7 @@ class MavlinkPlant:
             n0 = c.refusals()
             if row is not None:
                 # the state stream's common case, checked and decoded by `fast` below
-                seq, sysid, compid, t_us, _ = self._scan_meta.tolist()
+                seq, sysid, compid, t_us, _, _ = self._scan_meta.tolist()
                 used = v.peer.accepted(pkt, seq, sysid, compid) \
                     and v.tracker.on_odometry_row(row, t_us, now)
                 if used:
@@ -364,13 +434,56 @@ class MavlinkPlant:
                     c.malformed += 1
                 return True
 
-        receive_datagrams(sock, c, on_packet, deadline=deadline, fast=fast)
+        src = sock.connected_to
+        if fast is not None and src is not None:
+            self._receive_compiled(sock, src, keyed, on_packet, deadline)
+        else:
+            receive_datagrams(sock, c, on_packet, deadline=deadline, fast=fast)
         if fd in self._settle:
             # a source socket was opened while this catch-all was read: what its source sent
             # before lies here, older than anything on the new socket: read it now, so that
             # the next poll (the vehicles' sockets first) cannot take a newer state first
             self._settle.discard(fd)
             receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + 0.05)
+
+    def _receive_compiled(self, sock: UdpSocket, addr, keyed: int, on_packet,
+                          deadline: float) -> None:
+        """`receive_datagrams` of a source socket (connected: every datagram is from ``addr``)
+        with each read and scan one compiled call (`state_wire.recv_state`): the same datagrams
+        to the same handlers, counted the same, without a bytes object and address tuple per
+        read or an exception for the empty socket."""
+        c = self.counters
+        buf = self._rx_buf
+        scratch, out, meta = self._scan_scratch, self._scan_row, self._scan_meta
+        fd = sock.fileno()
+        limit = DRAIN_BUDGET
+        while True:
+            nb = 0          # datagrams of this batch (its reads: at most limit)
+            for _ in range(limit):
+                r = recv_state(fd, buf, keyed, scratch, out, meta)
+                if r == 0 or r == -1:
+                    break
+                if r == -2:
+                    continue
+                nb += 1
+                self.read_compiled += 1
+                data = buf[:meta[5]].tobytes()
+                if r == 1:
+                    c.datagrams += 1
+                    self.scanned_states += 1
+                    try:
+                        on_packet(data, addr, out)
+                    except Exception:  # noqa: BLE001 - untrusted input never crashes us
+                        c.malformed += 1
+                else:
+                    take_datagram(data, addr, c, on_packet)
+            if nb > c.drain_max:
+                c.drain_max = nb
+            if nb < limit:
+                return
+            if time.monotonic() >= deadline:
+                c.drain_capped += 1
+                return
 
     def _source_socket(self, v: _Vehicle, old) -> None:
         """Vehicle v's source changed from ``old`` (or None) to ``v.src``: on a udpin endpoint,
@@ -630,8 +743,14 @@ class MavlinkPlant:
             else (self.vehicles[0].tracker.t_arrival or now)
         _hist_add(self.age_hist, now - oldest)
         self._commanded = True
+        fast = self.compiled_command and not self.lockstep
         for v in self.vehicles:
             if v.addr is None:
+                continue
+            if fast and self._command_out(v, c[v.i]):
+                v.t_sent = now
+                if v.t_cmd is None:
+                    v.t_cmd = now
                 continue
             msg = self.profiles[v.i].message(v.peer.mav, c[v.i], target=v.sysid, k=self.k,
                                              lockstep=self.lockstep, wire=self.wire[v.i])

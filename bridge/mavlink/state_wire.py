@@ -9,6 +9,12 @@ this case", and the plant then hands the datagram to its reference path (`Peer.a
 `StateTracker.on_odometry`), so every refusal has one implementation; a decision that rounding
 could tip (the quaternion's norm near the tolerance) is left to the reference path. The values
 are the float32 fields widened to float64, what `struct.unpack` gives the reference path.
+
+`recv_state` reads the vehicle's connected socket with libc's recv and scans what it read, in
+one call: no bytes object, address tuple or exception per read. `pack_command` is the way back: the step's SET_ACTUATOR_CONTROL_TARGET framed as
+`bridge.mavlink.codec.frame` frames it (the same bytes; a signature is the caller's to write,
+`codec.sign_frame`), into a preallocated buffer that `bridge.mavlink.udp_io.send_all`
+sends.
 """
 from __future__ import annotations
 
@@ -18,8 +24,10 @@ from controller.jit import jit
 
 from . import codec
 from .state import QUAT_TOL
+from .udp_io import EAGAIN, ECONNREFUSED, EINTR, EWOULDBLOCK, MSG_DONTWAIT, errno, recv
 
-__all__ = ["scan_odometry", "wire_to_state_ned", "QUAT_MARGIN", "ODOMETRY_SIZE"]
+__all__ = ["scan_odometry", "recv_state", "wire_to_state_ned", "pack_command", "QUAT_MARGIN", "ODOMETRY_SIZE",
+           "COMMAND_BYTES"]
 
 MAGIC = 0xFD
 SIG_LEN = 13
@@ -29,6 +37,10 @@ ODOMETRY_SIZE = 233                   # the payload with its extensions (wire or
 FRAME_LOCAL_NED = 1
 FRAME_LOCAL_FRD = 20
 FRAME_BODY_FRD = 12
+ID_COMMAND = codec.SET_ACTUATOR_CONTROL_TARGET.id
+EXTRA_COMMAND = codec.SET_ACTUATOR_CONTROL_TARGET.crc_extra
+COMMAND_SIZE = 43                     # time_usec, controls[8], group_mlx, target system, component
+COMMAND_BYTES = 12 + COMMAND_SIZE + SIG_LEN     # pack_command's most
 # the norm test is left to the reference path this close to the tolerance (a double's rounding
 # of the sum of squares is ~1e-16; this margin is far beyond it and costs no genuine sample)
 QUAT_MARGIN = 1e-9
@@ -133,3 +145,68 @@ def scan_odometry(buf, n, signed, scratch, out, meta):
     meta[3] = np.int64(t)
     meta[4] = odo[228]
     return 1
+
+
+
+@jit(error_model="python")
+def recv_state(fd, buf, signed, scratch, out, meta):
+    """One datagram read from the connected socket ``fd`` into buf with libc's recv, then
+    `scan_odometry`: 1 (its case: ``out``, meta[0:5] as it fills them), 2 (any other datagram,
+    for the reference path), both with the datagram's length in meta[5]; 0 when the socket is
+    empty; −2 for an ICMP error the socket reported (no datagram: read on, as
+    `bridge.mavlink.link.UdpSocket.recv_all` does); −1 for any other error (stop reading)."""
+    while True:
+        r = recv(fd, buf, buf.shape[0], MSG_DONTWAIT)
+        if r >= 0:
+            break
+        e = errno()
+        if e == EINTR:
+            continue
+        if e == ECONNREFUSED:
+            return -2
+        return 0 if e == EAGAIN or e == EWOULDBLOCK else -1
+    meta[5] = r
+    return 1 if scan_odometry(buf, r, signed, scratch, out, meta) else 2
+
+@jit(error_model="python")
+def pack_command(buf, t_us, c0, c1, c2, c3, c4, c5, group_mlx, target_system, target_component,
+                 seq, sysid, compid, signed, f32):
+    """SET_ACTUATOR_CONTROL_TARGET (time_usec ``t_us``, controls c0..c5 then two zeros) framed
+    into buf (≥ COMMAND_BYTES) as `bridge.mavlink.codec.frame` frames the payload that
+    `codec.SET_ACTUATOR_CONTROL_TARGET.encoded` packs, byte for byte: sequence ``seq``, from
+    (sysid, compid); ``signed`` (0 or 1): SIG_LEN bytes left at the end for the caller's
+    signature. Returns the frame's length, or −1 when a control does not fit a float32 (the
+    reference path then raises as `struct.pack` does). ``f32``: ≥ 8 float32 of scratch."""
+    vals = (np.float64(c0), np.float64(c1), np.float64(c2), np.float64(c3), np.float64(c4),
+            np.float64(c5), 0.0, 0.0)
+    for k in range(8):
+        f32[k] = vals[k]
+        if np.isinf(f32[k]) and not np.isinf(vals[k]):
+            return -1
+    t = np.uint64(t_us)
+    for k in range(8):
+        buf[10 + k] = (t >> np.uint64(8 * k)) & np.uint64(0xFF)
+    b = f32[0:8].view(np.uint8)
+    for k in range(32):
+        buf[18 + k] = b[k]
+    buf[50] = group_mlx & 0xFF
+    buf[51] = target_system & 0xFF
+    buf[52] = target_component & 0xFF
+    plen = np.int64(COMMAND_SIZE)
+    while plen > 1 and buf[10 + plen - 1] == 0:    # MAVLink 2 drops the trailing zeros
+        plen -= 1
+    buf[0] = MAGIC
+    buf[1] = plen
+    buf[2] = signed
+    buf[3] = 0
+    buf[4] = seq & 0xFF
+    buf[5] = sysid & 0xFF
+    buf[6] = compid & 0xFF
+    buf[7] = ID_COMMAND & 0xFF
+    buf[8] = (ID_COMMAND >> 8) & 0xFF
+    buf[9] = (ID_COMMAND >> 16) & 0xFF
+    e = 10 + plen
+    crc = _crc(buf, 1, e, EXTRA_COMMAND)
+    buf[e] = crc & 0xFF
+    buf[e + 1] = crc >> 8
+    return e + 2 + SIG_LEN * signed

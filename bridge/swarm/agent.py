@@ -842,6 +842,7 @@ def _warm_up(node: AgentNode) -> None:
                    ctl.theta_jump.copy(), ctl.mu.copy(), ctl.jumped.copy(), node._termbuf.copy(),
                    node._relrows.copy(), ctl.u.copy())
     node.link.warm_up()
+    node.vehicle.warm_up()
     loc = node.local
     N, M = loc.graph.n, loc.graph.M
     U = np.zeros(M)

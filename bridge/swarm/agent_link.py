@@ -71,10 +71,11 @@ from bridge.mavlink.link import (DRAIN_BUDGET, Counters, Peer, UdpSocket, mavlin
                    receive_datagrams, take_datagram)
 from bridge.mavlink.state import QUAT_TOL
 from bridge.mavlink.transport import wire_row_to_state
+from bridge.mavlink.udp_io import send_all
 
 from .sample_wire import (AGE_BINS, D_BATCH, D_DATAGRAMS, D_DROPPED, D_K, D_LEN, D_RECEIVED,
                           D_STEP, D_WIDTH, PACK_BYTES, SCAN_STATE, SCAN_WIDTH, age_rules,
-                          drain_samples, pack_sample, scan_sample, send_sample)
+                          drain_samples, pack_sample, scan_sample)
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -356,12 +357,12 @@ class AgentLink:
             self._drain = self._drain_neighbours
             self.drain_kernel = drain_samples    # (the ahead-of-time module's, in a test)
         # …and its mirror for what this agent sends (`sample_wire.pack_sample`), sent on the
-        # neighbours' connected sockets by one compiled call (`sample_wire.send_sample`)
+        # neighbours' connected sockets by one compiled call (`bridge.mavlink.udp_io.send_all`)
         self._sfds = None
         if compiled and len(self._nsock) == len(self.neighbours) and self.neighbours:
             self._sfds = np.array([self._nsock[j].fileno() for j in self.neighbours], np.int64)
             self._sok = np.zeros(len(self.neighbours), np.int64)
-            self.send_kernel = send_sample
+            self.send_kernel = send_all
         self._pack = None
         if compiled and self.peer.tlog is None and len(self.owned) <= THETA_PER_MESSAGE:
             self._pbuf = np.zeros(PACK_BYTES, np.uint8)
@@ -382,7 +383,7 @@ class AgentLink:
         about a second while the swarm stepped."""
         if self._sfds is not None:      # to no socket: its types, no send
             none = np.zeros(0, np.int64)
-            send_sample(none, np.zeros(1, np.uint8), 0, none)
+            send_all(none, np.zeros(1, np.uint8), 0, none)
         if self._scan is None or not self._scan_nt:
             return
         nt = next(iter(self._scan_nt.values()))

@@ -62,11 +62,15 @@ EXPORTS = {
     "scan_odometry": ("bridge.mavlink.state_wire",
                       "i8(Array(uint8, 1, 'C', readonly=True), i8, i8, u1[::1], f8[::1], "
                       "i8[::1])"),
+    "recv_state": ("bridge.mavlink.state_wire",
+                   "i8(i8, u1[::1], i8, u1[::1], f8[::1], i8[::1])"),
     "wire_to_state_ned": ("bridge.mavlink.state_wire", "void(f8[:, ::1], f8[:, ::1])"),
     "age_rules": ("bridge.swarm.sample_wire",
                   "i8(i8, i8[::1], i8, i8, i8, i8[::1], i8[::1], i8[::1], i8[:, ::1], "
                   "f8[:, ::1], f8[::1], i8[::1], i8[::1], i8[::1])"),
-    "send_sample": ("bridge.swarm.sample_wire", "i8(i8[::1], u1[::1], i8, i8[::1])"),
+    "send_all": ("bridge.mavlink.udp_io", "i8(i8[::1], u1[::1], i8, i8[::1])"),
+    "pack_command": ("bridge.mavlink.state_wire",
+                     "i8(u1[::1], i8, f8, f8, f8, f8, f8, f8, i8, i8, i8, i8, i8, i8, i8, f4[::1])"),
     "pack_sample": ("bridge.swarm.sample_wire",
                     "i8(u1[::1], i8, f8[::1], b1, f8[::1], i8, i8, i8, i8, f4[::1], i8[::1])"),
     "rot_to_quat_rows": ("controller._kernels", "void(f8[:, ::1], f8[:, ::1])"),
@@ -88,7 +92,7 @@ EXPORTS = {
 
 # what the module is compiled from: every source its kernels read (constants included)
 SOURCES = ("controller/jit.py", "controller/_kernels.py", "controller/_agent_kernels.py",
-           "controller/layout.py", "bridge/swarm/sample_wire.py", "bridge/swarm/udp_io.py",
+           "controller/layout.py", "bridge/swarm/sample_wire.py", "bridge/mavlink/udp_io.py",
            "bridge/mavlink/codec.py", "bridge/mavlink/state_wire.py",
            "bridge/mavlink/state.py", "cosim/log/cdr.py", "bridge/swarm/aot.py")
 

@@ -35,9 +35,9 @@ from controller.jit import jit
 from controller.kernels import FRESH, quat_of
 from controller.layout import S_OMEGA, S_P, S_R, S_V
 
-from .udp_io import ECONNREFUSED, EINTR, MSG_DONTWAIT, errno, recv, send
+from bridge.mavlink.udp_io import ECONNREFUSED, EINTR, MSG_DONTWAIT, errno, recv
 
-__all__ = ["scan_sample", "pack_sample", "drain_samples", "send_sample", "age_rules", "AGE_BINS", "SCAN_WIDTH", "SCAN_STATE",
+__all__ = ["scan_sample", "pack_sample", "drain_samples", "age_rules", "AGE_BINS", "SCAN_WIDTH", "SCAN_STATE",
            "ODOMETRY_SIZE", "THETA_SIZE", "PACK_BYTES", "D_DATAGRAMS", "D_RECEIVED", "D_DROPPED",
            "D_LEN", "D_BATCH", "D_WIDTH"]
 
@@ -260,26 +260,6 @@ def age_rules(n, held_step, max_age, hold, future, ages, verdict, mode, hist, he
         if held_step[q] >= 0:
             rx[rx_r[i]] = held[q, rx_c[i]]
     return again
-
-
-@jit(error_model="python")
-def send_sample(fds, buf, n, ok):
-    """buf[:n] sent on each connected socket of ``fds`` with libc's send, as
-    `bridge.mavlink.link.UdpSocket.send` sends (once more after an ICMP error the socket
-    reported, never waiting): ok[q] = 1 if socket q took it, else 0. Returns how many took it."""
-    sent = 0
-    for q in range(fds.shape[0]):
-        ok[q] = 0
-        for _ in range(2):
-            r = send(fds[q], buf, n, MSG_DONTWAIT)
-            if r >= 0:
-                ok[q] = 1
-                sent += 1
-                break
-            e = errno()
-            if e != ECONNREFUSED and e != EINTR:
-                break
-    return sent
 
 
 @jit(error_model="python")

@@ -2,7 +2,9 @@
 reference path (`MavlinkPlant.compiled_state = False`): the same datagrams from a vehicle, sent
 to a plant of each kind, leave the same tracked state (every bit), the same counters and
 refusals and the same sequence bookkeeping, over honest ODOMETRY and every kind of irregular
-datagram the reference path refuses or treats specially. Plus the decoder against pymavlink."""
+datagram the reference path refuses or treats specially. Plus the decoder against pymavlink.
+The way back too: the compiled command (`state_wire.pack_command`, `MavlinkPlant.compiled_command`)
+against pymavlink's bytes and against the plant's reference path, signed and not."""
 from __future__ import annotations
 
 import math
@@ -13,7 +15,8 @@ import numpy as np
 import pytest
 
 from bridge.mavlink.link import Counters, Peer, mavlink2
-from bridge.mavlink.state_wire import ODOMETRY_SIZE, scan_odometry
+from bridge.mavlink.state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, pack_command, recv_state,
+                                       scan_odometry)
 from _bridge import free_base_port, load
 
 M = mavlink2
@@ -139,6 +142,7 @@ def test_compiled_state_path_equals_the_reference(key):
             assert _state(plants[0]) == _state(plants[1]), n
         comp, ref = plants
         assert comp.scanned_states > 150 and ref.scanned_states == 0
+        assert comp.read_compiled > 150 and ref.read_compiled == 0
         st = ref.counters.as_dict()
         assert st["malformed"] > 0 and {"out_of_order", "future", "nan", "non_unit_quaternion",
                                         "bad_frame", "wrong_system"} <= set(st["rejected_by_reason"])
@@ -158,7 +162,7 @@ def test_decoder_reads_what_pymavlink_reads(frame):
     rng = np.random.default_rng(frame)
     peer = Peer(7, 1, Counters())
     dec = mavlink2.MAVLink(None)
-    scratch, out, meta = np.zeros(ODOMETRY_SIZE, np.uint8), np.zeros(13), np.zeros(5, np.int64)
+    scratch, out, meta = np.zeros(ODOMETRY_SIZE, np.uint8), np.zeros(13), np.zeros(6, np.int64)
     for trial in range(200):
         t = int(rng.integers(0, 1 << 62))
         data = _odometry(peer, t, rng, frame=frame)
@@ -166,7 +170,7 @@ def test_decoder_reads_what_pymavlink_reads(frame):
         m = dec.decode(bytearray(data))
         want = [m.x, m.y, m.z, *m.q, m.rollspeed, m.pitchspeed, m.yawspeed, m.vx, m.vy, m.vz]
         assert out.tolist() == want
-        assert meta.tolist() == [m.get_seq(), 7, 1, m.time_usec, frame]
+        assert meta[:5].tolist() == [m.get_seq(), 7, 1, m.time_usec, frame]
 
 
 def test_state_rows_are_wire_to_state_bits():
@@ -185,3 +189,145 @@ def test_state_rows_are_wire_to_state_bits():
             S = np.empty((n, 18))
             wire_to_state_ned(wire, S)
             assert S.tobytes() == wire_to_state(wire, "ned").tobytes()
+
+
+def test_recv_state_reads_what_the_socket_holds():
+    """The compiled read of a connected socket: every datagram whole, in order, its length in
+    meta[5]; the common case scanned (`scan_odometry`'s row), the rest handed on; the empty
+    socket (0) and an ICMP error the socket reported (−2, and the next read goes on)."""
+    rng = np.random.default_rng(43)
+    veh = _Vehicle(rng)
+    a, b = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    try:
+        for s in (a, b):
+            s.bind(("127.0.0.1", 0))
+        a.connect(b.getsockname())
+        b.connect(a.getsockname())
+        b.setblocking(False)
+        buf, scratch = np.zeros(1 << 16, np.uint8), np.zeros(ODOMETRY_SIZE, np.uint8)
+        out, meta = np.zeros(13), np.zeros(6, np.int64)
+        out2, meta2 = np.zeros(13), np.zeros(6, np.int64)
+        sent = [veh.honest(n) if n % 2 else veh.irregular(n) for n in range(60)] + [b""]
+        for d in sent:
+            a.send(d)
+        time.sleep(0.05)
+        for d in sent:
+            r = recv_state(b.fileno(), buf, 0, scratch, out, meta)
+            want = scan_odometry(np.frombuffer(d, np.uint8), len(d), 0, scratch, out2, meta2)
+            assert r == (1 if want else 2) and meta[5] == len(d) and bytes(buf[:len(d)]) == d
+            if want:
+                assert out.tobytes() == out2.tobytes() and (meta[:5] == meta2[:5]).all()
+        assert recv_state(b.fileno(), buf, 0, scratch, out, meta) == 0
+        # a datagram to a port nobody holds: the ICMP error comes back on b's next read
+        dead = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        dead.bind(("127.0.0.1", 0))
+        gone = dead.getsockname()
+        dead.close()
+        b.connect(gone)
+        b.send(b"x")
+        time.sleep(0.05)
+        assert recv_state(b.fileno(), buf, 0, scratch, out, meta) == -2
+        assert recv_state(b.fileno(), buf, 0, scratch, out, meta) == 0
+        assert recv_state(-1, buf, 0, scratch, out, meta) == -1      # EBADF: stop
+    finally:
+        a.close()
+        b.close()
+
+
+@pytest.mark.parametrize("signed", [False, True])
+def test_pack_command_is_pymavlinks_bytes(signed):
+    """Random controls, times, ids and sequence numbers (zeros at the end dropped as MAVLink 2
+    drops them, NaN and ±0 kept, a value beyond float32 refused): pymavlink's bytes."""
+    from bridge.mavlink import codec
+
+    rng = np.random.default_rng(47)
+    key = bytes(range(32))
+    mine, theirs = mavlink2.MAVLink(None, 255, 190), mavlink2.MAVLink(None, 255, 190)
+    if signed:
+        for mav in (mine, theirs):
+            codec.setup_signing(mav, key, link_id=3, initial_timestamp=123456)
+    buf, f32 = np.zeros(COMMAND_BYTES, np.uint8), np.zeros(8, np.float32)
+    for trial in range(500):
+        c = (rng.uniform(-1, 1, 6) * 10.0 ** rng.integers(-40, 39)).tolist()
+        if trial % 5 == 0:
+            c[int(rng.integers(6))] = float(rng.choice([0.0, -0.0, np.nan, 3.4e38]))
+        t = int(rng.integers(0, 1 << 63))
+        g, ts, tc = (int(x) for x in rng.choice([0, 1, 7, 255], 3))
+        mine.seq = theirs.seq = int(rng.integers(256))
+        mine.srcSystem = theirs.srcSystem = int(rng.integers(1, 256))
+        want = bytes(mavlink2.MAVLink_set_actuator_control_target_message(
+            t, g, ts, tc, c + [0.0, 0.0]).pack(theirs))
+        n = pack_command(buf, t, *c, g, ts, tc, mine.seq, mine.srcSystem, 190, int(signed), f32)
+        if signed:
+            codec.sign_frame(mine, buf, 0, n)
+        assert bytes(buf[:n]) == want, trial
+    assert pack_command(buf, 0, 1e39, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 1, 1, 0, 1, 1, 0, f32) == -1
+
+
+@pytest.mark.parametrize("key", [None, KEY])
+def test_compiled_command_path_equals_the_reference(key, monkeypatch):
+    """The plant's commands (real time) framed and sent by compiled code, against `Peer.pack`
+    and the socket's send: at the vehicle, the same datagrams byte for byte (one clock for
+    both, one signing timestamp), and the same counters."""
+    from bridge.mavlink import output
+    from bridge.mavlink.plant import MavlinkPlant
+
+    class _Clock:
+        t = 1.8e9
+
+        def time(self):
+            return self.t
+
+    clock = _Clock()
+    monkeypatch.setattr(output, "time", clock)
+    rng = np.random.default_rng(53)
+    plants, tx = [], []
+    try:
+        for compiled in (True, False):
+            port = free_base_port(6)
+            sc = load([f"bridge.base_port={port}", "bridge.stale_after=1000"])
+            p = MavlinkPlant(sc, connect_timeout=1, on_event=lambda s: None, key=key)
+            p.compiled_command = compiled
+            p.warm_up()
+            plants.append(p)
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(5.0)
+            tx.append((s, ("127.0.0.1", port)))
+        veh = _Vehicle(rng, key)
+        for n in range(3):              # the vehicle's address (and its source socket)
+            data = veh.honest(n)
+            for (s, addr), p in zip(tx, plants):
+                s.sendto(data, addr)
+                end = time.monotonic() + 5.0
+                while p.counters.datagrams < n + 1 and time.monotonic() < end:
+                    p.poll(0.01)
+        assert all(p.vehicles[0].src is not None for p in plants)
+        n_u = plants[0].n
+        for k in range(80):
+            u = rng.normal(size=(n_u, 6)) * 10.0 ** rng.integers(-2, 3)
+            clock.t += 0.004 + rng.uniform(0, 1e-3)
+            got = []
+            for (s, _), p in zip(tx, plants):
+                if key is not None:
+                    p.vehicles[0].peer.mav.signing.timestamp = 10_000 + k
+                p.apply(u.copy())
+                got.append(s.recv(4096))
+                p.k += 1
+                p._S = None
+            assert got[0] == got[1], k
+            m = mavlink2.MAVLink(None)
+            if key is not None:
+                m.signing.secret_key = key
+            msg = m.parse_char(bytearray(got[0]))
+            assert msg is not None and msg.get_type() == "SET_ACTUATOR_CONTROL_TARGET"
+            assert msg.time_usec == int(clock.t * 1e6)
+        comp, ref = plants
+        assert comp.packed_commands == 80 and ref.packed_commands == 0
+        assert comp.counters.as_dict() == ref.counters.as_dict()
+        assert comp.vehicles[0].peer.mav.seq == ref.vehicles[0].peer.mav.seq
+    finally:
+        for p in plants:
+            p.close()
+        for s, _ in tx:
+            s.close()

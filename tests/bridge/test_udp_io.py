@@ -1,4 +1,4 @@
-"""libc's recv and send for kernels (bridge/swarm/udp_io.py), both ways they are built: numba
+"""libc's recv and send for kernels (bridge/mavlink/udp_io.py), both ways they are built: numba
 intrinsics (what the JIT and the ahead-of-time module call) and ctypes (what the kernels call
 when numba runs them as Python, NUMBA_DISABLE_JIT=1). Each against Python's own socket calls
 on real sockets: the bytes, the lengths, and the empty socket's EAGAIN."""
@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from bridge.swarm import udp_io
+from bridge.mavlink import udp_io
 
 
 def _pair():

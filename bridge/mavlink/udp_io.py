@@ -6,7 +6,8 @@ to learn that it is empty. From Python each of those is a socket method call tha
 bytes object and an address tuple, and the empty answer raises and catches BlockingIOError:
 about 1 µs of Python around each system call. A kernel that calls libc directly reads every
 neighbour's socket into one preallocated buffer and decodes what it read in the same call
-(`bridge.swarm.sample_wire.drain_samples`).
+(`bridge.swarm.sample_wire.drain_samples`); `send_all` sends a frame that compiled code wrote
+(an agent's sample to its neighbours, its command to its vehicle) on connected sockets.
 
 The three functions are numba intrinsics: LLVM declares the C symbols and the call resolves
 against the process's libc, in numba's JIT and in the ahead-of-time module alike (the module's
@@ -24,7 +25,7 @@ import os
 
 from controller import jit as _jit
 
-__all__ = ["recv", "send", "errno", "MSG_DONTWAIT", "EAGAIN", "EWOULDBLOCK", "ECONNREFUSED",
+__all__ = ["recv", "send", "errno", "send_all", "MSG_DONTWAIT", "EAGAIN", "EWOULDBLOCK", "ECONNREFUSED",
            "EINTR"]
 
 MSG_DONTWAIT = 0x40
@@ -35,7 +36,7 @@ EINTR = _errno.EINTR
 
 
 def _unavailable(*_a):
-    raise RuntimeError("bridge.swarm.udp_io: this process runs the ahead-of-time kernels, whose "
+    raise RuntimeError("bridge.mavlink.udp_io: this process runs the ahead-of-time kernels, whose "
                        "module calls libc itself")
 
 
@@ -111,3 +112,23 @@ def _make():
 
 
 recv, send, errno = _make()
+
+
+@_jit.jit(error_model="python")
+def send_all(fds, buf, n, ok):
+    """buf[:n] sent on each connected socket of ``fds`` with libc's send, as
+    `bridge.mavlink.link.UdpSocket.send` sends (once more after an ICMP error the socket
+    reported, never waiting): ok[q] = 1 if socket q took it, else 0. Returns how many took it."""
+    sent = 0
+    for q in range(fds.shape[0]):
+        ok[q] = 0
+        for _ in range(2):
+            r = send(fds[q], buf, n, MSG_DONTWAIT)
+            if r >= 0:
+                ok[q] = 1
+                sent += 1
+                break
+            e = errno()
+            if e != ECONNREFUSED and e != EINTR:
+                break
+    return sent
