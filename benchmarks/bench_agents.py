@@ -9,7 +9,7 @@ seed 0 (`cosim.analysis.stability_cases.tree_scenario_text`: hil_6uav's vehicles
 gains, each agent k ≥ 2 joined to a random earlier one, a random start of seed 1, and
 hil_6uav's [bridge] table); ``NxRATEsK`` the random tree of seed K (also for N = 6),
 ``NxRATEchain`` the chain 1-2-…-N; a suffix ``pK`` (``64x100p8``) runs K agents per process
-(`swarm --agents-per-process K`: one thread each). Each agent has its own loopback vehicle (one `se3sync
+(`swarm --agents-per-process K`: one thread each), ``pauto`` the K that ``auto`` picks. Each agent has its own loopback vehicle (one `se3sync
 vehicle` process serves them all, ticking at RATE), no logs. Per case one swarm run; reported:
 - per agent: its CPU while it stepped (share of one core, median and max over the agents; with
   K agents per process, the process's CPU over K, and the agent's own thread's CPU), its late
@@ -54,12 +54,12 @@ def parse_case(case: str) -> tuple:
     vehicles, weighting and gains), ``NxRATEsK`` (the random tree of seed K, also for N = 6),
     ``NxRATEchain`` (the chain 1-2-…-N), each with an optional ``pK`` (K agents per process)
     -> (N, rate, tree kind or None, seed, K)."""
-    m = re.fullmatch(r"(\d+)x([0-9.]+)(?:(chain)|s(\d+))?(?:p(\d+))?", case.strip())
-    if not m or (m.group(5) is not None and int(m.group(5)) < 1):
+    m = re.fullmatch(r"(\d+)x([0-9.]+)(?:(chain)|s(\d+))?(?:p(\d+|auto))?", case.strip())
+    if not m or (m.group(5) not in (None, "auto") and int(m.group(5)) < 1):
         raise SystemExit(f"--cases: {case!r} is not NxRATE, NxRATEsSEED or NxRATEchain "
-                         "(optionally followed by pK, K >= 1)")
+                         "(optionally followed by pK, K >= 1, or pauto)")
     n, rate = int(m.group(1)), float(m.group(2))
-    k = int(m.group(5) or 1)
+    k = "auto" if m.group(5) == "auto" else int(m.group(5) or 1)
     if m.group(3):
         return n, rate, "chain", 0, k
     if m.group(4) is None and n == 6:
@@ -151,6 +151,7 @@ def run_case(case: str, duration: float, keep=None) -> dict:
         other = None if busy0 is None or busy1 is None else max(0.0, (busy1 - busy0) / wall - own)
         load1 = os.getloadavg()
         ref = reference(path, sets, duration)
+    per = merged.get("agents_per_process", per) if per == "auto" else per
     ag = [a for a in merged["agents"] if a.get("steps") is not None]
     # one entry per process: an agent alone, or the first of the agents a process hosts (the
     # memory and the process's CPU are the process's)

@@ -220,9 +220,9 @@ def register(sub) -> None:
                    help="run K agents in each process (`agent --id I,J,...`: one thread steps "
                         "them all), not one process per agent: for a machine that simulates many "
                         "vehicles (the agents share one interpreter's memory and wake together "
-                        "each step; what they compute is the same). 'auto': two processes per "
-                        "core, at most as many agents in one as step in a quarter of a period "
-                        "(64 agents at 100 Hz on 2 cores: 16). Default 1")
+                        "each step; what they compute is the same). 'auto': the fewest processes "
+                        "whose agents step within a quarter of a period (6 agents at 250 Hz: 6; "
+                        "64 at 100 Hz: 16). Default 1")
     p.add_argument("--force", action="store_true",
                    help="run even if the sampled loop is unstable at this step")
     add_live_options(p)

@@ -437,25 +437,26 @@ def check_ports(sc, vehicles: str, listen: float = PORT_LISTEN_S) -> None:
             s.close()
 
 
-# `--agents-per-process auto`: two processes per core, each stepping its K agents back to back
-# (`bridge.swarm.host`) within a quarter of a period, an agent's step taking about AUTO_STEP_S of
-# CPU (hosted, 100 Hz: 0.013–0.016 of a core per agent, i.e. 130–160 µs a step). Measured on 2
-# cores, 64 agents at 100 Hz: 16 per process (4 processes) 0.1–0.9 % late steps (median), 8
-# (8 processes) 1.8–2.1 %, 32 (2 processes, a period's queue of 4.5 ms) 0.5–1 % with the worst
-# agent at 3.9–7.6 %; one per process, 20 %
-AUTO_PROCESSES_PER_CORE = 2
+# `--agents-per-process auto`: the fewest processes whose agents step (one after another,
+# `bridge.swarm.host`) within a quarter of a period, an agent's step taking about AUTO_STEP_S of
+# CPU (hosted, 100 Hz: 0.013–0.016 of a core per agent, i.e. 130–160 µs a step). Why the fewest:
+# every process pays a wake-up per period, which on a virtual machine costs about as much as an
+# agent's step (`benchmarks/bench_wake_floor.py`: 0.016–0.019 of a core at 250 Hz), and the
+# agents of one process share it. Measured on 2 cores, 6 agents at 250 Hz, CPU per agent: 1 per
+# process 0.033, 2 0.028, 3 0.021, 6 0.017; 64 agents at 100 Hz: 16 per process (4 processes)
+# 0.1–0.9 % late steps (median), 8 (8 processes) 1.8–2.1 %, 32 (2 processes, a period's queue of
+# 4.5 ms) 0.5–1 % with the worst agent at 3.9–7.6 %; one per process, 20 %
 AUTO_STEP_S = 150e-6
 AUTO_QUEUE_SHARE = 0.25
 
 
-def auto_agents_per_process(n_agents: int, h: float, cores: int | None = None) -> int:
-    """K for `--agents-per-process auto`: N agents spread over two processes per core, at most
-    as many per process as step in a quarter of a period h."""
-    if cores is None:
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    spread = -(-int(n_agents) // max(1, AUTO_PROCESSES_PER_CORE * int(cores)))
+def auto_agents_per_process(n_agents: int, h: float) -> int:
+    """K for `--agents-per-process auto`: N agents in the fewest processes whose agents step
+    within a quarter of a period h, spread evenly over them."""
+    n = max(1, int(n_agents))
     fit = max(1, int(AUTO_QUEUE_SHARE * float(h) / AUTO_STEP_S))
-    return max(1, min(spread, fit))
+    processes = -(-n // fit)
+    return -(-n // processes)
 
 
 def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockstep: bool = False,
@@ -472,7 +473,7 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
     (`check_ports`). live: (host, port, rate) of the merged live view (bridge/live.py), or
     None. agents_per_process: K > 1 runs agents 1..K in one process, K+1..2K in the next, …
     (`bridge.swarm.host`: one thread per agent; for a machine that simulates many vehicles);
-    "auto": `auto_agents_per_process` for this machine's cores. The merged summary's
+    "auto": `auto_agents_per_process` for this swarm's size and step. The merged summary's
     ``agents_per_process`` says which K ran. kernels: the agents' (`se3sync agent --kernels`);
     "aot" builds the ahead-of-time module here first, once for all of them (`bridge.swarm.aot`),
     and each agent's ``startup.kernels`` says what it ran."""

@@ -122,24 +122,23 @@ def test_lockstep_swarm_equals_run_on_the_float32_plant(tmp_path, encoding, per_
     assert [(j["t"], j["edge"]) for j in d["jumps"]] == [(j["t"], j["edge"]) for j in r["jumps"]]
 
 
-@pytest.mark.parametrize("cores", [1, 2, 3, 4, 8, 64])
-def test_auto_agents_per_process_spreads_over_the_cores_within_a_period(cores):
-    """`--agents-per-process auto`: the fewest agents per process that keep to two processes
-    per core, unless a process's agents would not step in a quarter of a period."""
-    from bridge.swarm.launcher import (AUTO_PROCESSES_PER_CORE, AUTO_QUEUE_SHARE, AUTO_STEP_S,
-                                       auto_agents_per_process)
+def test_auto_agents_per_process_takes_the_fewest_processes_within_a_period():
+    """`--agents-per-process auto`: the fewest processes whose agents step within a quarter of a
+    period (one agent per process where even one would not), the agents spread evenly."""
+    from bridge.swarm.launcher import AUTO_QUEUE_SHARE, AUTO_STEP_S, auto_agents_per_process
 
-    for n in (1, 2, 5, 6, 16, 31, 64, 200, 1000):
-        for h in (0.001, 0.004, 0.01, 0.05):
-            K = auto_agents_per_process(n, h, cores)
+    for n in (1, 2, 5, 6, 7, 16, 31, 64, 65, 200, 1000):
+        for h in (0.0005, 0.001, 0.004, 0.01, 0.05):
+            K = auto_agents_per_process(n, h)
             fits = lambda k: k * AUTO_STEP_S <= AUTO_QUEUE_SHARE * h   # noqa: E731
-            spread = lambda k: -(-n // k) <= AUTO_PROCESSES_PER_CORE * cores   # noqa: E731
+            procs = -(-n // K)
             assert 1 <= K <= n
             assert K == 1 or fits(K), (n, h, K)
-            if spread(K):       # K − 1 would need more processes than two per core
-                assert K == 1 or not spread(K - 1), (n, h, K)
-            else:               # limited by the period: one more would not fit
-                assert not fits(K + 1), (n, h, K)
+            # no K' that fits needs fewer processes
+            assert all(-(-n // k) >= procs for k in range(1, n + 1) if k == 1 or fits(k)), (n, h, K)
+            # evenly: no process is left empty, and no smaller K fills the same processes
+            assert (procs - 1) * K < n and K == -(-n // procs), (n, h, K)
+    assert auto_agents_per_process(6, 0.004) == 6 and auto_agents_per_process(64, 0.01) == 16
 
 
 @pytest.mark.slow

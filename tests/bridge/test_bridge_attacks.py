@@ -243,6 +243,9 @@ def test_cross_vehicle_replay_under_signing_drops_no_genuine_command(tmp_path):
                           signing_state=str(tmp_path / f"a{i}.json"), on_event=lambda s: None)
              for i in (1, 2)}
     captured = []
+    # agent 1's commands captured at its socket's send: its reference send path (agent 2, the
+    # victim's own agent, keeps the compiled one, `MavlinkPlant.compiled_command`)
+    nodes[1].vehicle.compiled_command = False
     v1 = nodes[1].vehicle.vehicles[0]
     send = v1.sock.send
     v1.sock.send = lambda data, addr=None: (captured.append(bytes(data)), send(data, addr))[1]
