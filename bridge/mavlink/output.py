@@ -62,8 +62,6 @@ import numpy as np
 from . import codec
 from .link import mavlink2
 
-_pack_command = None        # state_wire.pack_command, imported at the first compiled command
-
 M = mavlink2
 
 ACTUATOR_CONTROL_TARGET = "actuator_control_target"
@@ -283,13 +281,11 @@ class OutputProfile:
         is kept for profiles that need pymavlink)."""
         raise NotImplementedError
 
-    def pack_into(self, buf, f32, c, *, target, k, lockstep, seq, sysid, compid,
-                  signed) -> int:
-        """`message` framed by compiled code into buf (``state_wire.COMMAND_BYTES``; ``f32``:
-        ≥ 8 float32 of scratch), the bytes `Peer.pack` makes of it with sequence ``seq`` from
-        (sysid, compid), SIG_LEN bytes left for the signature if ``signed``: its length, or −1
-        where this profile (or this c) has no compiled form and `message` is the way."""
-        return -1
+    def compiled_fields(self, c, *, target, k, lockstep) -> tuple | None:
+        """What `message` sends, as the fields of SET_ACTUATOR_CONTROL_TARGET that compiled code
+        frames (`bridge.mavlink.state_wire.pack_command`: time_usec, controls c[0:6], group_mlx,
+        target system, target component), or None when this profile sends another message."""
+        return None
 
     def decode(self, m, wire=None) -> np.ndarray | None:
         """A received message of this profile -> controls (6,), NaN entries meaning "no change";
@@ -320,13 +316,9 @@ class ActuatorControlTarget(OutputProfile):
         return codec.SET_ACTUATOR_CONTROL_TARGET.encoded(
             t_us, c[0], c[1], c[2], c[3], c[4], c[5], 0.0, 0.0, self.group_mlx, target, 1)
 
-    def pack_into(self, buf, f32, c, *, target, k, lockstep, seq, sysid, compid, signed):
-        global _pack_command
-        if _pack_command is None:    # (the vehicle, which only decodes, never builds it)
-            from .state_wire import pack_command as _pack_command
+    def compiled_fields(self, c, *, target, k, lockstep):
         t_us = k * self.h_us if lockstep else int(time.time() * 1e6)
-        return _pack_command(buf, t_us, c[0], c[1], c[2], c[3], c[4], c[5], self.group_mlx,
-                             target, 1, seq, sysid, compid, signed, f32)
+        return (t_us, c[0], c[1], c[2], c[3], c[4], c[5], self.group_mlx, target, 1)
 
     def decode(self, m, wire=None):
         if m.group_mlx != self.group_mlx:

@@ -24,7 +24,7 @@ from .link import (DRAIN_BUDGET, IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, 
                    take_datagram)
 from .signing_state import open_signing_state
 from .state import StateTracker
-from .state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, recv_state, scan_odometry,
+from .state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, pack_command, recv_state, scan_odometry,
                          wire_to_state_ned)
 from .udp_io import send_all
 from .transport import WIRE, Transport, profiles_for, wire_to_state
@@ -239,7 +239,7 @@ class MavlinkPlant:
         self._scan_meta = np.zeros(6, np.int64)
         self._rx_buf = np.zeros(1 << 16, np.uint8)    # `recv_state`'s (a datagram's most)
         # real time, the commands framed by compiled code and sent by libc on the socket
-        # connected to the vehicle (`OutputProfile.pack_into`, `udp_io.send_all`; the
+        # connected to the vehicle (`OutputProfile.compiled_fields`, `state_wire.pack_command`, `udp_io.send_all`; the
         # same bytes; False: `Peer.pack` and the socket's `send` alone, which tests compare)
         self.compiled_command = True
         self.packed_commands = 0     # commands it sent
@@ -291,9 +291,10 @@ class MavlinkPlant:
             self.counters.send_errors += 1
 
     def _command_out(self, v: _Vehicle, c) -> bool:
-        """Real time: vehicle v's command c framed by its profile's compiled form (signed here,
-        as `Peer.pack` signs) and sent, on the socket connected to the vehicle where there is
-        one; False where the profile has no compiled form or a tlog records the link (the
+        """Real time: vehicle v's command c framed by compiled code (`state_wire.pack_command` of
+        its profile's `compiled_fields`; signed here, as `Peer.pack` signs) and sent, on the
+        socket connected to the vehicle where there is one; False where the profile sends
+        another message, a control does not fit a float32 or a tlog records the link (the
         caller then takes `message` and `_send`). (No `last_buf`: only lockstep resends.)"""
         peer = v.peer
         if peer.tlog is not None:
@@ -301,9 +302,11 @@ class MavlinkPlant:
         mav = peer.mav
         signed = 1 if mav.signing.sign_outgoing else 0
         buf = self._cmd_buf
-        n = self.profiles[v.i].pack_into(buf, self._cmd_f32, c, target=v.sysid, k=self.k,
-                                         lockstep=False, seq=mav.seq, sysid=mav.srcSystem,
-                                         compid=mav.srcComponent, signed=signed)
+        f = self.profiles[v.i].compiled_fields(c, target=v.sysid, k=self.k, lockstep=False)
+        if f is None:
+            return False
+        n = pack_command(buf, *f, mav.seq, mav.srcSystem, mav.srcComponent, signed,
+                         self._cmd_f32)
         if n < 0:
             return False
         if signed:
@@ -330,8 +333,9 @@ class MavlinkPlant:
         if not self.compiled_command or self.lockstep:
             return
         for v, prof in zip(self.vehicles, self.profiles):
-            prof.pack_into(self._cmd_buf, self._cmd_f32, [0.0] * 6, target=v.sysid, k=0,
-                           lockstep=False, seq=0, sysid=1, compid=1, signed=0)
+            f = prof.compiled_fields([0.0] * 6, target=v.sysid, k=0, lockstep=False)
+            if f is not None:
+                pack_command(self._cmd_buf, *f, 0, 1, 1, 0, self._cmd_f32)
         none = np.zeros(0, np.int64)
         send_all(none, self._cmd_buf, 0, none)
 

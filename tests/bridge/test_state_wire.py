@@ -331,3 +331,29 @@ def test_compiled_command_path_equals_the_reference(key, monkeypatch):
             p.close()
         for s, _ in tx:
             s.close()
+
+
+@pytest.mark.parametrize("name", sorted(__import__("bridge.mavlink.output", fromlist=["x"])
+                                        .PROFILE_CLASSES))
+def test_every_profiles_compiled_form_is_its_message(name):
+    """Every output profile: where it has a compiled form (`compiled_fields`), the frame
+    `pack_command` makes of it is `Peer.pack` of its `message`, byte for byte (lockstep stamps,
+    so that both read one time); where it has none, it says so (None)."""
+    from bridge.mavlink import output
+
+    rng = np.random.default_rng(59)
+    prof = output.profile(name, h=0.004, J=np.diag([0.02, 0.02, 0.04]),
+                          max_wrench=np.array([1.0, 1.0, 1.0, 20.0, 20.0, 20.0]), group_mlx=2)
+    peer = Peer(255, 191, Counters())
+    buf, f32 = np.zeros(COMMAND_BYTES, np.uint8), np.zeros(8, np.float32)
+    wire = np.array([0, 0, 0, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0], float)
+    for k in range(50):
+        c = rng.uniform(-1, 1, 6)
+        f = prof.compiled_fields(c, target=3, k=k, lockstep=True)
+        want = bytes(peer.pack(prof.message(peer.mav, c, target=3, k=k, lockstep=True,
+                                            wire=wire)))
+        if f is None:
+            assert name != "actuator_control_target"
+            continue
+        n = pack_command(buf, *f, (peer.mav.seq - 1) & 0xFF, 255, 191, 0, f32)
+        assert bytes(buf[:n]) == want, k
