@@ -1,7 +1,8 @@
 """The CPU one agent process spends per control step, by phase, independent of pacing.
 
     python benchmarks/bench_agent_step.py [--steps N] [--repeats R] [--agent I] [--signed]
-                                          [--publish] [--against DIR [--label NAME]]
+                                          [--publish] [--kernels aot|jit]
+                                          [--against DIR [--label NAME]]
 
 Agent I (default 2: three neighbours, two owned edges) of hil_6uav in real-time mode, driven by
 `cosim.master.Master` as `se3sync agent` drives it, but flat out: its timeline starts in the
@@ -14,6 +15,8 @@ neighbours' newest samples), the step (`controller.step_state`: the age rule, th
 publish to the neighbours, the law, the flow), the command (`plant.apply`: mapping, encode,
 send) and the poll (`plant.advance`: the vehicle's and the neighbours' datagrams decoded and
 checked), the total, and the share of one core at 250 Hz and 100 Hz. Medians of the repeats.
+The kernels are the ones `se3sync agent` runs by default, compiled ahead of time (``--kernels
+jit``: numba's JIT, whose dispatch costs more per call).
 ``--paced HZ`` runs the agent at HZ in real time instead (step h = 1/HZ, every step waits for its
 deadline as in a swarm): the same work, plus what waking up from each wait costs the thread (on
 a virtual machine whose CPU halts while idle, far more than the work itself).
@@ -36,18 +39,27 @@ from pathlib import Path
 import numpy as np
 
 import _markdown
-from bridge.mavlink.link import Peer, Counters, free_base_port
-from bridge.swarm.agent import AgentNode, _warm_up
-from bridge.swarm.agent_link import encode_sample
-from controller import layout
-from controller.se3 import rot_to_quat
-from cosim.master import Master
-from cosim.scenario import load_scenario
+
+KERNELS_ENV = "SE3SYNC_BENCH_KERNELS"
+if os.environ.get(KERNELS_ENV, "aot") == "aot":
+    # the kernels `se3sync agent` runs by default (`--kernels aot`), chosen before any is
+    # imported; where the module cannot be built the worker stays on the JIT, as an agent does
+    from bridge.swarm import aot as _aot
+    _aot.use()
+
+from bridge.mavlink.link import Peer, Counters, free_base_port  # noqa: E402
+from bridge.swarm.agent import AgentNode, _warm_up  # noqa: E402
+from bridge.swarm.agent_link import encode_sample  # noqa: E402
+from controller import layout  # noqa: E402
+from controller.se3 import rot_to_quat  # noqa: E402
+from cosim.master import Master  # noqa: E402
+from cosim.scenario import load_scenario  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 HIL = ROOT / "scenarios" / "hil_6uav.toml"
 PHASES = ("read", "step", "apply", "poll")
 PACED_ENV = "SE3SYNC_BENCH_PACED"
+_kernels = "aot"          # the workers' (`--kernels`)
 
 
 def once(steps: int, agent: int, key: bytes | None, publish: bool = False) -> dict:
@@ -185,7 +197,8 @@ def once(steps: int, agent: int, key: bytes | None, publish: bool = False) -> di
 def _worker(tree: Path, steps: int, agent: int, signed: bool, publish: bool = False,
             paced: float = 0.0) -> dict:
     """`once` in a process running the code of ``tree`` (this script, that tree's packages)."""
-    env = dict(os.environ, PYTHONPATH=str(tree), **{PACED_ENV: repr(float(paced))})
+    env = dict(os.environ, PYTHONPATH=str(tree), **{PACED_ENV: repr(float(paced))},
+               **{KERNELS_ENV: _kernels})
     out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", str(steps),
                           str(agent), "1" if signed else "0", "1" if publish else "0"], env=env,
                          capture_output=True, text=True, cwd=tree)
@@ -214,8 +227,13 @@ def main(argv=None) -> None:
                     help="also the code of another checkout of se3sync (its packages in DIR), "
                          "the two alternating, one process per measurement")
     ap.add_argument("--label", help="what to call the --against code in the output (default DIR)")
+    ap.add_argument("--kernels", choices=("aot", "jit"), default="aot",
+                    help="the workers' kernels: compiled ahead of time, as `se3sync agent` runs "
+                         "them by default, or numba's JIT (default aot)")
     _markdown.add_option(ap)
     a = ap.parse_args(argv)
+    global _kernels
+    _kernels = a.kernels
     if a.paced < 0 or a.paced > 10000:
         ap.error(f"--paced: must be a rate in Hz in (0, 10000], got {a.paced:g}")
     other = a.label or str(a.against)
@@ -250,7 +268,7 @@ def main(argv=None) -> None:
         rep.table(["code", "links", "µs per step", "read", "step (law + publish)",
                    *(("of which publish",) if a.publish else ()), "apply (command)",
                    "poll (decode + checks)", "master", "core at 250 Hz", "core at 100 Hz"], rows,
-                  caption=f"agent {a.agent} of hil_6uav, {a.steps} steps "
+                  caption=f"agent {a.agent} of hil_6uav, {a.steps} steps, {a.kernels} kernels, "
                           f"{f'paced at {a.paced:g} Hz' if a.paced else 'flat out'}, CPU of its "
                           f"thread (the harness's sends left out), medians of {a.repeats}")
 

@@ -19,6 +19,9 @@ vehicle` process serves them all, ticking at RATE), no logs. Per case one swarm 
   ticks (a physics tick more than one tick after it was due) of all ticks, and its resyncs (it
   fell 10 ticks behind and skipped them);
 - the machine: the CPU of the case's processes and of other work meanwhile (cores, /proc/stat),
+  and its wake floor just before the case (`bench_wake_floor.py`'s paced floor at the case's
+  rate, 2 s: what a process that only sends and reads a step's datagrams costs per step here
+  now; it moves by the hour on a virtual machine, and an agent's figure with it),
   the load average at the start and at the end;
 - memory per process at its end (hosting K agents: divide by K for a figure per agent) (`bridge.swarm.agent._memory`: VmHWM, RssAnon, RssFile,
   PSS; median and max) and Σ PSS over the agents (what they hold together: the shared libraries
@@ -136,7 +139,10 @@ def v_bar(summary) -> dict:
 def run_case(case: str, duration: float, keep=None) -> dict:
     from bridge.swarm.launcher import run_swarm
 
+    import bench_wake_floor
+
     n, rate, kind, seed, per = parse_case(case)
+    floor_us = bench_wake_floor.floor(rate, max(50, int(2 * rate)))
     load0 = os.getloadavg()
     with tempfile.TemporaryDirectory() as d:
         wd = Path(keep) / case if keep else Path(d)
@@ -174,6 +180,7 @@ def run_case(case: str, duration: float, keep=None) -> dict:
             "scenario": str(path.name), "exit": rc, "steps": merged["steps"],
             "wall_s": wall, "load_start": load0, "load_end": load1,
             "own_cores": own, "other_cores": other,
+            "wake_floor_us": floor_us, "wake_floor_cpu": floor_us * rate * 1e-6,
             "cpu_median": _med(per_agent), "cpu_max": _max(per_agent),
             "thread_cpu_median": _med(a.get("cpu_fraction") for a in ag) if per > 1 else None,
             "thread_cpu_max": _max(a.get("cpu_fraction") for a in ag) if per > 1 else None,
@@ -211,7 +218,8 @@ def main(argv=None) -> None:
         rep.table(["case", "CPU per agent (share of a core; K per process: the process's / K)",
                    "late steps (median / max over agents)", "data age p50 / p99 (steps)", "lost",
                    "vehicle process: CPU (share of a core), late ticks, resyncs",
-                   "machine: this case / other work (cores), load", "exit"],
+                   "machine: this case / other work (cores), load; wake floor (share of a core)",
+                   "exit"],
                   [r[0] for r in rows], caption=cap)
         rep.table(["case", "peak RSS per process, VmHWM (MB)", "RssAnon / RssFile at the end (MB)",
                    "PSS per process (MB)", "Σ PSS of the agent processes (MB)",
@@ -265,7 +273,8 @@ def bench(a) -> list:
               f"{vr['rises']}); final rot_err {f.get('rot_err', float('nan')):.3g} (run "
               f"{fr.get('rot_err', float('nan')):.3g}); machine: this case "
               f"{_g(r['own_cores'], '{:.2f}')} cores, other work {_g(r['other_cores'], '{:.2f}')},"
-              f" load {load} (exit {r['exit']})")
+              f" load {load}, wake floor {r['wake_floor_us']:.0f} µs a step = "
+              f"{r['wake_floor_cpu']:.3g} of a core (exit {r['exit']})")
         print(json.dumps(r), file=sys.stderr)
         rows.append((
             (name, f"median {_g(r['cpu_median'])}, max {_g(r['cpu_max'])}",
@@ -275,7 +284,8 @@ def bench(a) -> list:
              f"{r['lost']} of {r['sent']}",
              f"{_g(v['cpu'])}, {v['late_ticks']} of {v['ticks']} (tick {_g(v['tick_s'])} s), "
              f"{v['resyncs']}",
-             f"{_g(r['own_cores'], '{:.2f}')} / {_g(r['other_cores'], '{:.2f}')}, {load}",
+             f"{_g(r['own_cores'], '{:.2f}')} / {_g(r['other_cores'], '{:.2f}')}, {load}; "
+             f"{r['wake_floor_cpu']:.3g}",
              r["exit"]),
             (name, f"{_g(m['vm_hwm_mb']['median'])}, {_g(m['vm_hwm_mb']['max'])}",
              f"{_g(m['rss_anon_mb']['median'])} / {_g(m['rss_file_mb']['median'])}",
