@@ -151,7 +151,8 @@ class AgentNode:
     ``compiled``: the law's arithmetic of a step in one compiled call over preallocated arrays
     (`controller.kernels.agent_step`; two in lockstep, θ's publish between them), with the same
     kernels as the reference, and the neighbours' samples decoded by compiled code
-    (`bridge.swarm.sample_wire`, real time); ``compiled=False``: the reference, `AgentStepper`'s
+    (`bridge.swarm.sample_wire`, real time), the vehicle's state read and its command sent by
+    compiled code (`bridge.mavlink.state_wire`); ``compiled=False``: the reference, `AgentStepper`'s
     calls per edge on dicts (`_step`) and the link's Python receive path. A law whose per-agent
     view is not `AgentStepper` (``decoupled``) always runs the reference step (``self.compiled``
     says which runs).
@@ -214,6 +215,9 @@ class AgentNode:
         self.vehicle = MavlinkPlant(one, cfg, lockstep=self.lockstep, key=key, tlog=tlog,
                                     connect_timeout=connect_timeout, on_event=self.on_event,
                                     insecure=insecure, signing_state=signing_state)
+        # the vehicle's link too: the state read and decoded, the command framed and sent, by
+        # compiled code or (``compiled=False``) by the reference paths
+        self.vehicle.compiled_state = self.vehicle.compiled_command = bool(compiled)
         try:
             self.link = AgentLink(i, net, sc.graph, step=h, key=key,
                                   world=cfg.world_frame, signing_state=self.vehicle.signing,

@@ -257,7 +257,9 @@ def run_feed(agent: int, steps: int, *, law: str = "hybrid", lockstep: bool = Fa
                      "failsafe_entries": node.failsafe_entries, "hold_steps": node.hold_steps,
                      "transitions": list(node.transitions), "own_samples": node.own_samples,
                      "own_final_theta": node.theta_owned, "compiled": node.compiled,
-                     "scanned": node.link.scanned, "link": _link_counts(st["agent_link"])},
+                     "scanned": node.link.scanned, "link": _link_counts(st["agent_link"]),
+                     "vehicle_compiled": (node.vehicle.read_compiled,
+                                          node.vehicle.packed_commands)},
             "events": [e for e in events if e.startswith(("fail-safe", "rejoined"))],
             "sent": sent,
         }

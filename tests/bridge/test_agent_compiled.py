@@ -1,7 +1,8 @@
 """The agent process's compiled step (`AgentNode(compiled=True)`, `controller.kernels.agent_step`)
 against its reference (``compiled=False``: `AgentStepper` per edge on dicts), over the same
-deterministic feed (tests/bridge/_agent_feed.py): every datagram the node sends to its vehicle and
-to its neighbours, the controller's outputs of every step, the summary and the age-rule counters
+deterministic feed (tests/bridge/_agent_feed.py), its vehicle's link included (the state read and
+the command framed and sent by compiled code, or by the reference paths): every datagram the node
+sends to its vehicle and to its neighbours, the controller's outputs of every step, the summary and the age-rule counters
 are identical, bit for bit, through jumps, holds, fail-safes and rejoins."""
 from __future__ import annotations
 
@@ -29,6 +30,11 @@ def assert_identical(ref: dict, new: dict, lockstep: bool) -> None:
     # (bridge/swarm/sample_wire.py), with the same counts
     assert ref["node"].pop("scanned") == 0
     assert new["node"].pop("scanned") == (0 if lockstep else sum(new["sent"]["samples"].values()))
+    # the vehicle's link: its reference paths, and (real time) the state read and the command
+    # sent by compiled code (bridge/mavlink/state_wire.py)
+    assert ref["node"].pop("vehicle_compiled") == (0, 0)
+    reads, commands = new["node"].pop("vehicle_compiled")
+    assert (reads > 0 and commands >= STEPS) or (lockstep and commands == 0)
     assert len(ref["steps"]) == len(new["steps"]) == STEPS
     for n, (a, b) in enumerate(zip(ref["steps"], new["steps"])):
         for f in ARRAYS:
