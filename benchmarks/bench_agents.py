@@ -9,8 +9,9 @@ seed 0 (`cosim.analysis.stability_cases.tree_scenario_text`: hil_6uav's vehicles
 gains, each agent k ≥ 2 joined to a random earlier one, a random start of seed 1, and
 hil_6uav's [bridge] table); ``NxRATEsK`` the random tree of seed K (also for N = 6),
 ``NxRATEchain`` the chain 1-2-…-N; a suffix ``pK`` (``64x100p8``) runs K agents per process
-(`swarm --agents-per-process K`: one thread each), ``pauto`` the K that ``auto`` picks. Each agent has its own loopback vehicle (one `se3sync
-vehicle` process serves them all, ticking at RATE), no logs. Per case one swarm run; reported:
+(`swarm --agents-per-process K`: one thread each), ``pauto`` the K that ``auto`` picks. Each
+agent has its own loopback vehicle (one `se3sync vehicle` process serves them all, ticking at
+RATE), no logs. Per case one swarm run; reported:
 - per agent: its CPU while it stepped (share of one core, median and max over the agents; with
   K agents per process, the process's CPU over K, and the agent's own thread's CPU), its late
   steps (share of its steps that ended after their deadline: median, max), the

@@ -239,8 +239,9 @@ class MavlinkPlant:
         self._scan_meta = np.zeros(6, np.int64)
         self._rx_buf = np.zeros(1 << 16, np.uint8)    # `recv_state`'s (a datagram's most)
         # real time, the commands framed by compiled code and sent by libc on the socket
-        # connected to the vehicle (`OutputProfile.compiled_fields`, `state_wire.pack_command`, `udp_io.send_all`; the
-        # same bytes; False: `Peer.pack` and the socket's `send` alone, which tests compare)
+        # connected to the vehicle (`OutputProfile.compiled_fields`, `state_wire.pack_command`,
+        # `udp_io.send_all`; the same bytes; False: `Peer.pack` and the socket's `send` alone,
+        # which tests compare)
         self.compiled_command = True
         self.packed_commands = 0     # commands it sent
         self._cmd_buf = np.zeros(COMMAND_BYTES, np.uint8)

@@ -11,10 +11,10 @@ could tip (the quaternion's norm near the tolerance) is left to the reference pa
 are the float32 fields widened to float64, what `struct.unpack` gives the reference path.
 
 `recv_state` reads the vehicle's connected socket with libc's recv and scans what it read, in
-one call: no bytes object, address tuple or exception per read. `pack_command` is the way back: the step's SET_ACTUATOR_CONTROL_TARGET framed as
-`bridge.mavlink.codec.frame` frames it (the same bytes; a signature is the caller's to write,
-`codec.sign_frame`), into a preallocated buffer that `bridge.mavlink.udp_io.send_all`
-sends.
+one call: no bytes object, address tuple or exception per read. `pack_command` is the way back:
+the step's SET_ACTUATOR_CONTROL_TARGET framed as `bridge.mavlink.codec.frame` frames it (the
+same bytes; a signature is the caller's to write, `codec.sign_frame`), into a preallocated
+buffer that `bridge.mavlink.udp_io.send_all` sends.
 """
 from __future__ import annotations
 
@@ -26,8 +26,8 @@ from . import codec
 from .state import QUAT_TOL
 from .udp_io import EAGAIN, ECONNREFUSED, EINTR, EWOULDBLOCK, MSG_DONTWAIT, errno, recv
 
-__all__ = ["scan_odometry", "recv_state", "wire_to_state_ned", "pack_command", "QUAT_MARGIN", "ODOMETRY_SIZE",
-           "COMMAND_BYTES"]
+__all__ = ["scan_odometry", "recv_state", "wire_to_state_ned", "pack_command", "QUAT_MARGIN",
+           "ODOMETRY_SIZE", "COMMAND_BYTES"]
 
 MAGIC = 0xFD
 SIG_LEN = 13

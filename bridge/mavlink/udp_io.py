@@ -25,8 +25,8 @@ import os
 
 from controller import jit as _jit
 
-__all__ = ["recv", "send", "errno", "send_all", "MSG_DONTWAIT", "EAGAIN", "EWOULDBLOCK", "ECONNREFUSED",
-           "EINTR"]
+__all__ = ["recv", "send", "errno", "send_all", "MSG_DONTWAIT", "EAGAIN", "EWOULDBLOCK",
+           "ECONNREFUSED", "EINTR"]
 
 MSG_DONTWAIT = 0x40
 EAGAIN = _errno.EAGAIN

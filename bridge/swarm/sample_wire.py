@@ -37,7 +37,8 @@ from controller.layout import S_OMEGA, S_P, S_R, S_V
 
 from bridge.mavlink.udp_io import ECONNREFUSED, EINTR, MSG_DONTWAIT, errno, recv
 
-__all__ = ["scan_sample", "pack_sample", "drain_samples", "age_rules", "AGE_BINS", "SCAN_WIDTH", "SCAN_STATE",
+__all__ = ["scan_sample", "pack_sample", "drain_samples", "age_rules", "AGE_BINS", "SCAN_WIDTH",
+           "SCAN_STATE",
            "ODOMETRY_SIZE", "THETA_SIZE", "PACK_BYTES", "D_DATAGRAMS", "D_RECEIVED", "D_DROPPED",
            "D_LEN", "D_BATCH", "D_WIDTH"]
 
