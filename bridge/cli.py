@@ -216,13 +216,13 @@ def register(sub) -> None:
                         "its vehicle and is waiting (default 1 s)")
     p.add_argument("--insecure", action="store_true",
                    help="allow sockets reachable from other machines without --key")
-    p.add_argument("--agents-per-process", default="1", metavar="K",
+    p.add_argument("--agents-per-process", default="auto", metavar="K",
                    help="run K agents in each process (`agent --id I,J,...`: one thread steps "
-                        "them all), not one process per agent: for a machine that simulates many "
-                        "vehicles (the agents share one interpreter's memory and wake together "
-                        "each step; what they compute is the same). 'auto': the fewest processes "
-                        "whose agents step within a quarter of a period (6 agents at 250 Hz: 6; "
-                        "64 at 100 Hz: 16). Default 1")
+                        "them all): the agents share one interpreter's memory and wake together "
+                        "each step; what they compute is the same. 'auto' (the default): the "
+                        "fewest processes whose agents step within a quarter of a period (6 "
+                        "agents at 250 Hz: one process of 6; 64 at 100 Hz: 16 per process). 1: "
+                        "one process per agent, as each vehicle's own computer runs it")
     p.add_argument("--force", action="store_true",
                    help="run even if the sampled loop is unstable at this step")
     add_live_options(p)

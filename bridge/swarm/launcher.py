@@ -464,7 +464,7 @@ def run_swarm(scenario_path, overrides=(), *, vehicles: str = "external", lockst
               key_file=None, start_delay=None, insecure: bool = False, progress: bool = False,
               python=None, on_event=None, log_encoding: str = "json",
               stop_requested: list | None = None, live=None,
-              agents_per_process: int = 1, kernels: str = "aot") -> tuple:
+              agents_per_process: int | str = "auto", kernels: str = "aot") -> tuple:
     """Launches the swarm and merges its outputs; returns (merged summary, exit status): 0 all
     agents finished, EXIT_AGENT_FAILED an agent failed (the others are stopped), 130/143 a
     signal stopped everything (also one noted in ``stop_requested`` before the call: then no

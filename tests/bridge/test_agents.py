@@ -166,7 +166,8 @@ class _Forger(threading.Thread):
     def __init__(self, net_base, after=None):
         super().__init__(daemon=True)
         self.net_base = net_base
-        self.after = after   # a file whose appearance starts the forgeries (the swarm runs)
+        self.after = after   # the swarm's --dir: an agent process's stderr file there starts
+        # the forgeries (the swarm runs)
         self.stop = threading.Event()
         self.sent = 0
 
@@ -186,7 +187,8 @@ class _Forger(threading.Thread):
             else None
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         n = 0
-        while self.after is not None and not self.after.exists() and not self.stop.is_set():
+        while (self.after is not None and not any(self.after.glob("agent*.err"))
+               and not self.stop.is_set()):
             time.sleep(0.01)   # a swarm refuses to start on ports that already get traffic
         while not self.stop.is_set():
             for peer in (wrong, plain):
@@ -219,7 +221,7 @@ def test_signed_lockstep_swarm_with_a_mid_run_jump_ignores_forged_neighbour_mess
     key = tmp_path / "swarm.key"
     key.write_bytes(bytes(range(100, 132)))
     sets, _, nb = _ports()
-    forger = _Forger(nb, after=tmp_path / "work" / "agent_1.err")
+    forger = _Forger(nb, after=tmp_path / "work")
     forger.start()
     try:
         p, merged = _swarm(tmp_path, sets, "--lockstep", "--duration", "0.4", "--key", str(key),
@@ -334,9 +336,9 @@ def test_real_time_swarm_converges_and_still_does_over_lossy_delayed_links(tmp_p
                        "network.hold=0.1"]):
         sets, _, _ = _ports(extra)
         (tmp_path / "work").mkdir(exist_ok=True)
-        # the lossy run hosts three agents per process (bridge/swarm/host.py: real-time steps
-        # passed between the threads)
-        per = ["--agents-per-process", "3"] if extra else []
+        # one process per agent, then (the lossy run) three agents per process
+        # (bridge/swarm/host.py: one thread steps them)
+        per = ["--agents-per-process", "3" if extra else "1"]
         with CpuShare() as cpu:
             p, merged = _swarm(tmp_path, sets, "--duration", "8", *per)
         assert p.returncode == 0, p.stderr
@@ -690,7 +692,7 @@ def test_swarm_agents_wait_for_loopback_vehicles_started_with_them(tmp_path, veh
     fake.write_text(_FAKE_PYTHON.format(log=tmp_path))
     fake.chmod(0o755)
     sets, _, _ = _ports()
-    merged, rc = run_swarm(HIL, sets, vehicles=vehicles, duration=0.1,
+    merged, rc = run_swarm(HIL, sets, vehicles=vehicles, duration=0.1, agents_per_process=1,
                            workdir=tmp_path / "work", python=str(fake), on_event=lambda s: None)
     assert rc == 0 and merged["agents_missing"] == [1, 2, 3, 4, 5, 6]
     lines = (tmp_path / "agents").read_text().splitlines()

@@ -48,7 +48,10 @@ def _forged_sample(step: int, x: float = 5.0) -> bytes:
 
 
 def _swarm_argv(sc_path, wd, *extra):
+    # one process per agent, as on the vehicles' own computers: each agent's stderr is its own
+    # file (agent_I.err), which these tests watch for its connection
     return [sys.executable, "-m", "cosim.cli", "swarm", str(sc_path), "--vehicles", "loopback",
+            "--agents-per-process", "1",
             "--dir", str(wd), "--summary", str(Path(wd).parent / "swarm.json"), *extra]
 
 
