@@ -9,7 +9,8 @@ seed 0 (`cosim.analysis.stability_cases.tree_scenario_text`: hil_6uav's vehicles
 gains, each agent k ≥ 2 joined to a random earlier one, a random start of seed 1, and
 hil_6uav's [bridge] table); ``NxRATEsK`` the random tree of seed K (also for N = 6),
 ``NxRATEchain`` the chain 1-2-…-N; a suffix ``pK`` (``64x100p8``) runs K agents per process
-(`swarm --agents-per-process K`: one thread each), ``pauto`` the K that ``auto`` picks. Each
+(`swarm --agents-per-process K`: one thread each), ``pauto`` the K that ``auto`` picks (the
+swarm's default); without a suffix, one process per agent (``--agents-per-process 1``). Each
 agent has its own loopback vehicle (one `se3sync vehicle` process serves them all, ticking at
 RATE), no logs. Per case one swarm run; reported:
 - per agent: its CPU while it stepped (share of one core, median and max over the agents; with
@@ -207,8 +208,11 @@ def run_case(case: str, duration: float, keep=None) -> dict:
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--duration", type=float, default=10.0)
-    ap.add_argument("--cases", default="6x250,32x100")
+    ap.add_argument("--duration", type=float, default=10.0, metavar="S",
+                    help="simulated seconds per case (default 10)")
+    ap.add_argument("--cases", default="6x250,32x100",
+                    help="comma-separated cases NxRATE[sSEED|chain][pK|pauto] (the module's "
+                         "docstring; default 6x250,32x100: one process per agent)")
     ap.add_argument("--keep", metavar="DIR", help="keep each case's scenario and work directory "
                     "(the agents' summaries and stderr, the vehicle's stats) in DIR/CASE")
     _markdown.add_option(ap)
