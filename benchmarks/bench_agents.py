@@ -15,7 +15,10 @@ agent has its own loopback vehicle (one `se3sync vehicle` process serves them al
 RATE), no logs. Per case one swarm run; reported:
 - per agent: its CPU while it stepped (share of one core, median and max over the agents; with
   K agents per process, the process's CPU over K, and the agent's own thread's CPU), its late
-  steps (share of its steps that ended after their deadline: median, max), the
+  steps (share of its steps that ended after their deadline: median, max), its commands past
+  the vehicle's tick (share of its commands sent more than (1 − VEHICLE_TICK_LEAD) of a step
+  after their step's deadline: the loopback vehicle, locked to the timeline, had ticked, so
+  they act a step late, which `late steps` does not count), the
   inter-agent data age p50/p99 (steps) and the losses over every directed link;
 - the vehicle process: its CPU from the first command to its end (share of one core), its late
   ticks (a physics tick more than one tick after it was due) of all ticks, and its resyncs (it
@@ -168,6 +171,8 @@ def run_case(case: str, duration: float, keep=None) -> dict:
                  else a.get("cpu_fraction") for a in ag]
     late = [a["late_steps"] / a["steps"] for a in ag if a.get("late_steps") is not None
             and a["steps"]]
+    past = [a["commands_past_tick"] / a["steps"] for a in ag
+            if a.get("commands_past_tick") is not None and a["steps"]]
     links = merged["links"]
     mem = {f: [((a.get("memory") or {}).get(f)) for a in procs]
            for f in ("vm_hwm_mb", "rss_anon_mb", "rss_file_mb", "pss_mb", "uss_mb")}
@@ -187,6 +192,8 @@ def run_case(case: str, duration: float, keep=None) -> dict:
             "thread_cpu_median": _med(a.get("cpu_fraction") for a in ag) if per > 1 else None,
             "thread_cpu_max": _max(a.get("cpu_fraction") for a in ag) if per > 1 else None,
             "late_frac_median": _med(late), "late_frac_max": _max(late),
+            "past_tick_frac_median": _med(past), "past_tick_frac_max": _max(past),
+            "command_lag_ms_p99_max": _max(a.get("command_lag_ms_p99") for a in ag),
             "first_steps": sorted({a.get("first_step", 0) for a in ag}),
             "age_p50_steps_max": _max(ln["age_p50_steps"] for ln in links),
             "age_p99_steps_median": _med(ln["age_p99_steps"] for ln in links),
@@ -221,7 +228,8 @@ def main(argv=None) -> None:
         rows = bench(a)
         cap = f"one swarm run per case, {a.duration:g} s, loopback vehicles, no logs"
         rep.table(["case", "CPU per agent (share of a core; K per process: the process's / K)",
-                   "late steps (median / max over agents)", "data age p50 / p99 (steps)", "lost",
+                   "late steps (median / max over agents)",
+                   "commands past the vehicle's tick (median / max)", "data age p50 / p99 (steps)", "lost",
                    "vehicle process: CPU (share of a core), late ticks, resyncs",
                    "machine: this case / other work (cores), load; wake floor (share of a core)",
                    "exit"],
@@ -264,7 +272,9 @@ def bench(a) -> list:
             "/".join(f"{x:.1f}" for x in r["load_end"])
         print(f"{name}: CPU per agent median {_g(r['cpu_median'])} / max {_g(r['cpu_max'])} of a "
               f"core; late steps median {_pct(r['late_frac_median'])} / max "
-              f"{_pct(r['late_frac_max'])}; first steps {r['first_steps'][:5]}; data age p50 ≤ "
+              f"{_pct(r['late_frac_max'])}; commands past the vehicle's tick median "
+              f"{_pct(r['past_tick_frac_median'])} / max {_pct(r['past_tick_frac_max'])} "
+              f"(command lag p99 ≤ {_g(r['command_lag_ms_p99_max'])} ms); first steps {r['first_steps'][:5]}; data age p50 ≤ "
               f"{r['age_p50_steps_max']}, p99 median {r['age_p99_steps_median']} / max "
               f"{r['age_p99_steps_max']} steps; lost {r['lost']} of {r['sent']}; vehicle process "
               f"(tick {_g(v['tick_s'])} s): CPU {_g(v['cpu'])} of a core, late ticks "
@@ -284,6 +294,7 @@ def bench(a) -> list:
         rows.append((
             (name, f"median {_g(r['cpu_median'])}, max {_g(r['cpu_max'])}",
              f"{_pct(r['late_frac_median'])} / {_pct(r['late_frac_max'])}",
+             f"{_pct(r['past_tick_frac_median'])} / {_pct(r['past_tick_frac_max'])}",
              f"≤ {r['age_p50_steps_max']} / median {r['age_p99_steps_median']}, "
              f"max {r['age_p99_steps_max']}",
              f"{r['lost']} of {r['sent']}",

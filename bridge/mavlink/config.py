@@ -22,6 +22,12 @@ OUTPUTS = PROFILES
 ROUTINGS = ("per_vehicle", "shared")
 
 # key -> default (documented in docs/reference/scenario.md)
+# a loopback vehicle locked to a swarm's timeline (`se3sync vehicle --start-file`) ticks this
+# share of a step before each step is due: the tick's states must reach the agents before their
+# deadline, and each command then has the rest of the period to arrive before the tick that
+# applies it (`MavlinkPlant` counts the commands that did not: ``commands_past_tick``)
+VEHICLE_TICK_LEAD = 0.3
+
 DEFAULTS = {
     "world_frame": "ned",
     "output": "actuator_control_target",

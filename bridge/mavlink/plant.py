@@ -18,7 +18,7 @@ from controller.errors import Se3SyncError
 from cosim import signals
 
 from . import codec
-from .config import default_config, read_key_file
+from .config import VEHICLE_TICK_LEAD, default_config, read_key_file
 from .link import (DRAIN_BUDGET, IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, crc_ok,
                    mavlink2, parse_endpoint, receive_datagrams, require_key_or_insecure,
                    take_datagram)
@@ -180,6 +180,14 @@ class MavlinkPlant:
         self.events: list = []
         self.late_steps = 0          # real time: steps whose deadline had already passed
         self.late_first = []         # …the first LATE_KEPT of them (when: at the start, or later)
+        # real time: how long after its step's deadline each command left (a step is late only
+        # past the next deadline, but a loopback vehicle locked to the timeline ticks
+        # VEHICLE_TICK_LEAD of a step before it: a command later than that acts a step later
+        # than in `run`, a step of actuation delay the sampled loop does not have)
+        self.lag_hist = [0] * HIST_N
+        self.lag_max = 0.0
+        self.past_tick = 0
+        self.past_tick_first = []    # …their steps, the first LATE_KEPT
         self.lockstep_resends = 0
         self._closed = False
         self.socks: list[UdpSocket] = []
@@ -747,6 +755,18 @@ class MavlinkPlant:
         oldest = min((v.tracker.t_arrival or now) for v in self.vehicles) if self.n > 1 \
             else (self.vehicles[0].tracker.t_arrival or now)
         _hist_add(self.age_hist, now - oldest)
+        if not self.lockstep:
+            lag = now - (self.t0 + self.k * self.h)
+            if lag > 0.0:
+                _hist_add(self.lag_hist, lag)
+                if lag > self.lag_max:
+                    self.lag_max = lag
+                if lag > (1.0 - VEHICLE_TICK_LEAD) * self.h:
+                    self.past_tick += 1
+                    if len(self.past_tick_first) < LATE_KEPT:
+                        self.past_tick_first.append(self.k)
+            else:
+                self.lag_hist[0] += 1
         self._commanded = True
         fast = self.compiled_command and not self.lockstep
         for v in self.vehicles:
@@ -858,6 +878,11 @@ class MavlinkPlant:
         d["nan_commands"] = int(self.transport.nan_commands)
         d["late_steps"] = int(self.late_steps)
         d["late_first"] = list(self.late_first)
+        d["command_lag_ms_p50"] = _hist_pct(self.lag_hist, 0.50)
+        d["command_lag_ms_p99"] = _hist_pct(self.lag_hist, 0.99)
+        d["command_lag_ms_max"] = self.lag_max * 1e3 if sum(self.lag_hist) else None
+        d["commands_past_tick"] = int(self.past_tick)
+        d["past_tick_first"] = list(self.past_tick_first)
         d["lockstep_resends"] = int(self.lockstep_resends)
         d["link_losses"] = int(sum(v.losses for v in self.vehicles))
         d["link_recoveries"] = int(sum(v.recoveries for v in self.vehicles))

@@ -155,6 +155,8 @@ def merge_summaries(scenario, summaries: dict, *, law: str = "hybrid", wall: flo
                        **({"host": s["host"]} if s.get("host") else {}),
                        "failsafe": s["failsafe"],
                        "late_steps": ln.get("late_steps"),
+                       "commands_past_tick": ln.get("commands_past_tick"),
+                       "command_lag_ms_p99": ln.get("command_lag_ms_p99"),
                        "vehicle_latency_ms_p99": ln.get("latency_ms_p99"),
                        "vehicle_failsafes": ln.get("vehicle_failsafes"),
                        # everything this agent refused: on its neighbour link (all of it, also

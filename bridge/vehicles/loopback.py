@@ -52,7 +52,7 @@ from bridge.mavlink.link import (DRAIN_BUDGET, IFLAG_SIGNED, SIG_LEN, Counters, 
 from bridge.mavlink import codec
 from bridge.mavlink.signing_state import open_signing_state
 from bridge.mavlink.mapping import FleetMapping, MappingSpec
-from bridge.mavlink.config import default_config, read_key_file
+from bridge.mavlink.config import VEHICLE_TICK_LEAD, default_config, read_key_file
 from bridge.mavlink.output import ACTUATOR_CONTROL_TARGET, DO_SET_ACTUATOR, PROFILE_BY_KEY, profile
 from bridge.mavlink.transport import profiles_for, state_to_wire, vehicle_setup
 
@@ -68,10 +68,8 @@ NAN21 = [float("nan")] + [0.0] * 20
 _ODOMETRY_TAIL = (*NAN21, *NAN21, M.MAV_FRAME_LOCAL_NED, M.MAV_FRAME_BODY_FRD, 0,
                   M.MAV_ESTIMATOR_TYPE_NAIVE, 100)
 MAX_AHEAD_US = 1_000_000        # a command may be stamped at most 1 s ahead of the vehicle's clock
-# --start-file: the physics ticks fall this share of a tick before each step of the swarm (the
-# tick's states must reach the agents before their deadline; each command then has the rest of
-# the period to arrive before the tick that applies it)
-TICK_LEAD = 0.3
+# --start-file: the physics ticks fall this share of a tick before each step of the swarm
+TICK_LEAD = VEHICLE_TICK_LEAD
 # real time: the sockets are read just before each tick (or every 50 ms when idle) instead of at
 # each datagram's arrival: a process blocked in select is woken by every command that arrives (64
 # a tick for 64 vehicles); asleep on a timer it is not, and a command is applied at the next tick
