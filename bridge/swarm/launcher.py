@@ -673,6 +673,17 @@ def run_swarm_cli(args) -> int:
         return _swarm_cli(args, early)
 
 
+def _timing_line(merged) -> str:
+    """Real time: the agents' late steps and their commands past the vehicles' ticks (a step of
+    actuation delay each; `MavlinkPlant.stats`), summed over the agents; '' in lockstep."""
+    ag = [a for a in merged["agents"] if a.get("commands_past_tick") is not None]
+    if merged.get("lockstep") or not ag:
+        return ""
+    late = sum(a.get("late_steps") or 0 for a in ag)
+    past = sum(a["commands_past_tick"] for a in ag)
+    return f" late steps {late}, commands past the vehicles' ticks {past};"
+
+
 def _swarm_cli(args, early: list) -> int:
     # everything an agent would refuse is refused here, once, before a process starts
     if args.dir is not None:
@@ -723,6 +734,7 @@ def _swarm_cli(args, early: list) -> int:
           f"{merged['wall_time_s']:.3g} s; {merged['n_jumps']} jumps; final rot_err "
           f"{f.get('rot_err', float('nan')):.3g}, pos_err {f.get('pos_err', float('nan')):.3g}; "
           f"inter-agent messages {tot['sent']}, lost {tot['lost']}, age p99 "
-          f"{tot['age_p99_steps_max']} steps; refused: {_refused_line(merged)}", file=sys.stderr)
+          f"{tot['age_p99_steps_max']} steps;{_timing_line(merged)} refused: "
+          f"{_refused_line(merged)}", file=sys.stderr)
     status = report_outcome("swarm", merged)   # the jump bound, a divergence: as `run` says them
     return rc or status

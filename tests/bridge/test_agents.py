@@ -347,6 +347,11 @@ def test_real_time_swarm_converges_and_still_does_over_lossy_delayed_links(tmp_p
         f = merged["final"]
         assert merged["samples"][0]["rot_err"] > 2.5
         assert merged["agents_missing"] == []
+        # each agent's commands past its vehicle's tick: counted, at most one per step, and
+        # summed on the swarm's closing line
+        past = [a["commands_past_tick"] for a in merged["agents"]]
+        assert all(0 <= x <= a["steps"] for x, a in zip(past, merged["agents"]))
+        assert f"commands past the vehicles' ticks {sum(past)};" in p.stderr
         tot = merged["link_total"]
         if extra:
             # the emulated links: ~10 % of the samples lost, and the data used ≥ 5 steps old
