@@ -185,6 +185,7 @@ class MavlinkPlant:
         # VEHICLE_TICK_LEAD of a step before it: a command later than that acts a step later
         # than in `run`, a step of actuation delay the sampled loop does not have)
         self.lag_hist = [0] * HIST_N
+        self._past_tick_s = (1.0 - VEHICLE_TICK_LEAD) * self.h
         self.lag_max = 0.0
         self.past_tick = 0
         self.past_tick_first = []    # …their steps, the first LATE_KEPT
@@ -758,10 +759,11 @@ class MavlinkPlant:
         if not self.lockstep:
             lag = now - (self.t0 + self.k * self.h)
             if lag > 0.0:
-                _hist_add(self.lag_hist, lag)
+                i = int(lag / HIST_BIN)   # `_hist_add` inline: this runs at every step
+                self.lag_hist[i if i < HIST_N else HIST_N - 1] += 1
                 if lag > self.lag_max:
                     self.lag_max = lag
-                if lag > (1.0 - VEHICLE_TICK_LEAD) * self.h:
+                if lag > self._past_tick_s:
                     self.past_tick += 1
                     if len(self.past_tick_first) < LATE_KEPT:
                         self.past_tick_first.append(self.k)
