@@ -539,6 +539,31 @@ def take_datagram(data, addr, counters, on_packet, accept_from=None, fast=None) 
         c.malformed += 1
 
 
+# SO_ATTACH_REUSEPORT_CBPF (Linux 4.5; asm-generic's number, which Python's socket module does
+# not name) with a one-instruction classic BPF program, "return k": a datagram that no
+# connected member of a shared port claims goes to member k of the port's group (in the order
+# they were bound while none has closed). `UdpSocket` steers to member 0, the catch-all, so
+# that a peer's socket gets no stranger's datagram in the instant between its bind and its
+# connect.
+_SO_ATTACH_REUSEPORT_CBPF = getattr(socket, "SO_ATTACH_REUSEPORT_CBPF", 51)
+
+
+def steer_unclaimed(s: socket.socket, member: int = 0) -> bool:
+    """Sends the datagrams of s's port group that no connected member claims to ``member``;
+    False where the kernel has no such option (a peer's socket's ``backlog`` then keeps the
+    senders apart on its own)."""
+    import ctypes
+
+    ret_k = struct.pack("=HBBI", 0x06, 0, 0, int(member))       # BPF_RET | BPF_K
+    prog = ctypes.create_string_buffer(ret_k, len(ret_k))
+    fprog = struct.pack("@HP", 1, ctypes.addressof(prog))     # struct sock_fprog {len, filter*}
+    try:
+        s.setsockopt(socket.SOL_SOCKET, _SO_ATTACH_REUSEPORT_CBPF, fprog)
+        return True
+    except OSError:
+        return False
+
+
 def parse_endpoint(ep: str):
     """'udpin:HOST:PORT' | 'udpout:HOST:PORT' | 'udp:HOST:PORT' (= udpin) -> (mode, (host, port))."""
     mode, host, port = ep.split(":")
@@ -552,7 +577,17 @@ class UdpSocket:
     (or to an address the caller gives); ``udpout``: sends to HOST:PORT from an ephemeral port,
     connected to it, so that the kernel hands it datagrams from HOST:PORT only (anyone else's
     are dropped by the kernel: a stranger cannot fill its buffer). ``connect_to`` (udpin): the
-    same for one peer's address, on a port shared with ``reuse_port``."""
+    same for one peer's address, on a port shared with ``reuse_port``.
+
+    A port shared so has one catch-all (the first socket bound, without ``connect_to``) and its
+    peers' connected sockets. Between its bind and its connect a peer's socket is an
+    unconnected member of the port's group, and the kernel would spread anyone's datagrams over
+    it and the catch-all: its readers, which take every datagram on it to be the peer's (the
+    compiled ones read no address), would then take another sender's datagram for the peer's.
+    So the catch-all steers every datagram that no connected socket claims to itself
+    (`steer_unclaimed`), and whatever still reached the new socket before its connect is read
+    at once with its true sender (``backlog``: `recv_all` returns it first; a reader that reads
+    no addresses defers to `recv_all` while it is there)."""
 
     def __init__(self, endpoint: str, rcvbuf: int = 1 << 20, reuse_port: bool = False,
                  connect_to=None):
@@ -574,6 +609,8 @@ class UdpSocket:
                 s.bind(addr)
                 if connect_to is not None:
                     s.connect(connect_to)
+                elif reuse_port:
+                    steer_unclaimed(s)
             except OSError:
                 s.close()
                 raise
@@ -592,6 +629,9 @@ class UdpSocket:
         s.setblocking(False)
         self.sock = s
         self.local = s.getsockname()
+        self.backlog = []     # [(data, addr)] read before anything else (see the class's doc)
+        if connect_to is not None:
+            self.backlog = self._read(4096)
 
     def fileno(self) -> int:
         return self.sock.fileno()
@@ -613,7 +653,18 @@ class UdpSocket:
         return False
 
     def recv_all(self, limit: int = 4096):
-        """Every datagram waiting now: [(data, addr)]."""
+        """Every datagram waiting now: [(data, addr)] (what came before a connect first)."""
+        if self.backlog:
+            out = self.take_backlog()
+            return out + self._read(max(0, limit - len(out)))
+        return self._read(limit)
+
+    def take_backlog(self) -> list:
+        """What reached this socket before its connect, [(data, addr)], now taken from it."""
+        out, self.backlog = self.backlog, []
+        return out
+
+    def _read(self, limit: int):
         out = []
         recv = self.sock.recvfrom
         for _ in range(limit):

@@ -449,16 +449,23 @@ class MavlinkPlant:
                 return True
 
         src = sock.connected_to
-        if fast is not None and src is not None:
+        if fast is not None and src is not None and not sock.backlog:
             self._receive_compiled(sock, src, keyed, on_packet, deadline)
         else:
             receive_datagrams(sock, c, on_packet, deadline=deadline, fast=fast)
-        if fd in self._settle:
+        while fd in self._settle:
             # a source socket was opened while this catch-all was read: what its source sent
             # before lies here, older than anything on the new socket: read it now, so that
             # the next poll (the vehicles' sockets first) cannot take a newer state first
             self._settle.discard(fd)
             receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + 0.05)
+            # …then what reached a new source socket before its connect (`UdpSocket.backlog`:
+            # any vehicle's, each with its own address; its socket will not signal it). Taking
+            # it may open more source sockets: hence the loop
+            for (bfd, _), e in list(self._src_socks.items()):
+                if bfd == fd:
+                    for data, addr in e[0].take_backlog():
+                        take_datagram(data, addr, c, on_packet, fast=fast)
 
     def _receive_compiled(self, sock: UdpSocket, addr, keyed: int, on_packet,
                           deadline: float) -> None:

@@ -355,6 +355,7 @@ class AgentLink:
             self._age_hist = np.zeros((m, AGE_BINS), np.int64)   # ages used (`age_rules`)
             self._ages_now = np.zeros(m, np.int64)
             self._drain = self._drain_neighbours
+            self._backlogged = any(s.backlog for s in self._nsock.values())
             self.drain_kernel = drain_samples    # (the ahead-of-time module's, in a test)
         # …and its mirror for what this agent sends (`sample_wire.pack_sample`), sent on the
         # neighbours' connected sockets by one compiled call (`bridge.mavlink.udp_io.send_all`)
@@ -565,11 +566,26 @@ class AgentLink:
         lim = self.drain_budget if limit is None else int(limit)
         deadline = time.monotonic() + self.poll_budget_s
         if self._drain is not None:
-            return self._drain(lim, deadline)
+            n = self._take_backlogs() if self._backlogged else 0
+            return n + self._drain(lim, deadline)
         n = 0
         for s in self._nsock.values():
             n += receive_datagrams(s, self.counters, self._on_packet, lim, deadline=deadline,
                                    accept_from=self._accept_from, fast=self._scan)
+        return n
+
+    def _take_backlogs(self) -> int:
+        """What reached the neighbours' sockets before their connect (`UdpSocket`): by the
+        reference path, with each datagram's true sender (the drain reads no addresses)."""
+        self._backlogged = False
+        n = 0
+        for s in self._nsock.values():
+            for data, addr in s.take_backlog():
+                take_datagram(data, addr, self.counters, self._on_packet, self._accept_from,
+                              self._scan)
+                n += 1
+        for j in self.neighbours:
+            self._resync(j)
         return n
 
     def poll_catch_all(self, limit: int | None = None) -> int:
