@@ -126,8 +126,10 @@ def register(sub) -> None:
 
 
     p = sub.add_parser(
-        "agent", help="run ONE agent's controller (per-vehicle process; talks only to its neighbours)",
-        description="Run agent I of a scenario as its own process: the paper's law for agent I "
+        "agent", help="run one agent's controller as a vehicle's own process (several: --id "
+                      "I,J,...); it talks only to its vehicle and its graph neighbours",
+        description="Run agent I of a scenario as its own process (several agents in one with "
+                    "--id I,J,...): the paper's law for agent I "
                     "only, on its vehicle (over MAVLink, as `connect` drives a vehicle) and on the "
                     "samples its graph neighbours send over UDP (MAVLink 2 ODOMETRY + "
                     "DEBUG_FLOAT_ARRAY for θ, signed with --key; endpoints from the scenario's "
@@ -180,9 +182,10 @@ def register(sub) -> None:
     p.set_defaults(func=_cmd_agent)
 
     p = sub.add_parser(
-        "swarm", help="run every agent of a scenario as its own process, then merge their outputs",
-        description="Start one `se3sync agent` process per agent (and, with --vehicles loopback, "
-                    "the loopback vehicles), wait for them, and merge their summaries into one "
+        "swarm", help="run every agent of a scenario over the network, then merge their outputs",
+        description="Start the scenario's agents as `se3sync agent` processes (several agents per "
+                    "process by default: --agents-per-process) and, with --vehicles loopback, "
+                    "the loopback vehicles; wait for them, and merge their summaries into one "
                     "with the fields of `run`'s (final, samples, jumps, n_jumps, jump_bound, "
                     "design) plus per-link statistics; --log merges their logs into one that "
                     "`se3sync plot` reads. Ctrl-C or SIGTERM stops every child and still writes "
