@@ -34,7 +34,6 @@ from cosim import signals
 
 __all__ = ["Host", "run_agents"]
 
-JOIN_POLL_S = 0.05
 # the agents of a process follow one timeline, but each reads it from the clocks on its own:
 # their deadlines differ by microseconds, and a step due this soon runs with the others rather
 # than after a wait of its own
@@ -164,18 +163,23 @@ class Host:
 
 
 class _Agent(threading.Thread):
-    def __init__(self, run_agent, agent_id: int, kwargs: dict):
+    def __init__(self, run_agent, agent_id: int, kwargs: dict, ended: threading.Event):
         super().__init__(name=f"agent {agent_id}", daemon=True)
         self.run_agent = run_agent
         self.agent_id = agent_id
         self.kwargs = kwargs
         self.result = None
+        self.finished = False     # set before ``ended`` (is_alive() still holds for a moment)
+        self.ended = ended
 
     def run(self):
         try:
             self.result = self.run_agent(agent_id=self.agent_id, **self.kwargs)
         except BaseException as exc:  # noqa: BLE001 - handed to the main thread
             self.result = exc
+        finally:
+            self.finished = True
+            self.ended.set()
 
 
 def run_agents(run_agent, ids, kwargs_for) -> dict:
@@ -185,20 +189,26 @@ def run_agents(run_agent, ids, kwargs_for) -> dict:
     KeyboardInterrupt) stops the others, and so does a signal. The caller sets the process's
     BLAS threads (`cosim.threads.limit_process`): `run_agent` leaves them to the host."""
     host = Host(ids)
-    threads = [_Agent(run_agent, i, {**kwargs_for(i), "host": host}) for i in host.ids]
+    # the main thread sleeps until an agent ends (a signal's handler still runs at once): a
+    # timed join would wake it, and take the interpreter from the stepping thread, many times
+    # a second
+    ended = threading.Event()
+    threads = [_Agent(run_agent, i, {**kwargs_for(i), "host": host}, ended) for i in host.ids]
     try:
         with signals.catching(host.stop_all):
             for t in threads:
                 t.start()
             while True:
-                alive = [t for t in threads if t.is_alive()]
-                if not alive:
+                ended.clear()
+                if all(t.finished for t in threads):
                     break
-                alive[0].join(JOIN_POLL_S)
+                ended.wait()
                 if not host.stop.is_set() and any(
                         isinstance(t.result, BaseException) and not isinstance(t.result, KeyboardInterrupt)
-                        for t in threads if not t.is_alive()):
+                        for t in threads if t.finished):
                     host.stop_all()
+            for t in threads:
+                t.join()
     finally:
         host.close()
     return {t.agent_id: t.result for t in threads}
