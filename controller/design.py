@@ -48,7 +48,7 @@ class WeightingMatrix:
             raise WeightingError(
                 f"weighting matrix 𝔸 is not symmetric: 𝔸[{r + 1},{c + 1}] = {AA[r, c]:.6g} but "
                 f"𝔸[{c + 1},{r + 1}] = {AA[c, r]:.6g}")
-        AA = 0.5 * (AA + AA.T)
+        AA = 0.5 * AA + 0.5 * AA.T     # (½(𝔸 + 𝔸ᵀ) overflowed for entries near the float maximum)
         d = AA[3, 3]
         if not d > 0:
             raise WeightingError(f"weighting matrix: d must be > 0, got d = {d:.6g}")
