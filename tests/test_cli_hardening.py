@@ -20,6 +20,10 @@ PAPER = str(ROOT / "scenarios" / "paper_6uav.toml")
 SMALL = str(ROOT / "scenarios" / "sweep_small.toml")
 HIL = str(ROOT / "scenarios" / "hil_6uav.toml")
 
+# a numpy warning on the way to an error is two more lines on the user's stderr, which pytest
+# would capture apart from it: here it fails the case
+pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
+
 
 def _call(argv, capsys):
     try:
