@@ -26,6 +26,7 @@ import os
 import random
 import socket
 import struct
+import sys
 import time
 from collections import defaultdict
 
@@ -545,7 +546,8 @@ def take_datagram(data, addr, counters, on_packet, accept_from=None, fast=None) 
 # they were bound while none has closed). `UdpSocket` steers to member 0, the catch-all, so
 # that a peer's socket gets no stranger's datagram in the instant between its bind and its
 # connect.
-_SO_ATTACH_REUSEPORT_CBPF = getattr(socket, "SO_ATTACH_REUSEPORT_CBPF", 51)
+_SO_ATTACH_REUSEPORT_CBPF = getattr(socket, "SO_ATTACH_REUSEPORT_CBPF",
+                                    51 if sys.platform.startswith("linux") else None)
 
 
 def steer_unclaimed(s: socket.socket, member: int = 0) -> bool:
@@ -554,6 +556,8 @@ def steer_unclaimed(s: socket.socket, member: int = 0) -> bool:
     senders apart on its own)."""
     import ctypes
 
+    if _SO_ATTACH_REUSEPORT_CBPF is None:
+        return False
     ret_k = struct.pack("=HBBI", 0x06, 0, 0, int(member))       # BPF_RET | BPF_K
     prog = ctypes.create_string_buffer(ret_k, len(ret_k))
     fprog = struct.pack("@HP", 1, ctypes.addressof(prog))     # struct sock_fprog {len, filter*}
