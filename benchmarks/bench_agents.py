@@ -2,7 +2,8 @@
 of the neighbour data used, losses, the loopback vehicle process's deadlines, memory, start-up
 and the loop's outcome against `se3sync run`.
 
-    python benchmarks/bench_agents.py [--duration S] [--cases 6x250,64x100] [--keep DIR]
+    python benchmarks/bench_agents.py [--duration S] [--cases 6x250,64x100] [--repeats R]
+                                      [--keep DIR]
 
 Cases: ``NxRATE`` = N agents at RATE Hz: N = 6 is hil_6uav itself; any other N a random tree of
 seed 0 (`cosim.analysis.stability_cases.tree_scenario_text`: hil_6uav's vehicles, weighting and
@@ -35,6 +36,12 @@ RATE), no logs. Per case one swarm run; reported:
 - V̄ at the 1 s samples of the merged summary and of `se3sync run` of the same scenario on the
   float32 reference plant (tests/bridge/test_agents.py's reference), final V̄ / V̄(0) of both and
   how many samples rose; the final rot_err of both.
+``--repeats R`` runs every case R times, the cases in turn (case 1, case 2, …, case 1, …), and
+adds a table per case over its runs: the median of the runs' per-agent CPU (and the lowest and
+highest), each run's figure beside its wake floor and the other work on the machine then, and
+the worst late steps, data age and losses of all runs. On a virtual machine one run's CPU
+figure moves with the hour (the wake floor with it); the median of several runs spread over a
+few minutes is the figure to compare with a goal.
 Numbers from one machine at one time: compare them with each other, not across machines; with
 other work on the machine the CPU figures include what sharing the cores costs (caches).
 """
@@ -220,13 +227,18 @@ def main(argv=None) -> None:
     ap.add_argument("--cases", default="6x250,32x100",
                     help="comma-separated cases NxRATE[sSEED|chain][pK|pauto] (the module's "
                          "docstring; default 6x250,32x100: one process per agent)")
+    ap.add_argument("--repeats", type=_positive, default=1, metavar="R",
+                    help="run every case R times, the cases in turn, and add a table of each "
+                         "case's runs (default 1)")
     ap.add_argument("--keep", metavar="DIR", help="keep each case's scenario and work directory "
                     "(the agents' summaries and stderr, the vehicle's stats) in DIR/CASE")
     _markdown.add_option(ap)
     a = ap.parse_args(argv)
     with _markdown.Report(a.markdown) as rep:
-        rows = bench(a)
-        cap = f"one swarm run per case, {a.duration:g} s, loopback vehicles, no logs"
+        rows, runs = bench(a)
+        cap = (f"one swarm run per case, {a.duration:g} s, loopback vehicles, no logs"
+               if a.repeats == 1 else f"{a.repeats} swarm runs per case, the cases in turn, "
+               f"{a.duration:g} s each, loopback vehicles, no logs")
         rep.table(["case", "CPU per agent (share of a core; K per process: the process's / K)",
                    "late steps (median / max over agents)",
                    "commands past the vehicle's tick (median / max)", "data age p50 / p99 (steps)", "lost",
@@ -243,6 +255,13 @@ def main(argv=None) -> None:
                    "`run`", "rises at the 1 s samples: swarm, `run`", "final rot_err: swarm, `run`"],
                   [r[2] for r in rows], caption="the loop's outcome against `se3sync run` of the "
                   "same scenario on the float32 reference plant")
+        if a.repeats > 1:
+            rep.table(["case", "CPU per agent: median of the runs (lowest – highest)",
+                       "each run: CPU per agent / wake floor / other work (cores)",
+                       "late steps, worst agent of any run", "data age p99, worst link of any run",
+                       "lost, all runs"],
+                      over_runs(runs), caption=f"each case over its {a.repeats} runs (CPU per "
+                      "agent: the run's median over its agents, as above)")
 
 
 def _g(x, fmt="{:.3g}") -> str:
@@ -257,10 +276,41 @@ def _vs(v) -> str:
     return ", ".join(f"{x:.4g}" for x in v["V"])
 
 
-def bench(a) -> list:
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number ≥ 1, got {text!r}")
+    return v
+
+
+def over_runs(runs: dict) -> list:
+    """The table of each case over its runs ({name: [result of run_case, …]})."""
+    out = []
+    for name, rs in runs.items():
+        cpu = [r["cpu_median"] for r in rs if r["cpu_median"] is not None]
+        out.append((name, f"{_g(_med(cpu))} ({_g(min(cpu, default=None))} – "
+                          f"{_g(max(cpu, default=None))})",
+                    "; ".join(f"{_g(r['cpu_median'])} / {r['wake_floor_cpu']:.3g} / "
+                              f"{_g(r['other_cores'], '{:.2f}')}" for r in rs),
+                    _pct(_max(r["late_frac_max"] for r in rs)),
+                    _g(_max(r["age_p99_steps_max"] for r in rs)),
+                    f"{sum(r['lost'] for r in rs)} of {sum(r['sent'] for r in rs)}"))
+    return out
+
+
+def bench(a) -> tuple:
+    """Every case ``a.repeats`` times, the cases in turn: (the rows of the three tables, one
+    per run; {case name: its runs' results})."""
     rows = []
-    for case in a.cases.split(","):
-        r = run_case(case, a.duration, a.keep)
+    runs = {}
+    base = a.cases.split(",")
+    for i, case in enumerate(base * a.repeats):
+        run = i // len(base) + 1
+        keep = a.keep if a.keep is None or a.repeats == 1 else Path(a.keep) / f"run{run}"
+        r = run_case(case, a.duration, keep)
         f, fr = r["final"] or {}, r["final_run"] or {}
         m, st, v = r["memory"], r["startup"], r["vehicle"]
         vs, vr = r["V_swarm"], r["V_run"]
@@ -268,6 +318,9 @@ def bench(a) -> list:
         name = f"{r['agents']} agents ({tree}) at {r['rate_hz']:g} Hz, {r['steps']} steps" + (
             "" if r["agents_per_process"] == 1 else
             f", {r['agents_per_process']} per process ({r['processes']} processes)")
+        runs.setdefault(name, []).append(r)
+        if a.repeats > 1:
+            name += f", run {run} of {a.repeats}"
         load = "/".join(f"{x:.1f}" for x in r["load_start"]) + " → " + \
             "/".join(f"{x:.1f}" for x in r["load_end"])
         print(f"{name}: CPU per agent median {_g(r['cpu_median'])} / max {_g(r['cpu_max'])} of a "
@@ -312,7 +365,12 @@ def bench(a) -> list:
             (name, _vs(vs), _vs(vr), f"{_g(vs['ratio'])}, {_g(vr['ratio'])}",
              f"{vs['rises']}, {vr['rises']}",
              f"{f.get('rot_err', float('nan')):.3g}, {fr.get('rot_err', float('nan')):.3g}")))
-    return rows
+    for name, rs in runs.items() if a.repeats > 1 else ():
+        cpu = [r["cpu_median"] for r in rs if r["cpu_median"] is not None]
+        print(f"{name}: CPU per agent over {len(rs)} runs: median {_g(_med(cpu))}, lowest "
+              f"{_g(min(cpu, default=None))}, highest {_g(max(cpu, default=None))}; wake floors "
+              + ", ".join(f"{r['wake_floor_cpu']:.3g}" for r in rs))
+    return rows, runs
 
 
 if __name__ == "__main__":
