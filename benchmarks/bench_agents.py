@@ -38,7 +38,8 @@ RATE), no logs. Per case one swarm run; reported:
   how many samples rose; the final rot_err of both.
 ``--repeats R`` runs every case R times, the cases in turn (case 1, case 2, …, case 1, …), and
 adds a table per case over its runs: the median of the runs' per-agent CPU (and the lowest and
-highest), each run's figure beside its wake floor and the other work on the machine then, and
+highest), the same over each run's wake floor (what the agent costs against a bare process
+doing one agent's datagrams per step, measured then), each run's figure beside its wake floor and the other work on the machine then, and
 the worst late steps, data age and losses of all runs. On a virtual machine one run's CPU
 figure moves with the hour (the wake floor with it); the median of several runs spread over a
 few minutes is the figure to compare with a goal.
@@ -257,6 +258,7 @@ def main(argv=None) -> None:
                   "same scenario on the float32 reference plant")
         if a.repeats > 1:
             rep.table(["case", "CPU per agent: median of the runs (lowest – highest)",
+                       "CPU per agent / wake floor: median of the runs (lowest – highest)",
                        "each run: CPU per agent / wake floor / other work (cores)",
                        "late steps, worst agent of any run", "data age p99, worst link of any run",
                        "lost, all runs"],
@@ -291,8 +293,12 @@ def over_runs(runs: dict) -> list:
     out = []
     for name, rs in runs.items():
         cpu = [r["cpu_median"] for r in rs if r["cpu_median"] is not None]
+        rel = [r["cpu_median"] / r["wake_floor_cpu"] for r in rs
+               if r["cpu_median"] is not None and r["wake_floor_cpu"]]
         out.append((name, f"{_g(_med(cpu))} ({_g(min(cpu, default=None))} – "
                           f"{_g(max(cpu, default=None))})",
+                    f"{_g(_med(rel), '{:.2f}')} ({_g(min(rel, default=None), '{:.2f}')} – "
+                    f"{_g(max(rel, default=None), '{:.2f}')})",
                     "; ".join(f"{_g(r['cpu_median'])} / {r['wake_floor_cpu']:.3g} / "
                               f"{_g(r['other_cores'], '{:.2f}')}" for r in rs),
                     _pct(_max(r["late_frac_max"] for r in rs)),
