@@ -27,7 +27,11 @@ RATE), no logs. Per case one swarm run; reported:
 - the machine: the CPU of the case's processes and of other work meanwhile (cores, /proc/stat),
   and its wake floor just before the case (`bench_wake_floor.py`'s paced floor at the case's
   rate, 2 s: what a process that only sends and reads a step's datagrams costs per step here
-  now; it moves by the hour on a virtual machine, and an agent's figure with it),
+  now; it moves by the hour on a virtual machine, and an agent's figure with it), its packet
+  floor just after (`bench_wake_floor.hosted_floor`, 2 s: the first process's K agents on one
+  thread, each step a select, its vehicle's state and its neighbours' samples read, its sample
+  sent to each neighbour and a command to its vehicle, and nothing else: what the agent's
+  datagrams alone cost per agent, hosted as the case hosts it),
   the load average at the start and at the end;
 - memory per process at its end (hosting K agents: divide by K for a figure per agent) (`bridge.swarm.agent._memory`: VmHWM, RssAnon, RssFile,
   PSS; median and max) and Σ PSS over the agents (what they hold together: the shared libraries
@@ -39,7 +43,9 @@ RATE), no logs. Per case one swarm run; reported:
 ``--repeats R`` runs every case R times, the cases in turn (case 1, case 2, …, case 1, …), and
 adds a table per case over its runs: the median of the runs' per-agent CPU (and the lowest and
 highest), the same over each run's wake floor (what the agent costs against a bare process
-doing one agent's datagrams per step, measured then), each run's figure beside its wake floor and the other work on the machine then, and
+doing one agent's datagrams per step, measured then) and over its packet floor (against its
+own datagrams hosted as it is: the factor the agent's own work adds), each run's figure beside
+its wake floor, its packet floor and the other work on the machine then, and
 the worst late steps, data age and losses of all runs. On a virtual machine one run's CPU
 figure moves with the hour (the wake floor with it); the median of several runs spread over a
 few minutes is the figure to compare with a goal.
@@ -161,6 +167,7 @@ def run_case(case: str, duration: float, keep=None) -> dict:
         wd = Path(keep) / case if keep else Path(d)
         wd.mkdir(parents=True, exist_ok=True)
         path, sets = scenario_for(n, rate, wd, kind, seed)
+        nbrs = bench_wake_floor.graph_of(path)
         busy0, own0, t0 = _busy_seconds(), _children_seconds(), time.monotonic()
         merged, rc = run_swarm(path, sets, vehicles="loopback", duration=duration,
                                workdir=wd / "work", on_event=lambda s: None,
@@ -171,6 +178,9 @@ def run_case(case: str, duration: float, keep=None) -> dict:
         load1 = os.getloadavg()
         ref = reference(path, sets, duration)
     per = merged.get("agents_per_process", per) if per == "auto" else per
+    # the floor of the first process's agents (K of them) doing their datagrams alone, just after
+    packet_us = bench_wake_floor.hosted_floor(rate, max(50, int(2 * rate)), nbrs,
+                                              hosted=range(1, min(_int_or(per, n), n) + 1))
     ag = [a for a in merged["agents"] if a.get("steps") is not None]
     # one entry per process: an agent alone, or the first of the agents a process hosts (the
     # memory and the process's CPU are the process's)
@@ -196,6 +206,7 @@ def run_case(case: str, duration: float, keep=None) -> dict:
             "wall_s": wall, "load_start": load0, "load_end": load1,
             "own_cores": own, "other_cores": other,
             "wake_floor_us": floor_us, "wake_floor_cpu": floor_us * rate * 1e-6,
+            "packet_floor_us": packet_us, "packet_floor_cpu": packet_us * rate * 1e-6,
             "cpu_median": _med(per_agent), "cpu_max": _max(per_agent),
             "thread_cpu_median": _med(a.get("cpu_fraction") for a in ag) if per > 1 else None,
             "thread_cpu_max": _max(a.get("cpu_fraction") for a in ag) if per > 1 else None,
@@ -244,7 +255,8 @@ def main(argv=None) -> None:
                    "late steps (median / max over agents)",
                    "commands past the vehicle's tick (median / max)", "data age p50 / p99 (steps)", "lost",
                    "vehicle process: CPU (share of a core), late ticks, resyncs",
-                   "machine: this case / other work (cores), load; wake floor (share of a core)",
+                   "machine: this case / other work (cores), load; wake floor / packet floor "
+                   "per agent (share of a core)",
                    "exit"],
                   [r[0] for r in rows], caption=cap)
         rep.table(["case", "peak RSS per process, VmHWM (MB)", "RssAnon / RssFile at the end (MB)",
@@ -259,7 +271,8 @@ def main(argv=None) -> None:
         if a.repeats > 1:
             rep.table(["case", "CPU per agent: median of the runs (lowest – highest)",
                        "CPU per agent / wake floor: median of the runs (lowest – highest)",
-                       "each run: CPU per agent / wake floor / other work (cores)",
+                       "CPU per agent / packet floor: median of the runs (lowest – highest)",
+                       "each run: CPU per agent / wake floor / packet floor / other work (cores)",
                        "late steps, worst agent of any run", "data age p99, worst link of any run",
                        "lost, all runs"],
                       over_runs(runs), caption=f"each case over its {a.repeats} runs (CPU per "
@@ -276,6 +289,13 @@ def _pct(x) -> str:
 
 def _vs(v) -> str:
     return ", ".join(f"{x:.4g}" for x in v["V"])
+
+
+def _int_or(x, default: int) -> int:
+    try:
+        return int(x)
+    except (TypeError, ValueError):
+        return default
 
 
 def _positive(text: str) -> int:
@@ -295,11 +315,16 @@ def over_runs(runs: dict) -> list:
         cpu = [r["cpu_median"] for r in rs if r["cpu_median"] is not None]
         rel = [r["cpu_median"] / r["wake_floor_cpu"] for r in rs
                if r["cpu_median"] is not None and r["wake_floor_cpu"]]
+        pk = [r["cpu_median"] / r["packet_floor_cpu"] for r in rs
+              if r["cpu_median"] is not None and r.get("packet_floor_cpu")]
         out.append((name, f"{_g(_med(cpu))} ({_g(min(cpu, default=None))} – "
                           f"{_g(max(cpu, default=None))})",
                     f"{_g(_med(rel), '{:.2f}')} ({_g(min(rel, default=None), '{:.2f}')} – "
                     f"{_g(max(rel, default=None), '{:.2f}')})",
+                    f"{_g(_med(pk), '{:.2f}')} ({_g(min(pk, default=None), '{:.2f}')} – "
+                    f"{_g(max(pk, default=None), '{:.2f}')})",
                     "; ".join(f"{_g(r['cpu_median'])} / {r['wake_floor_cpu']:.3g} / "
+                              f"{_g(r.get('packet_floor_cpu'), '{:.2g}')} / "
                               f"{_g(r['other_cores'], '{:.2f}')}" for r in rs),
                     _pct(_max(r["late_frac_max"] for r in rs)),
                     _g(_max(r["age_p99_steps_max"] for r in rs)),
@@ -348,7 +373,8 @@ def bench(a) -> tuple:
               f"{fr.get('rot_err', float('nan')):.3g}); machine: this case "
               f"{_g(r['own_cores'], '{:.2f}')} cores, other work {_g(r['other_cores'], '{:.2f}')},"
               f" load {load}, wake floor {r['wake_floor_us']:.0f} µs a step = "
-              f"{r['wake_floor_cpu']:.3g} of a core (exit {r['exit']})")
+              f"{r['wake_floor_cpu']:.3g} of a core, packet floor {r['packet_floor_us']:.0f} µs "
+              f"per agent and step = {r['packet_floor_cpu']:.2g} of a core (exit {r['exit']})")
         print(json.dumps(r), file=sys.stderr)
         rows.append((
             (name, f"median {_g(r['cpu_median'])}, max {_g(r['cpu_max'])}",
@@ -360,7 +386,7 @@ def bench(a) -> tuple:
              f"{_g(v['cpu'])}, {v['late_ticks']} of {v['ticks']} (tick {_g(v['tick_s'])} s), "
              f"{v['resyncs']}",
              f"{_g(r['own_cores'], '{:.2f}')} / {_g(r['other_cores'], '{:.2f}')}, {load}; "
-             f"{r['wake_floor_cpu']:.3g}",
+             f"{r['wake_floor_cpu']:.3g} / {r['packet_floor_cpu']:.2g}",
              r["exit"]),
             (name, f"{_g(m['vm_hwm_mb']['median'])}, {_g(m['vm_hwm_mb']['max'])}",
              f"{_g(m['rss_anon_mb']['median'])} / {_g(m['rss_file_mb']['median'])}",
@@ -375,7 +401,8 @@ def bench(a) -> tuple:
         cpu = [r["cpu_median"] for r in rs if r["cpu_median"] is not None]
         print(f"{name}: CPU per agent over {len(rs)} runs: median {_g(_med(cpu))}, lowest "
               f"{_g(min(cpu, default=None))}, highest {_g(max(cpu, default=None))}; wake floors "
-              + ", ".join(f"{r['wake_floor_cpu']:.3g}" for r in rs))
+              + ", ".join(f"{r['wake_floor_cpu']:.3g}" for r in rs) + "; packet floors "
+              + ", ".join(f"{r['packet_floor_cpu']:.2g}" for r in rs))
     return rows, runs
 
 
