@@ -24,8 +24,8 @@ from .link import (DRAIN_BUDGET, IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, 
                    take_datagram)
 from .signing_state import open_signing_state
 from .state import StateTracker
-from .state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, pack_command, recv_state, scan_odometry,
-                         wire_to_state_ned)
+from .state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, command_row, pack_command, recv_state,
+                         scan_odometry, wire_to_state_ned)
 from .udp_io import send_all
 from .transport import WIRE, Transport, profiles_for, wire_to_state
 
@@ -58,6 +58,7 @@ class _Odometry:
 
 
 HEARTBEAT_ASK_S = 0.2  # connect: how often a vehicle with a state but no HEARTBEAT is asked for one
+ZERO_CONTROLS = (0.0,) * 6   # what `OutputProfile.compiled_fields` is asked for its other fields
 LATE_KEPT = 16            # late steps noted by number in the link statistics (the first ones)
 HIST_BIN = 1e-5        # latency histograms: 10 µs bins up to 0.2 s (the last bin is "more")
 HIST_N = 20_001
@@ -257,6 +258,7 @@ class MavlinkPlant:
         self._cmd_f32 = np.zeros(8, np.float32)
         self._cmd_fd = np.zeros(1, np.int64)
         self._cmd_ok = np.zeros(1, np.int64)
+        self._fused = False          # `_fused_command`'s, once asked
         self._readers: dict = {}     # other sockets serviced while waiting: fd -> callback()
         self._refresh_fds()
         # steps between the master's checks for Ctrl-C and SIGTERM: about 0.1 s of the wall
@@ -348,6 +350,12 @@ class MavlinkPlant:
                 pack_command(self._cmd_buf, *f, 0, 1, 1, 0, self._cmd_f32)
         none = np.zeros(0, np.int64)
         send_all(none, self._cmd_buf, 0, none)
+        fused = self._fused_command()
+        if fused is not None:       # to no socket (fd −1): its types, no send
+            enu, gc, mass, g, mw, st = fused
+            command_row(np.zeros(6), np.zeros((1, layout.S_WIDTH)), mw, enu, gc, mass, g,
+                        np.zeros((1, 6)), 0, 0, 0, 0, 0, 1, 1, self._cmd_buf, self._cmd_f32,
+                        np.full(1, -1, np.int64), self._cmd_ok, st.copy())
 
     def _connected_fd(self, v: _Vehicle) -> int:
         """The socket connected to where v's packets go (``v.addr``), or −1: a udpout
@@ -750,14 +758,46 @@ class MavlinkPlant:
 
     def apply(self, u) -> None:
         S = self.read()
-        tr = self.transport
-        if tr.mapping.one_direct:   # one vehicle (an agent's): plain floats, the same bits
-            c = (tr.controls_row(u, S),)
-            self._controls[0] = c[0]
+        fused = None
+        if self.compiled_command and not self.lockstep:
+            fused = self._fused if self._fused is not False else self._fused_command()
+        if fused is not None:
+            # one vehicle's whole command in one compiled call (`state_wire.command_row`)
+            now = time.monotonic()
+            self._pace_and_time(now)
+            if self._command_row(u, S, fused, now):
+                return
+            c = (self._controls[0].tolist(),)      # the reference path sends it (below)
         else:
-            c = tr.controls(u, S)
-            self._controls[:] = c
-        now = time.monotonic()
+            tr = self.transport
+            if tr.mapping.one_direct:   # one vehicle (an agent's): plain floats, the same bits
+                c = (tr.controls_row(u, S),)
+                self._controls[0] = c[0]
+            else:
+                c = tr.controls(u, S)
+                self._controls[:] = c
+            now = time.monotonic()
+            self._pace_and_time(now)
+        fast = self.compiled_command and not self.lockstep and fused is None
+        for v in self.vehicles:
+            if v.addr is None:
+                continue
+            if fast and self._command_out(v, c[v.i]):
+                v.t_sent = now
+                if v.t_cmd is None:
+                    v.t_cmd = now
+                continue
+            msg = self.profiles[v.i].message(v.peer.mav, c[v.i], target=v.sysid, k=self.k,
+                                             lockstep=self.lockstep, wire=self.wire[v.i])
+            self._send(v, msg)
+            v.last_buf = msg
+            v.t_sent = now
+            if v.t_cmd is None:
+                v.t_cmd = now
+
+    def _pace_and_time(self, now: float) -> None:
+        """A step's command at ``now``: pacing starts (the first command), the age of the states
+        it used and how long after its deadline it left are recorded."""
         if self.k == 0 and not self.lockstep and self._paced_from is None:
             self.t0 = now  # pacing starts with the first command (not at connect)
         oldest = min((v.tracker.t_arrival or now) for v in self.vehicles) if self.n > 1 \
@@ -777,22 +817,68 @@ class MavlinkPlant:
             else:
                 self.lag_hist[0] += 1
         self._commanded = True
-        fast = self.compiled_command and not self.lockstep
-        for v in self.vehicles:
-            if v.addr is None:
-                continue
-            if fast and self._command_out(v, c[v.i]):
-                v.t_sent = now
-                if v.t_cmd is None:
-                    v.t_cmd = now
-                continue
-            msg = self.profiles[v.i].message(v.peer.mav, c[v.i], target=v.sysid, k=self.k,
-                                             lockstep=self.lockstep, wire=self.wire[v.i])
-            self._send(v, msg)
-            v.last_buf = msg
-            v.t_sent = now
-            if v.t_cmd is None:
-                v.t_cmd = now
+
+    def _fused_command(self):
+        """What `_command_row` needs that does not change (the transport's mapping and frames),
+        or None where the command takes the paths of `apply` below: more than one vehicle, a
+        mapping other than direct, a profile that sends another message, a signed link, a tlog."""
+        f = self._fused
+        if f is False:
+            tr = self.transport
+            v = self.vehicles[0]
+            f = None
+            if self.n == 1 and tr.mapping.one_direct and v.peer.tlog is None \
+                    and not v.peer.mav.signing.sign_outgoing \
+                    and self.profiles[0].compiled_fields(ZERO_CONTROLS, target=v.sysid, k=0,
+                                                         lockstep=False) is not None:
+                f = (tr.world != "ned", bool(tr.gravity_compensation), float(tr.masses[0]),
+                     np.array(tr.gravity, np.float64), np.array(tr.mapping._mw, np.float64),
+                     np.zeros(3, np.int64))
+            self._fused = f
+        return f
+
+    def _command_row(self, u, S, fused, now: float) -> bool:
+        """`Transport.controls_row`, `_command_out` and the send of vehicle 0's command as one
+        compiled call (`state_wire.command_row`, the same controls and bytes); the counters
+        updated as those update them. False when the reference path must send it (a control
+        beyond float32): the controls are in ``_controls[0]``."""
+        enu, gc, mass, g, mw, st = fused
+        v = self.vehicles[0]
+        tr = self.transport
+        mav = v.peer.mav
+        fd = self._connected_fd(v) if v.addr is not None else -1
+        self._cmd_fd[0] = fd
+        f = self.profiles[0].compiled_fields(ZERO_CONTROLS, target=v.sysid, k=self.k,
+                                             lockstep=False)
+        n = command_row(np.asarray(u, dtype=np.float64).reshape(6), S, mw, enu, gc, mass, g,
+                        self._controls, f[0], f[7], f[8], f[9], mav.seq, mav.srcSystem,
+                        mav.srcComponent, self._cmd_buf, self._cmd_f32, self._cmd_fd,
+                        self._cmd_ok, st)
+        nan, sat, ok = st.tolist()
+        if nan:
+            tr.nan_commands += 1
+        mp = tr.mapping
+        if sat:
+            mp.saturations += 1
+            mp.saturated_vehicles[0] += 1
+        if mp.last_saturated[0] != sat:
+            mp.last_saturated = np.array([bool(sat)])
+        if v.addr is None:
+            return True
+        if n < 0:
+            return False
+        mav.seq = (mav.seq + 1) & 0xFF
+        self.packed_commands += 1
+        if fd < 0:
+            self._send_raw(v, self._cmd_buf[:n].tobytes())
+        elif ok:
+            self.counters.sent += 1
+        else:
+            self.counters.send_errors += 1
+        v.t_sent = now
+        if v.t_cmd is None:
+            v.t_cmd = now
+        return True
 
     def advance(self, h: float) -> None:
         if self.t0 is None:

@@ -14,20 +14,24 @@ are the float32 fields widened to float64, what `struct.unpack` gives the refere
 one call: no bytes object, address tuple or exception per read. `pack_command` is the way back:
 the step's SET_ACTUATOR_CONTROL_TARGET framed as `bridge.mavlink.codec.frame` frames it (the
 same bytes; a signature is the caller's to write, `codec.sign_frame`), into a preallocated
-buffer that `bridge.mavlink.udp_io.send_all` sends.
+buffer that `bridge.mavlink.udp_io.send_all` sends. `command_row` is a one-vehicle agent's whole
+command in one call: the wrench mapped to controls (`bridge.mavlink.transport.Transport.controls_row`'s
+operations), framed and sent.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from controller.jit import jit
+from controller.layout import S_R
 
 from . import codec
 from .state import QUAT_TOL
-from .udp_io import EAGAIN, ECONNREFUSED, EINTR, EWOULDBLOCK, MSG_DONTWAIT, errno, recv
+from .udp_io import (EAGAIN, ECONNREFUSED, EINTR, EWOULDBLOCK, MSG_DONTWAIT, errno, recv,
+                     send_all)
 
-__all__ = ["scan_odometry", "recv_state", "wire_to_state_ned", "pack_command", "QUAT_MARGIN",
-           "ODOMETRY_SIZE", "COMMAND_BYTES"]
+__all__ = ["scan_odometry", "recv_state", "wire_to_state_ned", "pack_command", "command_row",
+           "QUAT_MARGIN", "ODOMETRY_SIZE", "COMMAND_BYTES"]
 
 MAGIC = 0xFD
 SIG_LEN = 13
@@ -210,3 +214,55 @@ def pack_command(buf, t_us, c0, c1, c2, c3, c4, c5, group_mlx, target_system, ta
     buf[e] = crc & 0xFF
     buf[e + 1] = crc >> 8
     return e + 2 + SIG_LEN * signed
+
+
+@jit(error_model="python")
+def command_row(u, S, mw, enu, gc, mass, g, c_out, t_us, group_mlx, target_system,
+                target_component, seq, sysid, compid, buf, f32, fds, ok, st):
+    """One vehicle's command with the direct mapping, in one call: `Transport.controls_row` of
+    the wrench u (6,) at state S[0] (the same operations on the same floats in the same order:
+    the same bits) into c_out[0], then `pack_command` of those controls (unsigned) into buf, then
+    the frame sent on fds[0] when that is a socket (≥ 0; `send_all`, ok[0] as it sets it).
+    ``enu``: the world is not NED (FRD flips y and z of each triple); ``gc``: the baseline that
+    cancels gravity g on mass ``mass`` is added; mw: the mapping's max wrench per axis. st[0] = 1
+    if a value of u was not finite (taken as 0), st[1] = 1 if a control saturated, st[2] the
+    sockets that took the frame. Returns `pack_command`'s length, or −1 (a control beyond
+    float32: nothing sent, the reference path then raises as `struct.pack` does)."""
+    nan = 0
+    for i in range(6):
+        x = u[i]
+        if not np.isfinite(x):
+            nan = 1
+            x = 0.0
+        c_out[0, i] = x
+    if enu:     # body_to_frd: P_B on each group of 3
+        c_out[0, 1] = -c_out[0, 1]
+        c_out[0, 2] = -c_out[0, 2]
+        c_out[0, 4] = -c_out[0, 4]
+        c_out[0, 5] = -c_out[0, 5]
+    sat = 0
+    for i in range(6):
+        if gc:
+            if i < 3:
+                b = -0.0 if enu and i > 0 else 0.0
+            else:
+                j = i - 3
+                b = -mass * (S[0, S_R + j] * g[0] + S[0, S_R + 3 + j] * g[1]
+                             + S[0, S_R + 6 + j] * g[2])
+                if enu and j > 0:
+                    b = -b
+            x = (c_out[0, i] + b) / mw[i]
+        else:
+            x = c_out[0, i] / mw[i]
+        if abs(x) > 1.0:
+            sat = 1
+        c_out[0, i] = -1.0 if x < -1.0 else 1.0 if x > 1.0 else x
+    st[0] = nan
+    st[1] = sat
+    st[2] = 0
+    n = pack_command(buf, t_us, c_out[0, 0], c_out[0, 1], c_out[0, 2], c_out[0, 3], c_out[0, 4],
+                     c_out[0, 5], group_mlx, target_system, target_component, seq, sysid, compid,
+                     0, f32)
+    if n > 0 and fds[0] >= 0:
+        st[2] = send_all(fds, buf, n, ok)
+    return n

@@ -71,6 +71,9 @@ EXPORTS = {
     "send_all": ("bridge.mavlink.udp_io", "i8(i8[::1], u1[::1], i8, i8[::1])"),
     "pack_command": ("bridge.mavlink.state_wire",
                      "i8(u1[::1], i8, f8, f8, f8, f8, f8, f8, i8, i8, i8, i8, i8, i8, i8, f4[::1])"),
+    "command_row": ("bridge.mavlink.state_wire",
+                    "i8(f8[::1], f8[:, ::1], f8[::1], b1, b1, f8, f8[::1], f8[:, ::1], i8, i8, i8, "
+                    "i8, i8, i8, i8, u1[::1], f4[::1], i8[::1], i8[::1], i8[::1])"),
     "pack_sample": ("bridge.swarm.sample_wire",
                     "i8(u1[::1], i8, f8[::1], b1, f8[::1], i8, i8, i8, i8, f4[::1], i8[::1])"),
     "rot_to_quat_rows": ("controller._kernels", "void(f8[:, ::1], f8[:, ::1])"),

@@ -336,6 +336,23 @@ def test_pack_command_equals_the_jit(ahead):
         _both(pack_command, ahead.pack_command, args, f"pack_command {trial}")
 
 
+def test_command_row_equals_the_jit(ahead):
+    from bridge.mavlink.state_wire import COMMAND_BYTES, command_row
+
+    rng = np.random.default_rng(43)
+    for trial in range(300):
+        u = rng.normal(size=6) * 10.0 ** rng.integers(-3, 4)
+        if trial % 5 == 0:
+            u[int(rng.integers(6))] = float(rng.choice([np.nan, np.inf, -0.0, 1e300]))
+        args = (u, _states(rng, 1), rng.uniform(0.5, 20.0, 6), bool(trial % 2),
+                bool(trial % 3), float(rng.uniform(0.5, 3.0)), rng.normal(size=3) * 9.81,
+                np.zeros((1, 6)), int(rng.integers(0, 1 << 62)),
+                *(int(x) for x in rng.integers(0, 256, 6)), np.zeros(COMMAND_BYTES, np.uint8),
+                np.zeros(8, np.float32), np.full(1, -1, np.int64), np.zeros(1, np.int64),
+                np.zeros(3, np.int64))
+        _both(command_row, ahead.command_row, args, f"command_row {trial}")
+
+
 def test_age_rules_equals_the_jit(ahead):
     from bridge.swarm.sample_wire import AGE_BINS, SCAN_WIDTH, age_rules
 

@@ -333,6 +333,89 @@ def test_compiled_command_path_equals_the_reference(key, monkeypatch):
             s.close()
 
 
+@pytest.mark.parametrize("key", [None, KEY])
+@pytest.mark.parametrize("world,gc", [("ned", False), ("enu", True), ("ned", True),
+                                      ("enu", False)])
+def test_one_vehicles_command_in_one_call_equals_the_reference(world, gc, key, monkeypatch):
+    """An agent's plant (one vehicle, direct mapping): unsigned, its command is mapped, framed
+    and sent by one compiled call (`state_wire.command_row`); signed, by `pack_command` and a
+    signature. Against the reference (`Transport.controls_row`, `Peer.pack`, the socket's send),
+    over wrenches that saturate, carry NaN, ±inf and −0.0, in either world frame, with gravity
+    compensation or without: the same datagrams at the vehicle byte for byte, the same controls
+    (every bit) and the same counters of the link, the transport and the mapping."""
+    import dataclasses
+
+    from bridge.mavlink import output
+    from bridge.mavlink.plant import MavlinkPlant
+    from cosim.scenario import restrict
+
+    class _Clock:
+        t = 1.8e9
+
+        def time(self):
+            return self.t
+
+    clock = _Clock()
+    monkeypatch.setattr(output, "time", clock)
+    rng = np.random.default_rng(59)
+    plants, tx = [], []
+    try:
+        for compiled in (True, False):
+            port = free_base_port(6)
+            sc = load([f"bridge.base_port={port}", "bridge.stale_after=1000",
+                       f"bridge.world_frame={world}", f"bridge.gravity_compensation={str(gc).lower()}"])
+            one, _ = restrict(sc, [1])
+            cfg = dataclasses.replace(sc.bridge, n_agents=1, vehicles=[sc.bridge.vehicles[0]])
+            p = MavlinkPlant(one, cfg, connect_timeout=1, on_event=lambda s: None, key=key)
+            p.compiled_command = compiled
+            p.warm_up()
+            plants.append(p)
+            s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(5.0)
+            tx.append((s, ("127.0.0.1", port)))
+        assert (plants[0]._fused_command() is None) == (key is not None)
+        veh = _Vehicle(rng, key)
+        for n in range(3):              # the vehicle's address (and its source socket)
+            data = veh.honest(n)
+            for (s, addr), p in zip(tx, plants):
+                s.sendto(data, addr)
+                end = time.monotonic() + 5.0
+                while p.counters.datagrams < n + 1 and time.monotonic() < end:
+                    p.poll(0.01)
+        assert all(p.vehicles[0].src is not None for p in plants)
+        mw = np.asarray(plants[0].transport.mapping.max_wrench[0])
+        for k in range(200):
+            u = rng.normal(size=(1, 6)) * mw * rng.choice([0.3, 1.0, 3.0])
+            if k % 9 == 0:
+                u[0, int(rng.integers(6))] = float(rng.choice([np.nan, np.inf, -np.inf, -0.0]))
+            clock.t += 0.004 + rng.uniform(0, 1e-3)
+            got = []
+            for (s, _), p in zip(tx, plants):
+                if key is not None:
+                    p.vehicles[0].peer.mav.signing.timestamp = 10_000 + k
+                p.apply(u.copy())
+                got.append(s.recv(4096))
+                p.k += 1
+                p._S = None
+            assert got[0] == got[1], k
+            assert plants[0]._controls.tobytes() == plants[1]._controls.tobytes(), k
+        comp, ref = plants
+        assert comp.packed_commands == 200 and ref.packed_commands == 0
+        assert comp.counters.as_dict() == ref.counters.as_dict()
+        assert comp.vehicles[0].peer.mav.seq == ref.vehicles[0].peer.mav.seq
+        tc, tr = comp.transport, ref.transport
+        assert tc.nan_commands == tr.nan_commands > 0
+        assert tc.mapping.saturations == tr.mapping.saturations > 0
+        assert tc.mapping.saturated_vehicles.tolist() == tr.mapping.saturated_vehicles.tolist()
+        assert tc.mapping.last_saturated.tolist() == tr.mapping.last_saturated.tolist()
+    finally:
+        for p in plants:
+            p.close()
+        for s, _ in tx:
+            s.close()
+
+
 @pytest.mark.parametrize("name", sorted(__import__("bridge.mavlink.output", fromlist=["x"])
                                         .PROFILE_CLASSES))
 def test_every_profiles_compiled_form_is_its_message(name):
