@@ -275,6 +275,8 @@ class AgentNode:
         self._termbuf = np.zeros((E, 6))
         self._relrows = np.zeros((E, 12))
         self._own_rows = tuple((k, r) for r, k in enumerate(self.edge_ids) if k in self.owned)
+        assert tuple(k for k, _ in self._own_rows) == tuple(self.link.owned)   # one order
+        self._own_r = np.array([r for _, r in self._own_rows], np.int64)
         # per neighbour q: (j, ((k, r) of the neighbourhood's edges j owns: their θ is received))
         self._rx_rows = tuple((j, tuple((k, r) for r, k in enumerate(self.edge_ids)
                                         if k not in self.owned and self.ends[k][0] == j))
@@ -630,9 +632,7 @@ class AgentNode:
             agent_step(*call[1])
         else:
             n_jumps = agent_step(*call[3 if fs else 2])
-            for k, r in self._own_rows:
-                pub[k] = float(ctl.theta_jump[r])
-            link.publish(n, S[0], pub)
+            link.publish_rows(n, S, ctl.theta_jump, self._own_r)
         if fs:
             self.failsafe_steps += 1
             if not self.failsafe:

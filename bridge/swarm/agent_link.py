@@ -75,7 +75,7 @@ from bridge.mavlink.udp_io import send_all
 
 from .sample_wire import (AGE_BINS, D_BATCH, D_DATAGRAMS, D_DROPPED, D_K, D_LEN, D_RECEIVED,
                           D_STEP, D_WIDTH, PACK_BYTES, SCAN_STATE, SCAN_WIDTH, age_rules,
-                          drain_samples, pack_sample, scan_sample)
+                          drain_samples, pack_sample, publish_sample, scan_sample)
 
 __all__ = ["AgentLink", "NeighbourSample", "AGENT_COMPONENT", "THETA_NAME", "THETA_PER_MESSAGE",
            "encode_sample", "theta_name"]
@@ -296,6 +296,7 @@ class AgentLink:
         self._packets = {j: 0 for j in self.neighbours}      # accepted packets per neighbour
         self._samples = {j: 0 for j in self.neighbours}      # complete samples taken
         self._sent = {j: 0 for j in self.neighbours}         # datagrams sent per neighbour
+        self._sent_all = 0         # …plus these, sent to every neighbour (`publish_rows`)
         self._published = 0        # samples (steps) published to every neighbour
         self._last_published = -1
         self._restarts = {j: 0 for j in self.neighbours}     # restarts recognised (RESTART_SAMPLES)
@@ -372,6 +373,8 @@ class AgentLink:
             self._pth = np.zeros(max(1, len(self.owned)))
             self._pnull = np.zeros(layout.S_WIDTH)
             self._pack = self._pack_sample
+            self._pst = np.zeros(1, np.int64)
+        self._fast_publish = None      # `publish_rows`' choice, made at its first call
 
     @property
     def drained(self) -> int:
@@ -385,6 +388,10 @@ class AgentLink:
         if self._sfds is not None:      # to no socket: its types, no send
             none = np.zeros(0, np.int64)
             send_all(none, np.zeros(1, np.uint8), 0, none)
+            if self._pack is not None:
+                publish_sample(self._pbuf, 0, np.zeros((1, layout.S_WIDTH)), np.zeros(1), none,
+                               self._pth, 1, 0, self._pf32, self._ends, none, none,
+                               self._pst.copy())
         if self._scan is None or not self._scan_nt:
             return
         nt = next(iter(self._scan_nt.values()))
@@ -472,6 +479,40 @@ class AgentLink:
                     ok += 1
                     continue
             ok += self._send(j, data, n_msgs)
+        return ok
+
+    def publish_rows(self, n: int, S, theta, rows) -> int:
+        """`publish` of sample n with the own row S[0] (S: C-ordered rows in scenario frames)
+        and θ of owned edge q (`owned` order) at theta[rows[q]]. On an unsigned link in the NED
+        world with compiled sends and no emulated delay, gathering θ, encoding and sending are
+        one compiled call (`sample_wire.publish_sample`: the same bytes); otherwise `publish`."""
+        fast = self._fast_publish
+        if fast is None:
+            fast = self._fast_publish = (
+                self._pack is not None and self._sfds is not None and not self._emu
+                and self.world == "ned" and not self.peer.mav.signing.sign_outgoing)
+        if not fast or n < 0:
+            return self.publish(n, S[0], {k: float(theta[r]) for k, r in zip(self.owned, rows)})
+        mav = self.peer.mav
+        st = self._pst
+        nf = publish_sample(self._pbuf, stamp_us(n, self.h_us), S, theta, rows, self._pth,
+                            mav.srcSystem, mav.seq, self._pf32, self._ends, self._sfds,
+                            self._sok, st)
+        if nf < 0:      # a value beyond float32: the reference path raises as struct.pack does
+            return self.publish(n, S[0], {k: float(theta[r]) for k, r in zip(self.owned, rows)})
+        mav.seq = (mav.seq + nf) & 0xFF
+        if n > self._last_published:
+            self._last_published = n
+            self._published += 1
+        ok = int(st[0])
+        m = len(self.neighbours)
+        self.counters.sent += ok * nf
+        if ok == m:
+            self._sent_all += 1
+        else:
+            self.counters.send_errors += m - ok
+            for j, y in zip(self.neighbours, self._sok.tolist()):
+                self._sent[j] += y
         return ok
 
     def _pack_sample(self, n: int, S_row, theta_owned):
@@ -1048,7 +1089,7 @@ class AgentLink:
             held = self.neighbour(j)
             fast = (0, 0) if self._drain is None else self._dcount[self._dq[j]].tolist()
             ages = self._age_counts(j)
-            links[str(j)] = {"sent": self._sent[j], "published": self._published,
+            links[str(j)] = {"sent": self._sent[j] + self._sent_all, "published": self._published,
                              "received": self._packets[j] + fast[0],
                              "samples": self._samples[j] + fast[1],
                              "restarts": self._restarts[j],

@@ -22,7 +22,8 @@ one sample (ODOMETRY and θ, the quaternion by `controller.kernels.quat_of`, the
 trailing zeros dropped, the checksums), written into a preallocated buffer in one call; a signed
 link's signatures are then filled by `bridge.mavlink.codec.sign_frame` (SHA-256 stays with
 hashlib). tests/bridge/test_sample_wire.py checks its datagrams against the reference path's,
-byte for byte, signed and unsigned.
+byte for byte, signed and unsigned. `publish_sample` is an unsigned link's whole publish in one
+call: the owned θ gathered from the step's θ, `pack_sample`, the datagram sent to every neighbour.
 """
 from __future__ import annotations
 
@@ -35,9 +36,9 @@ from controller.jit import jit
 from controller.kernels import FRESH, quat_of
 from controller.layout import S_OMEGA, S_P, S_R, S_V
 
-from bridge.mavlink.udp_io import ECONNREFUSED, EINTR, MSG_DONTWAIT, errno, recv
+from bridge.mavlink.udp_io import ECONNREFUSED, EINTR, MSG_DONTWAIT, errno, recv, send_all
 
-__all__ = ["scan_sample", "pack_sample", "drain_samples", "age_rules", "AGE_BINS", "SCAN_WIDTH",
+__all__ = ["scan_sample", "pack_sample", "publish_sample", "drain_samples", "age_rules", "AGE_BINS", "SCAN_WIDTH",
            "SCAN_STATE",
            "ODOMETRY_SIZE", "THETA_SIZE", "PACK_BYTES", "D_DATAGRAMS", "D_RECEIVED", "D_DROPPED",
            "D_LEN", "D_BATCH", "D_WIDTH"]
@@ -354,4 +355,21 @@ def pack_sample(buf, t_us, S, pose, theta, n_theta, sysid, seq, signed, f32, end
         o = _frame(buf, o, THETA_SIZE, signed, seq + nf, sysid, ID_THETA, EXTRA_THETA)
         ends[nf] = o
         nf += 1
+    return nf
+
+
+@jit(error_model="numpy")
+def publish_sample(buf, t_us, S, theta, rows, th, sysid, seq, f32, ends, fds, ok, st):
+    """An unsigned link's sample in one call: th[i] = theta[rows[i]] (the owned θ after the jump
+    stage, in the link's order), `pack_sample` of the NED row S[0] and th into buf, then the
+    datagram sent on each neighbour's connected socket (fds; `bridge.mavlink.udp_io.send_all`,
+    ok as it sets it). st[0]: the sockets that took it. Returns `pack_sample`'s frame count
+    (nothing sent when it is −1: a value beyond float32)."""
+    m = rows.shape[0]
+    for i in range(m):
+        th[i] = theta[rows[i]]
+    nf = pack_sample(buf, t_us, S[0], True, th, m, sysid, seq, 0, f32, ends)
+    st[0] = 0
+    if nf > 0:
+        st[0] = send_all(fds, buf, ends[nf - 1], ok)
     return nf

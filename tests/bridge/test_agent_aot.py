@@ -399,6 +399,24 @@ def test_pack_sample_equals_the_jit(ahead):
         _both(pack_sample, ahead.pack_sample, args, f"pack_sample {trial}")
 
 
+def test_publish_sample_equals_the_jit(ahead):
+    from bridge.swarm.sample_wire import PACK_BYTES, publish_sample
+
+    rng = np.random.default_rng(11)
+    none = np.zeros(0, np.int64)
+    for trial in range(200):
+        E = int(rng.integers(1, 9))
+        rows = np.sort(rng.choice(E, int(rng.integers(0, E + 1)), replace=False)).astype(np.int64)
+        theta = rng.normal(size=E) * 10.0 ** rng.integers(-30, 30)
+        if trial % 40 == 0:
+            theta[:] = 1e39                     # beyond float32: refused by both
+        args = (np.zeros(PACK_BYTES, np.uint8), int(rng.integers(0, 1 << 50)), _states(rng, 2),
+                theta, rows, np.zeros(max(E, 1)), int(rng.integers(1, 256)),
+                int(rng.integers(0, 256)), np.zeros(58, np.float32), np.zeros(2, np.int64),
+                none, none, np.zeros(1, np.int64))
+        _both(publish_sample, ahead.publish_sample, args, f"publish_sample {trial}")
+
+
 def test_the_cdr_scatter_equals_numbas(ahead):
     """The CDR log's scatter (an agent's `--log-encoding cdr`) against numba's JIT of it."""
     import numba
