@@ -53,7 +53,7 @@ from cosim.scenario import restrict
 from cosim.threads import AGENT_THREADS, limit_process
 
 from .agent_link import VERDICTS, AgentLink
-from .sample_wire import SCAN_STATE
+from .sample_wire import held_rows
 from bridge.mavlink.config import check_endpoint, default_config, read_key_file
 from bridge.mavlink.link import require_key_or_insecure
 from bridge.live import feed_logger
@@ -90,15 +90,13 @@ class _NeighbourhoodPlant:
         self.node = node
         self.n = len(node.agents)
         self.max_block = node.vehicle.max_block
-
-    def read(self):
-        return self.node._read()
+        # read() and advance(h), called at every step: the node's and the vehicle's own, one
+        # call each rather than two
+        self.read = node._read
+        self.advance = node.vehicle.advance
 
     def apply(self, u) -> None:
         self.node.vehicle.apply(np.asarray(u)[0:1])
-
-    def advance(self, h: float) -> None:
-        self.node._advance(h)
 
     def stats(self) -> dict:
         return self.node.stats()
@@ -123,6 +121,8 @@ class _AgentLaw:
         self.jumped = np.zeros(M, dtype=bool)
         self.u = np.zeros((len(node.agents), 6))
         self._step = node._step_compiled if node.compiled else node._step
+        if node.compiled:       # the master calls it at every step: one call rather than two
+            self.step_state = node._step_compiled
 
     @property
     def edge_state(self) -> EdgeState:
@@ -409,10 +409,14 @@ class AgentNode:
     def _read(self):
         """S of the neighbourhood at step n (row 0 fresh from the vehicle)."""
         S = self._S
+        n = self.first_step + self.vehicle.k
+        self.link.set_step(n)
+        hv = self._held_values
+        if hv is not None:       # the link's arrays: row q + 1 is neighbour q's (one call)
+            held_rows(S, self.vehicle.read(), self.link.held_steps, hv)
+            return S
         own = self.vehicle.read()[0]
         S[0] = own
-        n = self.n
-        self.link.set_step(n)
         if self.lockstep:
             if (self.n_steps is not None and self.k >= self.n_steps) or self._stopped():
                 # the end (the master's final read, or a stop was asked for): no step n to
@@ -429,12 +433,6 @@ class AgentNode:
             for j in self.neighbours:
                 S[self.row[j]] = self.link.pose_at(j, n)
                 self.used[j] = (n, 0)
-            return S
-        hv = self._held_values
-        if hv is not None:       # the link's arrays: row q + 1 is neighbour q's
-            for q, s in enumerate(self.link.held_steps.tolist()):
-                if s >= 0:
-                    S[q + 1] = hv[q, SCAN_STATE:SCAN_STATE + layout.S_WIDTH]
             return S
         for j in self.neighbours:
             smp = self.link.neighbour(j)
@@ -654,9 +652,6 @@ class AgentNode:
                                       float(ctl.mu[r]))
                             for k, r in self._own_rows if ctl.jumped[r])
 
-    def _advance(self, h: float) -> None:
-        self.vehicle.advance(h)
-
     # ------------------------------------------------------------------ results
     def stats(self) -> dict:
         d = self.vehicle.stats()
@@ -845,6 +840,9 @@ def _warm_up(node: AgentNode) -> None:
                    ctl.theta.copy(), node._rx.copy(), ctl.theta_prev.copy(),
                    ctl.theta_jump.copy(), ctl.mu.copy(), ctl.jumped.copy(), node._termbuf.copy(),
                    node._relrows.copy(), ctl.u.copy())
+        if node._held_values is not None:
+            held_rows(node._S.copy(), node._S[:1].copy(), node.link.held_steps.copy(),
+                      node._held_values.copy())
     node.link.warm_up()
     node.vehicle.warm_up()
     loc = node.local

@@ -79,6 +79,7 @@ EXPORTS = {
     "publish_sample": ("bridge.swarm.sample_wire",
                        "i8(u1[::1], i8, f8[:, ::1], f8[::1], i8[::1], f8[::1], i8, i8, f4[::1], "
                        "i8[::1], i8[::1], i8[::1], i8[::1])"),
+    "held_rows": ("bridge.swarm.sample_wire", "void(f8[:, ::1], f8[:, ::1], i8[::1], f8[:, ::1])"),
     "rot_to_quat_rows": ("controller._kernels", "void(f8[:, ::1], f8[:, ::1])"),
     "network_U": ("controller._kernels",
                   "void(f8[:, ::1], f8[::1], i8[:, ::1], f8[::1], f8[::1])"),

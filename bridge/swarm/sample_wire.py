@@ -38,7 +38,7 @@ from controller.layout import S_OMEGA, S_P, S_R, S_V
 
 from bridge.mavlink.udp_io import ECONNREFUSED, EINTR, MSG_DONTWAIT, errno, recv, send_all
 
-__all__ = ["scan_sample", "pack_sample", "publish_sample", "drain_samples", "age_rules", "AGE_BINS", "SCAN_WIDTH",
+__all__ = ["scan_sample", "pack_sample", "publish_sample", "held_rows", "drain_samples", "age_rules", "AGE_BINS", "SCAN_WIDTH",
            "SCAN_STATE",
            "ODOMETRY_SIZE", "THETA_SIZE", "PACK_BYTES", "D_DATAGRAMS", "D_RECEIVED", "D_DROPPED",
            "D_LEN", "D_BATCH", "D_WIDTH"]
@@ -373,3 +373,17 @@ def publish_sample(buf, t_us, S, theta, rows, th, sysid, seq, f32, ends, fds, ok
     if nf > 0:
         st[0] = send_all(fds, buf, ends[nf - 1], ok)
     return nf
+
+
+@jit(error_model="python")
+def held_rows(S, own, held_step, held):
+    """The neighbourhood's state for a step: S[0] = own[0] (the vehicle's row), and for every
+    neighbour q holding a sample (held_step[q] ≥ 0) S[q + 1] = its state row in ``held`` (the
+    drain's rows, `SCAN_STATE` on); the rows of the others stay as they are."""
+    W = S.shape[1]
+    for c in range(W):
+        S[0, c] = own[0, c]
+    for q in range(held_step.shape[0]):
+        if held_step[q] >= 0:
+            for c in range(W):
+                S[q + 1, c] = held[q, SCAN_STATE + c]

@@ -417,6 +417,17 @@ def test_publish_sample_equals_the_jit(ahead):
         _both(publish_sample, ahead.publish_sample, args, f"publish_sample {trial}")
 
 
+def test_held_rows_equals_the_jit(ahead):
+    from bridge.swarm.sample_wire import SCAN_WIDTH, held_rows
+
+    rng = np.random.default_rng(13)
+    for trial in range(50):
+        m = int(rng.integers(0, 5))
+        args = (_states(rng, m + 1), _states(rng, 1), rng.integers(-1, 3, m).astype(np.int64),
+                rng.normal(size=(m, SCAN_WIDTH)))
+        _both(held_rows, ahead.held_rows, args, f"held_rows {trial}")
+
+
 def test_the_cdr_scatter_equals_numbas(ahead):
     """The CDR log's scatter (an agent's `--log-encoding cdr`) against numba's JIT of it."""
     import numba
