@@ -3,7 +3,7 @@ of the neighbour data used, losses, the loopback vehicle process's deadlines, me
 and the loop's outcome against `se3sync run`.
 
     python benchmarks/bench_agents.py [--duration S] [--cases 6x250,64x100] [--repeats R]
-                                      [--keep DIR]
+                                      [--keep DIR] [--against DIR [--label NAME]]
 
 Cases: ``NxRATE`` = N agents at RATE Hz: N = 6 is hil_6uav itself; any other N a random tree of
 seed 0 (`cosim.analysis.stability_cases.tree_scenario_text`: hil_6uav's vehicles, weighting and
@@ -49,6 +49,12 @@ its wake floor, its packet floor and the other work on the machine then, and
 the worst late steps, data age and losses of all runs. On a virtual machine one run's CPU
 figure moves with the hour (the wake floor with it); the median of several runs spread over a
 few minutes is the figure to compare with a goal.
+``--against DIR`` runs every case in the code of another checkout too (its packages in DIR: the
+swarm, the agents and the vehicle process are that tree's), each run of this tree paired with
+one of DIR's made just before or after it (the order alternates from pair to pair), each in a
+process of its own; a table per case gives both trees' medians and the median of the pairs'
+ratios. On a virtual machine whose figure moves by the minute, the pairs are what can show a
+change of a few per cent.
 Numbers from one machine at one time: compare them with each other, not across machines; with
 other work on the machine the CPU figures include what sharing the cores costs (caches).
 """
@@ -60,6 +66,7 @@ import os
 import re
 import resource
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -232,7 +239,26 @@ def run_case(case: str, duration: float, keep=None) -> dict:
             "missing": merged["agents_missing"]}
 
 
+def _worker(tree: Path, case: str, duration: float, keep) -> dict:
+    """`run_case` in a process running the code of ``tree`` (this script, that tree's packages;
+    the swarm it starts inherits both). It dies with this process."""
+    from cosim.signals import die_with
+
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", case,
+                          repr(float(duration)), "" if keep is None else str(keep)], env=env,
+                         capture_output=True, text=True, cwd=tree,
+                         preexec_fn=die_with(os.getpid()))
+    if out.returncode:
+        last = (out.stderr.strip().splitlines() or [f"exit {out.returncode}"])[-1]
+        raise RuntimeError(f"{tree}: {case}: {last}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def main(argv=None) -> None:
+    if argv is None and len(sys.argv) == 5 and sys.argv[1] == "--worker":
+        print(json.dumps(run_case(sys.argv[2], float(sys.argv[3]), sys.argv[4] or None)))
+        return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=10.0, metavar="S",
                     help="simulated seconds per case (default 10)")
@@ -244,10 +270,18 @@ def main(argv=None) -> None:
                          "case's runs (default 1)")
     ap.add_argument("--keep", metavar="DIR", help="keep each case's scenario and work directory "
                     "(the agents' summaries and stderr, the vehicle's stats) in DIR/CASE")
+    ap.add_argument("--against", metavar="DIR", type=Path,
+                    help="also every run in the code of another checkout of se3sync (its "
+                         "packages in DIR), the two in pairs, one process per run")
+    ap.add_argument("--label", help="what to call the --against code in the output (default DIR)")
     _markdown.add_option(ap)
     a = ap.parse_args(argv)
+    if a.against is not None and not (a.against / "bridge" / "swarm").is_dir():
+        ap.error(f"--against: {str(a.against)!r} is not a checkout of se3sync (no bridge/swarm)")
+    if a.label is not None and a.against is None:
+        ap.error("--label: names the --against code; give --against DIR")
     with _markdown.Report(a.markdown) as rep:
-        rows, runs = bench(a)
+        rows, runs, others = bench(a)
         cap = (f"one swarm run per case, {a.duration:g} s, loopback vehicles, no logs"
                if a.repeats == 1 else f"{a.repeats} swarm runs per case, the cases in turn, "
                f"{a.duration:g} s each, loopback vehicles, no logs")
@@ -277,6 +311,15 @@ def main(argv=None) -> None:
                        "lost, all runs"],
                       over_runs(runs), caption=f"each case over its {a.repeats} runs (CPU per "
                       "agent: the run's median over its agents, as above)")
+        if others:
+            label = a.label or str(a.against)
+            rep.table(["case", "CPU per agent, this tree: median (lowest – highest)",
+                       f"{label}: median (lowest – highest)",
+                       f"this tree / {label}, pair by pair: median (lowest – highest)",
+                       "pairs in which this tree's figure is lower"],
+                      against_pairs(runs, others),
+                      caption=f"each case over {a.repeats} pairs of runs (CPU per agent: the "
+                      "run's median over its agents), the pair's two runs one after the other")
 
 
 def _g(x, fmt="{:.3g}") -> str:
@@ -332,16 +375,44 @@ def over_runs(runs: dict) -> list:
     return out
 
 
+def against_pairs(runs: dict, others: dict) -> list:
+    """The table of each case's pairs of runs (this tree's {name: runs}, the other's)."""
+    out = []
+    for name, rs in runs.items():
+        pairs = [(r["cpu_median"], o["cpu_median"]) for r, o in zip(rs, others.get(name, []))
+                 if r["cpu_median"] is not None and o["cpu_median"] is not None]
+        if not pairs:
+            continue
+        mine, theirs = [x for x, _ in pairs], [y for _, y in pairs]
+        ratio = [x / y for x, y in pairs if y]
+        out.append((name, f"{_g(_med(mine))} ({_g(min(mine))} – {_g(max(mine))})",
+                    f"{_g(_med(theirs))} ({_g(min(theirs))} – {_g(max(theirs))})",
+                    f"{_g(_med(ratio), '{:.3f}')} ({_g(min(ratio, default=None), '{:.2f}')} – "
+                    f"{_g(max(ratio, default=None), '{:.2f}')})",
+                    f"{sum(x < y for x, y in pairs)} of {len(pairs)}"))
+    return out
+
+
 def bench(a) -> tuple:
-    """Every case ``a.repeats`` times, the cases in turn: (the rows of the three tables, one
-    per run; {case name: its runs' results})."""
+    """Every case ``a.repeats`` times, the cases in turn, each run paired with one of the
+    ``--against`` tree's: (the rows of the three tables, one per run; {case name: this tree's
+    runs' results}; {case name: the other tree's})."""
     rows = []
-    runs = {}
+    runs, others = {}, {}
     base = a.cases.split(",")
+    against = getattr(a, "against", None)
+    label = (getattr(a, "label", None) or str(against)) if against is not None else None
+    jobs = []
     for i, case in enumerate(base * a.repeats):
         run = i // len(base) + 1
+        pair = [(None, ROOT)] + ([(label, against.resolve())] if against is not None else [])
+        jobs += [(run, case, who, tree) for who, tree in (pair if run % 2 else pair[::-1])]
+    for run, case, who, tree in jobs:
         keep = a.keep if a.keep is None or a.repeats == 1 else Path(a.keep) / f"run{run}"
-        r = run_case(case, a.duration, keep)
+        if keep is not None and who is not None:
+            keep = Path(keep) / "against"
+        r = run_case(case, a.duration, keep) if against is None else \
+            _worker(tree, case, a.duration, keep)
         f, fr = r["final"] or {}, r["final_run"] or {}
         m, st, v = r["memory"], r["startup"], r["vehicle"]
         vs, vr = r["V_swarm"], r["V_run"]
@@ -349,9 +420,11 @@ def bench(a) -> tuple:
         name = f"{r['agents']} agents ({tree}) at {r['rate_hz']:g} Hz, {r['steps']} steps" + (
             "" if r["agents_per_process"] == 1 else
             f", {r['agents_per_process']} per process ({r['processes']} processes)")
-        runs.setdefault(name, []).append(r)
+        (runs if who is None else others).setdefault(name, []).append(r)
         if a.repeats > 1:
             name += f", run {run} of {a.repeats}"
+        if who is not None:
+            name = f"{who}: {name}"
         load = "/".join(f"{x:.1f}" for x in r["load_start"]) + " → " + \
             "/".join(f"{x:.1f}" for x in r["load_end"])
         print(f"{name}: CPU per agent median {_g(r['cpu_median'])} / max {_g(r['cpu_max'])} of a "
@@ -403,7 +476,11 @@ def bench(a) -> tuple:
               f"{_g(min(cpu, default=None))}, highest {_g(max(cpu, default=None))}; wake floors "
               + ", ".join(f"{r['wake_floor_cpu']:.3g}" for r in rs) + "; packet floors "
               + ", ".join(f"{r['packet_floor_cpu']:.2g}" for r in rs))
-    return rows, runs
+    for name, (mine, theirs, ratio, lower) in (
+            (row[0], row[1:]) for row in against_pairs(runs, others)):
+        print(f"{name}: CPU per agent, this tree {mine}, {label} {theirs}; this tree / {label} "
+              f"pair by pair {ratio}; this tree lower in {lower} pairs")
+    return rows, runs, others
 
 
 if __name__ == "__main__":
