@@ -209,6 +209,8 @@ class Peer:
         in the returned int64 array (−1: none yet), in that order, where compiled code that
         takes packets itself (`bridge.swarm.sample_wire.drain_samples`) counts them as
         `_count_seq` does; the rest of this peer reads and moves the same numbers."""
+        if self._seq_slot:
+            raise Se3SyncError("Peer.sequence_array: this peer keeps an array already")
         keys = [tuple(int(x) for x in k) for k in keys]
         arr = np.array([self._last_seq.pop(k, -1) for k in keys], np.int64)
         self._seq_slot = {k: i for i, k in enumerate(keys)}
@@ -365,6 +367,17 @@ class Peer:
         self.counters.received += len(seqs)
         for seq in seqs:
             self._count_seq(sysid, compid, seq)
+
+    def took_counted(self, n: int, dropped: int) -> None:
+        """``n`` unsigned packets were checked and accepted in full by compiled code that also
+        counted their sequence numbers in `sequence_array`'s array, finding ``dropped`` lost
+        (`bridge.mavlink.state_wire.take_states`): what `took` records besides."""
+        if self.key is not None or self.tlog is not None:
+            raise Se3SyncError("Peer.took_counted: only for a link without a key or a tlog")
+        self._pending_seq = self._pending_sig = None
+        self.last_signed = False
+        self.counters.received += n
+        self.counters.dropped += dropped
 
     def take_signed(self, data: bytes, ends, sysid: int, compid: int) -> bool:
         """`took` for signed packets: the packets data[0:ends[0]], data[ends[0]:ends[1]], …

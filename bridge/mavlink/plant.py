@@ -24,8 +24,9 @@ from .link import (DRAIN_BUDGET, IFLAG_SIGNED, Counters, Peer, TLog, UdpSocket, 
                    take_datagram)
 from .signing_state import open_signing_state
 from .state import StateTracker
-from .state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, command_row, pack_command, recv_state,
-                         scan_odometry, wire_to_state_ned)
+from .state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, T_DROPPED, T_READS, T_TAKEN, TAKE_FULL,
+                         TAKE_SCANNED, TAKE_SLOTS, TAKE_STOP, command_row, pack_command,
+                         recv_state, scan_odometry, take_states, wire_to_state_ned)
 from .udp_io import send_all
 from .transport import WIRE, Transport, profiles_for, wire_to_state
 
@@ -108,7 +109,8 @@ STATUS_QUIET_S = 5.0       # a vehicle's repeated fail-safe reports: one line pe
 class _Vehicle:
     __slots__ = ("i", "sysid", "sock", "peer", "tracker", "addr", "hb", "connected", "lost",
                  "t_cmd", "last_buf", "t_sent", "acks", "statustexts", "losses", "recoveries",
-                 "failsafe_reports", "src", "src_t", "others", "status_t", "status_quiet")
+                 "failsafe_reports", "src", "src_t", "others", "status_t", "status_quiet",
+                 "state_seqs", "state_compid")
 
     def __init__(self, i, sysid, sock, peer, tracker):
         self.i, self.sysid, self.sock, self.peer, self.tracker = i, sysid, sock, peer, tracker
@@ -129,6 +131,10 @@ class _Vehicle:
         self.others = {}        # another source claiming this vehicle -> packets refused
         self.status_t = None    # when a fail-safe report was last printed
         self.status_quiet = 0   # reports not printed since
+        # where compiled code takes its states whole (`state_wire.take_states`): the component
+        # its ODOMETRY comes from and that stream's last sequence number (`Peer.sequence_array`)
+        self.state_seqs = None
+        self.state_compid = -1
 
 
 class MavlinkPlant:
@@ -248,6 +254,9 @@ class MavlinkPlant:
         self._scan_row = np.zeros(WIRE)
         self._scan_meta = np.zeros(6, np.int64)
         self._rx_buf = np.zeros(1 << 16, np.uint8)    # `recv_state`'s (a datagram's most)
+        self.taken_states = 0        # states taken whole by compiled code (`take_states`)
+        self._take_tot = np.zeros(TAKE_SLOTS, np.int64)
+        self._no_seqs = np.full(1, -1, np.int64)
         # real time, the commands framed by compiled code and sent by libc on the socket
         # connected to the vehicle (`OutputProfile.compiled_fields`, `state_wire.pack_command`,
         # `udp_io.send_all`; the same bytes; False: `Peer.pack` and the socket's `send` alone,
@@ -381,6 +390,37 @@ class MavlinkPlant:
         sock = self._sock_by_fd.get(fd)
         if sock is None:
             return                # a source socket closed earlier in this poll (a restart)
+        src = sock.connected_to
+        if src is not None and self.compiled_state and not sock.backlog \
+                and fd not in self._settle:
+            v = self._taker(src)
+            if v is not None:
+                self._take_batches(v, fd, src, now, deadline)
+                return
+        on_packet, fast = self._handlers(fd, now)
+        c = self.counters
+        if fast is not None and src is not None and not sock.backlog:
+            self._receive_compiled(sock, src, on_packet, deadline)
+        else:
+            receive_datagrams(sock, c, on_packet, deadline=deadline, fast=fast)
+        while fd in self._settle:
+            # a source socket was opened while this catch-all was read: what its source sent
+            # before lies here, older than anything on the new socket: read it now, so that
+            # the next poll (the vehicles' sockets first) cannot take a newer state first
+            self._settle.discard(fd)
+            receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + 0.05)
+            # …then what reached a new source socket before its connect (`UdpSocket.backlog`:
+            # any vehicle's, each with its own address; its socket will not signal it). Taking
+            # it may open more source sockets: hence the loop
+            for (bfd, _), e in list(self._src_socks.items()):
+                if bfd == fd:
+                    for data, addr in e[0].take_backlog():
+                        take_datagram(data, addr, c, on_packet, fast=fast)
+
+    def _handlers(self, fd: int, now: float) -> tuple:
+        """(on_packet, fast) for the datagrams of socket ``fd`` read at ``now``: the reference
+        path's handler of one frame, and the compiled decoder of a whole state datagram in
+        front of it (None without `compiled_state`)."""
         route = self._route[fd]
         c = self.counters
         alive = self.cfg.link_timeout
@@ -456,27 +496,9 @@ class MavlinkPlant:
                     c.malformed += 1
                 return True
 
-        src = sock.connected_to
-        if fast is not None and src is not None and not sock.backlog:
-            self._receive_compiled(sock, src, keyed, on_packet, deadline)
-        else:
-            receive_datagrams(sock, c, on_packet, deadline=deadline, fast=fast)
-        while fd in self._settle:
-            # a source socket was opened while this catch-all was read: what its source sent
-            # before lies here, older than anything on the new socket: read it now, so that
-            # the next poll (the vehicles' sockets first) cannot take a newer state first
-            self._settle.discard(fd)
-            receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + 0.05)
-            # …then what reached a new source socket before its connect (`UdpSocket.backlog`:
-            # any vehicle's, each with its own address; its socket will not signal it). Taking
-            # it may open more source sockets: hence the loop
-            for (bfd, _), e in list(self._src_socks.items()):
-                if bfd == fd:
-                    for data, addr in e[0].take_backlog():
-                        take_datagram(data, addr, c, on_packet, fast=fast)
+        return on_packet, fast
 
-    def _receive_compiled(self, sock: UdpSocket, addr, keyed: int, on_packet,
-                          deadline: float) -> None:
+    def _receive_compiled(self, sock: UdpSocket, addr, on_packet, deadline: float) -> None:
         """`receive_datagrams` of a source socket (connected: every datagram is from ``addr``)
         with each read and scan one compiled call (`state_wire.recv_state`): the same datagrams
         to the same handlers, counted the same, without a bytes object and address tuple per
@@ -485,6 +507,7 @@ class MavlinkPlant:
         buf = self._rx_buf
         scratch, out, meta = self._scan_scratch, self._scan_row, self._scan_meta
         fd = sock.fileno()
+        keyed = 0 if self.key is None else 1       # (signatures: `Peer.accepted`)
         limit = DRAIN_BUDGET
         while True:
             nb = 0          # datagrams of this batch (its reads: at most limit)
@@ -513,6 +536,102 @@ class MavlinkPlant:
             if time.monotonic() >= deadline:
                 c.drain_capped += 1
                 return
+
+    def _taker(self, addr):
+        """The vehicle whose states from ``addr`` compiled code may take whole
+        (`_take_batches`), or None: the one vehicle coming from there, no key, no tlog, real
+        time."""
+        if self.key is not None:
+            return None
+        if len(self.vehicles) == 1:
+            v = self.vehicles[0]
+            if v.src != addr:
+                return None
+        else:
+            vs = [v for v in self.vehicles if v.src == addr]
+            if len(vs) != 1:
+                return None
+            v = vs[0]
+        tr = v.tracker
+        if v.peer.tlog is not None or tr.max_time_usec is not None or not tr.check_stale:
+            return None
+        return v
+
+    def _take_batches(self, v: _Vehicle, fd: int, addr, now: float, deadline: float) -> None:
+        """`_receive_compiled` of v's source socket ``fd`` (connected to ``addr``) by
+        `state_wire.take_states`: v's states taken whole in compiled code and recorded here as
+        the reference path records them, every other datagram handed to that path in its turn;
+        the same batches, counts and time budget."""
+        c = self.counters
+        tr = v.tracker
+        buf, scratch, out, meta = self._rx_buf, self._scan_scratch, self._scan_row, \
+            self._scan_meta
+        tot = self._take_tot
+        stale_us = tr.stale_after * 1e6
+        limit = DRAIN_BUDGET
+        on_packet = None
+        while True:
+            tot[:] = 0
+            on_packet = self._take_batch(v, fd, addr, now, limit, tot, stale_us, on_packet)
+            nb = int(tot[T_READS])
+            self.read_compiled += nb
+            if nb > c.drain_max:
+                c.drain_max = nb
+            if nb < limit:
+                return
+            if time.monotonic() >= deadline:
+                c.drain_capped += 1
+                return
+
+    def _take_batch(self, v: _Vehicle, fd: int, addr, now: float, limit: int, tot,
+                    stale_us: float, on_packet):
+        """One batch of `_take_batches` (at most ``limit`` reads); returns the reference path's
+        handler if it was needed (made on the first datagram that needs it)."""
+        c = self.counters
+        tr = v.tracker
+        buf, scratch, out, meta = self._rx_buf, self._scan_scratch, self._scan_row, \
+            self._scan_meta
+        while True:
+            # before the tracker has taken an ODOMETRY of its own (and a stream to count), every
+            # state goes the reference path's way (the first ODOMETRY starts the clock)
+            compid = v.state_compid if tr.n_odometry and tr.stamped else -1
+            r = take_states(fd, buf, scratch, out, meta, v.sysid, compid, limit, now, stale_us,
+                            tr.clock, tr.stamp, v.state_seqs if compid >= 0 else self._no_seqs,
+                            tr.wire, tot)
+            if tot[T_TAKEN]:
+                self._took_states(v, addr, now, tot)
+            if r == TAKE_STOP or r == TAKE_FULL:
+                return on_packet
+            data = buf[:meta[5]].tobytes()
+            if on_packet is None:
+                on_packet = self._handlers(fd, now)[0]
+            if r == TAKE_SCANNED:
+                c.datagrams += 1
+                self.scanned_states += 1
+                n0 = tr.n_odometry
+                try:
+                    on_packet(data, addr, out)
+                except Exception:  # noqa: BLE001 - untrusted input never crashes us
+                    c.malformed += 1
+                if v.state_seqs is None and tr.n_odometry > n0:
+                    # the stream this vehicle's states come on, counted in compiled code from now
+                    v.state_compid = int(meta[2])
+                    v.state_seqs = v.peer.sequence_array([(int(meta[1]), v.state_compid)])
+            else:
+                take_datagram(data, addr, c, on_packet)
+
+    def _took_states(self, v: _Vehicle, addr, now: float, tot) -> None:
+        """What the reference path records of each state `take_states` took (tot's counts)."""
+        n, dropped = int(tot[T_TAKEN]), int(tot[T_DROPPED])
+        tot[T_TAKEN] = tot[T_DROPPED] = 0
+        self.counters.datagrams += n
+        self.scanned_states += n
+        self.taken_states += n
+        v.peer.took_counted(n, dropped)
+        v.tracker.took(n, now)
+        self._state_taken(v, now)
+        v.src_t = now
+        self._accepted(v, addr)
 
     def _source_socket(self, v: _Vehicle, old) -> None:
         """Vehicle v's source changed from ``old`` (or None) to ``v.src``: on a udpin endpoint,
@@ -652,22 +771,27 @@ class MavlinkPlant:
         """Services the links for at most ``timeout`` seconds (returns after the first batch)."""
         r, _, _ = select.select(self._fds, [], [], max(0.0, timeout))
         now = time.monotonic()
-        called = []
         deadline = now + self.read_budget_s
         # the vehicles' own sockets first, then the other readers, then the catch-alls (in
         # turn, sharing a smaller budget: junk never delays a vehicle's states)
-        src = [fd for fd in r if fd in self._src_fds]
-        catch = [fd for fd in r if fd in self._route and fd not in self._src_fds]
+        src, catch, called = [], [], []
+        srcs, route, readers = self._src_fds, self._route, self._readers
+        for fd in r:
+            if fd in srcs:
+                src.append(fd)
+            elif fd in route:
+                catch.append(fd)
+            else:
+                cb = readers.get(fd)
+                if cb is not None and cb not in called:   # one reader may own several sockets
+                    called.append(cb)
         if len(catch) > 1:
             self._rr = (self._rr + 1) % len(catch)
             catch = catch[self._rr:] + catch[:self._rr]
         for fd in src:
             self._receive(fd, now, deadline)
-        for fd in r:
-            cb = self._readers.get(fd)
-            if cb is not None and cb not in called:     # one reader may own several sockets
-                called.append(cb)
-                cb()
+        for cb in called:
+            cb()
         if catch:
             junk_deadline = min(max(deadline, time.monotonic()), time.monotonic() + self.junk_budget_s)
             for fd in catch:

@@ -39,6 +39,11 @@ REBOOT_JUMP_US = 10_000_000
 REBOOT_STATES = 3
 FUTURE_US = 1_000_000
 OFFSET_WINDOW_S = 1.0
+# `StateTracker.clock`'s slots: the offset (the last whole window's minimum of arrival − vehicle
+# time, lowered by any smaller one since), this window's minimum, and when this window began
+# (time.monotonic())
+C_OFFSET, C_MIN, C_START = range(3)
+CLOCK_SLOTS = 3
 
 ID_ODOMETRY = mavlink2.MAVLINK_MSG_ID_ODOMETRY
 ID_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
@@ -62,11 +67,14 @@ class StateTracker:
         self.check_stale = check_stale
         self.wire = np.zeros(WIRE)
         self.have = False
-        self.time_usec = None         # vehicle time of the latest accepted state
+        # the time checks' state, kept in arrays that compiled code reads and moves too
+        # (`state_wire.take_states`); None is NaN in ``clock`` and ``stamped`` False for the stamp
+        self.clock = np.full(CLOCK_SLOTS, np.nan)   # offset, the window's minimum, its start
+        self.stamp = np.zeros(1, np.uint64)         # time_usec (the wire's uint64)
+        self.stamped = False
         self.t_arrival = None         # our wall time (time.monotonic()) of the latest accepted state
         self.n_states = 0
         self.n_odometry = 0
-        self.offset = None            # min(arrival − vehicle time), µs
         self.source = None            # "odometry" | "fallback"
         self._att = None              # (time_boot_ms, q(4), rates(3))
         self._pos = None              # (time_boot_ms, p(3), v_ned(3))
@@ -74,19 +82,45 @@ class StateTracker:
         self.reboots = 0
         self.max_time_usec = None     # lockstep: the stamp of the step being waited for
         self._back = None             # (newest far-back stamp, run length): a reboot's evidence
-        self._win = [None, None, None]   # min(arrival − vehicle time) this window, the last one, start
+
+    @property
+    def time_usec(self) -> int | None:
+        """Vehicle time of the latest accepted state (µs), None before any."""
+        return int(self.stamp[0]) if self.stamped else None
+
+    @time_usec.setter
+    def time_usec(self, t) -> None:
+        self.stamped = t is not None
+        self.stamp[0] = 0 if t is None else t
+
+    def _slot(self, i: int) -> float | None:
+        v = float(self.clock[i])
+        return None if v != v else v
+
+    def _set(self, i: int, v) -> None:
+        self.clock[i] = np.nan if v is None else v
+
+    @property
+    def offset(self) -> float | None:
+        """min(arrival − vehicle time) over the last whole window, µs (None: unknown)."""
+        return self._slot(C_OFFSET)
+
+    @offset.setter
+    def offset(self, v) -> None:
+        self._set(C_OFFSET, v)
 
     def reset_clock(self):
         self.time_usec = None
-        self.offset = None
-        self._win = [None, None, None]
+        self.clock[:] = np.nan
 
     def _roll(self, t_wall: float) -> None:
-        w = self._win
-        if w[2] is None or t_wall - w[2] >= OFFSET_WINDOW_S:
-            w[0], w[1], w[2] = None, (w[0] if w[2] is not None and t_wall - w[2] < 2 * OFFSET_WINDOW_S
-                                      else None), t_wall
-            self.offset = w[1]
+        start = self._slot(C_START)
+        if start is None or t_wall - start >= OFFSET_WINDOW_S:
+            last = self._slot(C_MIN) if start is not None and t_wall - start < 2 * OFFSET_WINDOW_S \
+                else None
+            self._set(C_MIN, None)
+            self._set(C_START, t_wall)
+            self.offset = last
 
     def _time_ok(self, t_us: int, t_wall: float) -> bool:
         if self.max_time_usec is not None and t_us > self.max_time_usec:
@@ -118,14 +152,15 @@ class StateTracker:
                     self._roll(t_wall)
         self._back = None
         if self.check_stale:
-            w = self._win
-            if self.offset is None or d < self.offset:
+            off = self.offset
+            if off is None or d < off:
                 self.offset = d
-            elif d - self.offset > self.stale_after * 1e6:
+            elif d - off > self.stale_after * 1e6:
                 self.c.reject("stale")
                 return False
-            if w[0] is None or d < w[0]:
-                w[0] = d
+            w = self._slot(C_MIN)
+            if w is None or d < w:
+                self._set(C_MIN, d)
         return True
 
     def _accept(self, vals, t_us, t_wall, source) -> bool:
@@ -149,6 +184,17 @@ class StateTracker:
         self.n_states += 1
         self.source = source
         return True
+
+    def took(self, n: int, t_wall: float) -> None:
+        """``n`` ODOMETRY states, each newer than the one before, were taken at ``t_wall`` by
+        compiled code that made this tracker's checks and moved its arrays (``wire``, ``clock``,
+        ``stamp``: `state_wire.take_states`): the rest of what `on_odometry_row` records."""
+        self.n_states += n
+        self.n_odometry += n
+        self.t_arrival = t_wall
+        self.have = True
+        self.source = "odometry"
+        self._back = None
 
     def on_odometry(self, m, t_wall: float) -> bool:
         vals = [m.x, m.y, m.z, *m.q, m.rollspeed, m.pitchspeed, m.yawspeed, m.vx, m.vy, m.vz]

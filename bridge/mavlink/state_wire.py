@@ -26,12 +26,14 @@ from controller.jit import jit
 from controller.layout import S_R
 
 from . import codec
-from .state import QUAT_TOL
+from .state import C_MIN, C_OFFSET, C_START, FUTURE_US, OFFSET_WINDOW_S, QUAT_TOL
 from .udp_io import (EAGAIN, ECONNREFUSED, EINTR, EWOULDBLOCK, MSG_DONTWAIT, errno, recv,
                      send_all)
 
-__all__ = ["scan_odometry", "recv_state", "wire_to_state_ned", "pack_command", "command_row",
-           "QUAT_MARGIN", "ODOMETRY_SIZE", "COMMAND_BYTES"]
+__all__ = ["scan_odometry", "recv_state", "take_states", "wire_to_state_ned", "pack_command",
+           "command_row", "QUAT_MARGIN", "ODOMETRY_SIZE", "COMMAND_BYTES", "TAKE_STOP",
+           "TAKE_FULL", "TAKE_SCANNED", "TAKE_OTHER", "T_ITER", "T_READS", "T_TAKEN",
+           "T_DROPPED", "TAKE_SLOTS"]
 
 MAGIC = 0xFD
 SIG_LEN = 13
@@ -171,6 +173,77 @@ def recv_state(fd, buf, signed, scratch, out, meta):
         return 0 if e == EAGAIN or e == EWOULDBLOCK else -1
     meta[5] = r
     return 1 if scan_odometry(buf, r, signed, scratch, out, meta) else 2
+
+# `take_states`: what ended the call …
+TAKE_STOP, TAKE_FULL, TAKE_SCANNED, TAKE_OTHER = 0, 1, 2, 3
+# … and its counts (int64): reads of the batch (as `recv_state`'s loop in the plant counts
+# them), datagrams of the batch, states taken and sequence gaps counted since the caller last
+# took them over
+T_ITER, T_READS, T_TAKEN, T_DROPPED = range(4)
+TAKE_SLOTS = 4
+
+
+@jit(error_model="python")
+def take_states(fd, buf, scratch, out, meta, sysid, compid, limit, now, stale_us, clock, stamp,
+                seqs, wire, tot):
+    """A real-time vehicle's states read from its connected socket ``fd`` and taken whole, the
+    common case of `bridge.mavlink.plant`'s receive path: `recv_state` (unsigned), then, for an
+    ODOMETRY from (``sysid``, ``compid``) that `bridge.mavlink.state.StateTracker` would take
+    (its time checks on ``clock`` and ``stamp``, the tracker's own arrays, at wall time ``now``;
+    ``stale_us``: its stale_after·1e6), what the tracker and the link record: the wire row into
+    ``wire``, the clock and stamp moved, the sequence number counted in ``seqs[0]`` (the peer's
+    `sequence_array`, −1: none yet) as `Peer.commit` counts it, tot[T_TAKEN] and tot[T_DROPPED]
+    added to. Anything else the reference path decides, with every refusal: the call returns
+    TAKE_SCANNED (a scanned ODOMETRY in buf, ``out`` and ``meta`` as `recv_state` leaves them)
+    or TAKE_OTHER (any other datagram) with nothing of it recorded, TAKE_STOP when the socket
+    is empty (or failed), TAKE_FULL after ``limit`` reads of the batch (tot[T_ITER])."""
+    while tot[T_ITER] < limit:
+        r = recv_state(fd, buf, 0, scratch, out, meta)
+        if r == 0 or r == -1:
+            return TAKE_STOP
+        tot[T_ITER] += 1
+        if r == -2:
+            continue
+        tot[T_READS] += 1
+        if r == 2:
+            return TAKE_OTHER
+        if meta[1] != sysid or meta[2] != compid:
+            return TAKE_SCANNED
+        t = meta[3]
+        # `StateTracker._time_ok` (real time) on copies, kept only if the state is taken
+        off = clock[C_OFFSET]
+        low = clock[C_MIN]
+        start = clock[C_START]
+        if np.isnan(start) or now - start >= OFFSET_WINDOW_S:
+            off = low if not np.isnan(start) and now - start < 2 * OFFSET_WINDOW_S else np.nan
+            low = np.nan
+            start = now
+        d = now * 1e6 - np.float64(t)
+        if not np.isnan(off) and d < off - FUTURE_US:
+            return TAKE_SCANNED
+        if np.uint64(t) <= stamp[0]:
+            return TAKE_SCANNED           # a repeat, out of order, or a reboot's
+        if np.isnan(off) or d < off:
+            off = d
+        elif d - off > stale_us:
+            return TAKE_SCANNED
+        if np.isnan(low) or d < low:
+            low = d
+        clock[C_OFFSET] = off
+        clock[C_MIN] = low
+        clock[C_START] = start
+        stamp[0] = np.uint64(t)
+        for k in range(13):
+            wire[k] = out[k]
+        seq = meta[0]
+        if seqs[0] >= 0:
+            gap = (seq - seqs[0] - 1) & 0xFF
+            if gap < 128:       # larger "gaps" are duplicates or reordering (`Peer._count_seq`)
+                tot[T_DROPPED] += gap
+        seqs[0] = seq
+        tot[T_TAKEN] += 1
+    return TAKE_FULL
+
 
 @jit(error_model="python")
 def pack_command(buf, t_us, c0, c1, c2, c3, c4, c5, group_mlx, target_system, target_component,

@@ -64,6 +64,9 @@ EXPORTS = {
                       "i8[::1])"),
     "recv_state": ("bridge.mavlink.state_wire",
                    "i8(i8, u1[::1], i8, u1[::1], f8[::1], i8[::1])"),
+    "take_states": ("bridge.mavlink.state_wire",
+                    "i8(i8, u1[::1], u1[::1], f8[::1], i8[::1], i8, i8, i8, f8, f8, f8[::1], "
+                    "u8[::1], i8[::1], f8[::1], i8[::1])"),
     "wire_to_state_ned": ("bridge.mavlink.state_wire", "void(f8[:, ::1], f8[:, ::1])"),
     "age_rules": ("bridge.swarm.sample_wire",
                   "i8(i8, i8[::1], i8, i8, i8, i8[::1], i8[::1], i8[::1], i8[:, ::1], "

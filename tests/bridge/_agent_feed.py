@@ -259,7 +259,8 @@ def run_feed(agent: int, steps: int, *, law: str = "hybrid", lockstep: bool = Fa
                      "own_final_theta": node.theta_owned, "compiled": node.compiled,
                      "scanned": node.link.scanned, "link": _link_counts(st["agent_link"]),
                      "vehicle_compiled": (node.vehicle.read_compiled,
-                                          node.vehicle.packed_commands)},
+                                          node.vehicle.packed_commands,
+                                          node.vehicle.taken_states)},
             "events": [e for e in events if e.startswith(("fail-safe", "rejoined"))],
             "sent": sent,
         }

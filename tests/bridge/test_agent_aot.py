@@ -322,6 +322,52 @@ def test_recv_state_equals_the_jit(ahead):
         b.close()
 
 
+def test_take_states_equals_the_jit(ahead):
+    """A vehicle's states taken whole: each datagram read by one and then the other (the same
+    bytes sent twice) from the same tracker arrays at the same wall time, which then move as
+    the JIT moved them: taken, handed on (scanned or not), late and early."""
+    from test_state_wire import _Vehicle
+
+    from bridge.mavlink.state_wire import (ODOMETRY_SIZE, TAKE_FULL, TAKE_OTHER, TAKE_SCANNED,
+                                           TAKE_SLOTS, take_states)
+
+    rng = np.random.default_rng(61)
+    veh = _Vehicle(rng)
+    a, b = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    try:
+        for s in (a, b):
+            s.bind(("127.0.0.1", 0))
+        a.connect(b.getsockname())
+        b.connect(a.getsockname())
+        b.setblocking(False)
+        codes = set()
+        mine = [np.full(3, np.nan), np.zeros(1, np.uint64), np.full(1, -1, np.int64),
+                np.zeros(13)]
+        now = 3000.0
+        for n in range(300):
+            now += 0.004 + float(rng.choice([0.0, 0.0, 0.0, 0.2, 1.5]))
+            data = veh.honest(n) if n % 3 else veh.irregular(n)
+            a.send(data)
+            a.send(data)
+            time.sleep(0.0005)
+            args = (b.fileno(), np.zeros(1 << 16, np.uint8), np.zeros(ODOMETRY_SIZE, np.uint8),
+                    np.zeros(13), np.zeros(6, np.int64), 1, 1, 1, now, 5e4, *mine,
+                    np.zeros(TAKE_SLOTS, np.int64))
+            a1 = [x.copy() if isinstance(x, np.ndarray) else x for x in args]
+            a2 = [x.copy() if isinstance(x, np.ndarray) else x for x in args]
+            r1, r2 = take_states(*a1), ahead.take_states(*a2)
+            assert r1 == r2, n
+            for k, (x, y) in enumerate(zip(a1, a2)):
+                if isinstance(x, np.ndarray):
+                    _same(x, y, f"take_states {n}: argument {k}")
+            codes.add(r1)
+            mine = a1[10:14]
+        assert {TAKE_FULL, TAKE_SCANNED, TAKE_OTHER} <= codes
+    finally:
+        a.close()
+        b.close()
+
+
 def test_pack_command_equals_the_jit(ahead):
     from bridge.mavlink.state_wire import COMMAND_BYTES, pack_command
 

@@ -32,9 +32,12 @@ def assert_identical(ref: dict, new: dict, lockstep: bool) -> None:
     assert new["node"].pop("scanned") == (0 if lockstep else sum(new["sent"]["samples"].values()))
     # the vehicle's link: its reference paths, and (real time) the state read and the command
     # sent by compiled code (bridge/mavlink/state_wire.py)
-    assert ref["node"].pop("vehicle_compiled") == (0, 0)
-    reads, commands = new["node"].pop("vehicle_compiled")
+    assert ref["node"].pop("vehicle_compiled") == (0, 0, 0)
+    reads, commands, taken = new["node"].pop("vehicle_compiled")
     assert (reads > 0 and commands >= STEPS) or (lockstep and commands == 0)
+    # real time, most states taken whole (`take_states`): all but the first, and the ones the
+    # reference path decided
+    assert taken > STEPS // 2 or (lockstep and taken == 0)
     assert len(ref["steps"]) == len(new["steps"]) == STEPS
     for n, (a, b) in enumerate(zip(ref["steps"], new["steps"])):
         for f in ARRAYS:

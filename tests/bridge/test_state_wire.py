@@ -131,10 +131,12 @@ def test_compiled_state_path_equals_the_reference(key):
         veh = _Vehicle(rng, key)
         sent = 0
         for n in range(400):
-            data = veh.honest(n) if rng.random() < 0.5 else veh.irregular(n)
-            for s, addr in tx:
-                s.sendto(data, addr)
-            sent += 1
+            # one datagram, or a few before the next poll (read in one batch)
+            for _ in range(1 if rng.random() < 0.6 else int(rng.integers(2, 5))):
+                data = veh.honest(n) if rng.random() < 0.5 else veh.irregular(n)
+                for s, addr in tx:
+                    s.sendto(data, addr)
+                sent += 1
             for p in plants:
                 end = time.monotonic() + 5.0
                 while p.counters.datagrams < sent and time.monotonic() < end:
@@ -143,6 +145,10 @@ def test_compiled_state_path_equals_the_reference(key):
         comp, ref = plants
         assert comp.scanned_states > 150 and ref.scanned_states == 0
         assert comp.read_compiled > 150 and ref.read_compiled == 0
+        # without a key the states were taken whole in compiled code (`take_states`), but for
+        # the first and the ones the reference path decided
+        assert (comp.taken_states > 100) if key is None else comp.taken_states == 0
+        assert ref.taken_states == 0
         st = ref.counters.as_dict()
         assert st["malformed"] > 0 and {"out_of_order", "future", "nan", "non_unit_quaternion",
                                         "bad_frame", "wrong_system"} <= set(st["rejected_by_reason"])
@@ -229,6 +235,113 @@ def test_recv_state_reads_what_the_socket_holds():
         assert recv_state(b.fileno(), buf, 0, scratch, out, meta) == -2
         assert recv_state(b.fileno(), buf, 0, scratch, out, meta) == 0
         assert recv_state(-1, buf, 0, scratch, out, meta) == -1      # EBADF: stop
+    finally:
+        a.close()
+        b.close()
+
+
+def _tracker_state(tr, peer):
+    return (tr.clock.tobytes(), tr.stamp.tobytes(), tr.stamped, tr.wire.tobytes(), tr.n_states,
+            tr.n_odometry, tr.have, tr.source, tr.duplicates, tr.reboots, tr._back, tr.t_arrival,
+            peer.counters.as_dict(), peer.sequences(), peer.last_signed)
+
+
+def test_take_states_equals_the_trackers_checks():
+    """`take_states` (a real-time vehicle's states taken whole in compiled code) against the
+    reference path (`Peer.accepted`, `StateTracker.on_odometry_row`, `Peer.commit`) on the same
+    datagrams at the same wall times: after every batch the same clock, stamp, wire row and
+    counts, bit for bit. The datagrams stream at 250 Hz with late arrivals (stale), repeats,
+    older states, states far in the future, reboots (runs far back), lost sequence numbers,
+    pauses that roll the offset's window once or twice, and datagrams of other kinds."""
+    from bridge.mavlink.state import StateTracker
+    from bridge.mavlink.state_wire import (T_DROPPED, T_TAKEN, TAKE_FULL, TAKE_OTHER,
+                                           TAKE_SCANNED, TAKE_SLOTS, TAKE_STOP, take_states)
+
+    rng = np.random.default_rng(59)
+    veh = _Vehicle(rng)
+    a, b = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    sides = []
+    for _ in range(2):
+        c = Counters()
+        sides.append((StateTracker(c, stale_after=0.05), Peer(255, 190, c)))
+    (tr_c, peer_c), (tr_r, peer_r) = sides
+    seqs = peer_c.sequence_array([(1, 1)])
+    buf, scratch = np.zeros(1 << 16, np.uint8), np.zeros(ODOMETRY_SIZE, np.uint8)
+    out, meta, tot = np.zeros(13), np.zeros(6, np.int64), np.zeros(TAKE_SLOTS, np.int64)
+    ends = dict.fromkeys(("taken", "scanned", "other", "full"), 0)
+
+    def reference(tr, peer, data, now):
+        if not scan_odometry(np.frombuffer(data, np.uint8), len(data), 0, scratch, out, meta):
+            return              # not a state the row path takes: both sides' glue skips it
+        seq, sysid, compid, t_us, _, _ = meta.tolist()
+        if peer.accepted(data, seq, sysid, compid) and tr.on_odometry_row(out, t_us, now):
+            peer.commit()
+
+    try:
+        for s in (a, b):
+            s.bind(("127.0.0.1", 0))
+        a.connect(b.getsockname())
+        b.connect(a.getsockname())
+        b.setblocking(False)
+        t_v, now = veh.t0, 5000.0       # the vehicle's clock (µs) and ours (s)
+        for n in range(1500):
+            t_v += H_US
+            now += H_US * 1e-6 + float(rng.uniform(0, 3e-4))
+            kind = int(rng.integers(40))
+            if kind == 0:                            # a pause: one window rolls, or two
+                gap = float(rng.choice([1.2, 2.5]))
+                t_v += int(gap * 1e6)
+                now += gap
+            batch = [_odometry(veh.peer, t_v, rng)]
+            t = now
+            if kind == 1:                            # late: stale against the offset
+                t += float(rng.uniform(0.06, 0.3))
+            elif kind == 2:
+                batch.append(batch[0])               # the same datagram again
+            elif kind == 3:                          # an older state
+                batch.append(_odometry(veh.peer, t_v - 2 * H_US, rng))
+            elif kind == 4:                          # in the future, beyond the bound
+                ahead = int(rng.choice([1_500_000, 5_000_000]))
+                batch.insert(0, _odometry(veh.peer, t_v + ahead, rng))
+            elif kind == 5:                          # a reboot: states far back, newer each
+                t_v -= 20_000_000
+                batch = [_odometry(veh.peer, t_v + k * H_US, rng) for k in range(4)]
+                t_v += 3 * H_US
+            elif kind == 6:                          # lost sequence numbers
+                veh.peer.mav.seq = (veh.peer.mav.seq + int(rng.integers(1, 5))) & 0xFF
+            elif kind == 7:                          # another kind of datagram
+                batch.append(veh.irregular(n))
+            for d in batch:
+                a.send(d)
+            time.sleep(0.0005)
+            # compiled, with the plant's glue (`MavlinkPlant._take_states`)
+            tot[:] = 0
+            while True:
+                compid = 1 if tr_c.n_odometry and tr_c.stamped else -1
+                r = take_states(b.fileno(), buf, scratch, out, meta, 1, compid, 3, t,
+                                tr_c.stale_after * 1e6, tr_c.clock, tr_c.stamp, seqs, tr_c.wire,
+                                tot)
+                if tot[T_TAKEN]:
+                    ends["taken"] += int(tot[T_TAKEN])
+                    peer_c.took_counted(int(tot[T_TAKEN]), int(tot[T_DROPPED]))
+                    tr_c.took(int(tot[T_TAKEN]), t)
+                    tot[T_TAKEN] = tot[T_DROPPED] = 0
+                if r == TAKE_STOP:
+                    break
+                if r == TAKE_FULL:
+                    ends["full"] += 1
+                    tot[:] = 0
+                    continue
+                ends["scanned" if r == TAKE_SCANNED else "other"] += 1
+                assert r in (TAKE_SCANNED, TAKE_OTHER)
+                reference(tr_c, peer_c, bytes(buf[:meta[5]]), t)
+            for d in batch:
+                reference(tr_r, peer_r, d, t)
+            assert _tracker_state(tr_c, peer_c) == _tracker_state(tr_r, peer_r), n
+        rej = peer_r.counters.as_dict()["rejected_by_reason"]
+        assert {"stale", "future", "out_of_order"} <= set(rej), rej
+        assert tr_r.reboots >= 3 and tr_r.duplicates > 10 and peer_r.counters.dropped > 10
+        assert ends["taken"] > 1000 and min(ends.values()) > 0, ends
     finally:
         a.close()
         b.close()
