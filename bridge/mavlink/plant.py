@@ -267,6 +267,9 @@ class MavlinkPlant:
         self._cmd_f32 = np.zeros(8, np.float32)
         self._cmd_fd = np.zeros(1, np.int64)
         self._cmd_ok = np.zeros(1, np.int64)
+        self._cmd_key = None         # (v.addr, v.src, _socks_moved) that `_cmd_fd_now` is for
+        self._cmd_fd_now = -1
+        self._socks_moved = 0        # source sockets opened or closed so far
         self._fused = False          # `_fused_command`'s, once asked
         self._readers: dict = {}     # other sockets serviced while waiting: fd -> callback()
         self._refresh_fds()
@@ -569,10 +572,37 @@ class MavlinkPlant:
         tot = self._take_tot
         stale_us = tr.stale_after * 1e6
         limit = DRAIN_BUDGET
-        on_packet = None
+        on_packet = None          # the reference path's handler, made when first needed
         while True:
             tot[:] = 0
-            on_packet = self._take_batch(v, fd, addr, now, limit, tot, stale_us, on_packet)
+            while True:           # a batch: at most limit reads
+                # before the tracker has taken an ODOMETRY of its own (and a stream to count),
+                # every state goes the reference path's way (the first one starts the clock)
+                compid = v.state_compid if tr.n_odometry and tr.stamped else -1
+                r = take_states(fd, buf, scratch, out, meta, v.sysid, compid, limit, now,
+                                stale_us, tr.clock, tr.stamp,
+                                v.state_seqs if compid >= 0 else self._no_seqs, tr.wire, tot)
+                if tot[T_TAKEN]:
+                    self._took_states(v, addr, now, tot)
+                if r == TAKE_STOP or r == TAKE_FULL:
+                    break
+                data = buf[:meta[5]].tobytes()
+                if on_packet is None:
+                    on_packet = self._handlers(fd, now)[0]
+                if r != TAKE_SCANNED:
+                    take_datagram(data, addr, c, on_packet)
+                    continue
+                c.datagrams += 1
+                self.scanned_states += 1
+                n0 = tr.n_odometry
+                try:
+                    on_packet(data, addr, out)
+                except Exception:  # noqa: BLE001 - untrusted input never crashes us
+                    c.malformed += 1
+                if v.state_seqs is None and tr.n_odometry > n0:
+                    # the stream this vehicle's states come on, counted in compiled code now on
+                    v.state_compid = int(meta[2])
+                    v.state_seqs = v.peer.sequence_array([(int(meta[1]), v.state_compid)])
             nb = int(tot[T_READS])
             self.read_compiled += nb
             if nb > c.drain_max:
@@ -582,43 +612,6 @@ class MavlinkPlant:
             if time.monotonic() >= deadline:
                 c.drain_capped += 1
                 return
-
-    def _take_batch(self, v: _Vehicle, fd: int, addr, now: float, limit: int, tot,
-                    stale_us: float, on_packet):
-        """One batch of `_take_batches` (at most ``limit`` reads); returns the reference path's
-        handler if it was needed (made on the first datagram that needs it)."""
-        c = self.counters
-        tr = v.tracker
-        buf, scratch, out, meta = self._rx_buf, self._scan_scratch, self._scan_row, \
-            self._scan_meta
-        while True:
-            # before the tracker has taken an ODOMETRY of its own (and a stream to count), every
-            # state goes the reference path's way (the first ODOMETRY starts the clock)
-            compid = v.state_compid if tr.n_odometry and tr.stamped else -1
-            r = take_states(fd, buf, scratch, out, meta, v.sysid, compid, limit, now, stale_us,
-                            tr.clock, tr.stamp, v.state_seqs if compid >= 0 else self._no_seqs,
-                            tr.wire, tot)
-            if tot[T_TAKEN]:
-                self._took_states(v, addr, now, tot)
-            if r == TAKE_STOP or r == TAKE_FULL:
-                return on_packet
-            data = buf[:meta[5]].tobytes()
-            if on_packet is None:
-                on_packet = self._handlers(fd, now)[0]
-            if r == TAKE_SCANNED:
-                c.datagrams += 1
-                self.scanned_states += 1
-                n0 = tr.n_odometry
-                try:
-                    on_packet(data, addr, out)
-                except Exception:  # noqa: BLE001 - untrusted input never crashes us
-                    c.malformed += 1
-                if v.state_seqs is None and tr.n_odometry > n0:
-                    # the stream this vehicle's states come on, counted in compiled code from now
-                    v.state_compid = int(meta[2])
-                    v.state_seqs = v.peer.sequence_array([(int(meta[1]), v.state_compid)])
-            else:
-                take_datagram(data, addr, c, on_packet)
 
     def _took_states(self, v: _Vehicle, addr, now: float, tot) -> None:
         """What the reference path records of each state `take_states` took (tot's counts)."""
@@ -657,6 +650,7 @@ class MavlinkPlant:
                 self.source_socket_errors += 1    # it stays on the catch-all (still checked)
                 return
             fd = s.fileno()
+            self._socks_moved += 1
             self._sock_by_fd[fd] = s
             self._route[fd] = self._route[bfd]
             self._src_fds.add(fd)
@@ -667,6 +661,7 @@ class MavlinkPlant:
 
     def _forget(self, s: UdpSocket) -> None:
         fd = s.fileno()
+        self._socks_moved += 1
         self._dead_drops += s.kernel_drops() or 0
         for d in (self._sock_by_fd, self._route):
             d.pop(fd, None)
@@ -970,8 +965,11 @@ class MavlinkPlant:
         v = self.vehicles[0]
         tr = self.transport
         mav = v.peer.mav
-        fd = self._connected_fd(v) if v.addr is not None else -1
-        self._cmd_fd[0] = fd
+        key = (v.addr, v.src, self._socks_moved)
+        if key != self._cmd_key:     # where the command goes changed (or never asked)
+            self._cmd_key = key
+            self._cmd_fd_now = self._connected_fd(v) if v.addr is not None else -1
+        self._cmd_fd[0] = fd = self._cmd_fd_now
         f = self.profiles[0].compiled_fields(ZERO_CONTROLS, target=v.sysid, k=self.k,
                                              lockstep=False)
         n = command_row(np.asarray(u, dtype=np.float64).reshape(6), S, mw, enu, gc, mass, g,

@@ -245,7 +245,8 @@ class AgentNode:
         self.failsafe_entries = 0
         self.hold_steps = 0
         self.transitions: list = []        # (step, neighbour, new verdict of the age rule)
-        self.used: dict = {j: (None, None) for j in self.neighbours}   # (sample step, age)
+        self.used = {j: (None, None) for j in self.neighbours}   # (sample step, age)
+        self._last_verdicts = [0] * len(self.neighbours)   # (`VERDICTS` indices)
         self.own_samples: list = []
         self.compiled = bool(compiled) and type(self.stepper) is AgentStepper
         self._held_values = None
@@ -293,6 +294,23 @@ class AgentNode:
         self._pub = {k: 0.0 for k in self.owned}     # θ after the jump, as published
 
     # ------------------------------------------------------------------ set-up
+    @property
+    def used(self) -> dict:
+        """{neighbour: (step of the sample the last step used, None: none yet; its age in
+        steps)}. The compiled step keeps it as the link's arrays were at that step (made into
+        this dict when asked: the log asks at its records, not at every step)."""
+        snap = self._used_at
+        if snap is None:
+            return self._used
+        n, steps, ages = snap
+        return {j: (None, n) if s < 0 else (s, a)
+                for j, s, a in zip(self.neighbours, steps, ages)}
+
+    @used.setter
+    def used(self, d: dict) -> None:
+        self._used = d
+        self._used_at = None
+
     @property
     def k(self) -> int:
         """Steps done by this process."""
@@ -563,22 +581,22 @@ class AgentNode:
         if self._held_values is not None:
             # the link's arrays: the age rule and the held θ in one compiled call
             ages = link.age_rules(n, self._verdict, mode, rx, self._rx_index).tolist()
-            state = self._state
-            used = self.used
-            for j, v, s, age in zip(self.neighbours, self._verdict.tolist(),
-                                    link.held_steps.tolist(), ages):
-                used[j] = (None, n) if s < 0 else (s, age)
-                if v:
-                    if v == 2:
-                        fs = True
-                    else:
-                        hold = True
-                m = VERDICTS[v]
-                if m != state[j]:
-                    state[j] = m
-                    self.transitions.append((n, j, m))
-                    if len(self.transitions) > 1000:
-                        del self.transitions[:500]
+            self._used_at = (n, link.held_steps.tolist(), ages)
+            vs = self._verdict.tolist()
+            if vs != self._last_verdicts:      # a neighbour's verdict changed
+                state = self._state
+                for j, v in zip(self.neighbours, vs):
+                    m = VERDICTS[v]
+                    if m != state[j]:
+                        state[j] = m
+                        self.transitions.append((n, j, m))
+                        if len(self.transitions) > 1000:
+                            del self.transitions[:500]
+                self._last_verdicts = vs
+            if 2 in vs:
+                fs = True
+            if 1 in vs:
+                hold = True
         elif not self.lockstep:
             state = self._state
             q = 0
@@ -718,8 +736,9 @@ def _agent_logger(path, node: AgentNode, extra_metadata: dict, encoding: str = "
                 return McapLogger.record(self, t_ns, S, u, theta, mu, jumped, rot_err, pos_err,
                                          U, quat, V, kX_U)
             nb = []
+            used = node.used
             for j in node.neighbours:
-                s, age = node.used[j]
+                s, age = used[j]
                 nb.append({"agent": j, "sample_step": s, "age_steps": age,
                            "state": node._state[j]})
             self._block.append((t_ns, np.array(S), np.array(u), np.array(theta), np.array(mu),
