@@ -269,7 +269,8 @@ class MavlinkPlant:
         self._cmd_ok = np.zeros(1, np.int64)
         self._cmd_key = None         # (v.addr, v.src, _socks_moved) that `_cmd_fd_now` is for
         self._cmd_fd_now = -1
-        self._socks_moved = 0        # source sockets opened or closed so far
+        self._socks_moved = 0        # vehicles' sources moved and sockets closed so far
+        self._takers: dict = {}      # `_taker`'s answers: addr -> (_socks_moved, vehicle)
         self._fused = False          # `_fused_command`'s, once asked
         self._readers: dict = {}     # other sockets serviced while waiting: fd -> callback()
         self._refresh_fds()
@@ -551,10 +552,14 @@ class MavlinkPlant:
             if v.src != addr:
                 return None
         else:
-            vs = [v for v in self.vehicles if v.src == addr]
-            if len(vs) != 1:
+            # which vehicle comes from addr changes only when a source moves: asked again then
+            hit = self._takers.get(addr)
+            if hit is None or hit[0] != self._socks_moved:
+                vs = [v for v in self.vehicles if v.src == addr]
+                hit = self._takers[addr] = (self._socks_moved, vs[0] if len(vs) == 1 else None)
+            v = hit[1]
+            if v is None:
                 return None
-            v = vs[0]
         tr = v.tracker
         if v.peer.tlog is not None or tr.max_time_usec is not None or not tr.check_stale:
             return None
@@ -630,6 +635,7 @@ class MavlinkPlant:
         """Vehicle v's source changed from ``old`` (or None) to ``v.src``: on a udpin endpoint,
         the socket connected to its new source (shared by the vehicles that come from that
         address, e.g. behind a router); the old one is closed when no vehicle uses it."""
+        self._socks_moved += 1
         base = v.sock
         if base.mode != "udpin":
             return                # udpout: the socket is connected to the vehicle already
@@ -650,7 +656,6 @@ class MavlinkPlant:
                 self.source_socket_errors += 1    # it stays on the catch-all (still checked)
                 return
             fd = s.fileno()
-            self._socks_moved += 1
             self._sock_by_fd[fd] = s
             self._route[fd] = self._route[bfd]
             self._src_fds.add(fd)
