@@ -347,6 +347,37 @@ def test_take_states_equals_the_trackers_checks():
         b.close()
 
 
+def test_counts_taken_in_compiled_code_stay_one_set():
+    """The peer's sequence numbers kept in an array (`Peer.sequence_array`) move with `commit`
+    as compiled code moves them; a second array would split them, and is refused. What compiled
+    code counted is recorded by `took_counted`, which only an unsigned link without a tlog has."""
+    from controller.errors import Se3SyncError
+
+    c = Counters()
+    peer = Peer(255, 190, c)
+    src = Peer(1, 1, Counters())
+
+    def take(seq):
+        src.mav.seq = seq
+        d = bytes(src.pack(src.mav.heartbeat_encode(2, 0, 0, 0, 4)))
+        assert peer.accepted(d, d[4], 1, 1)
+        peer.commit()
+
+    take(10)
+    take(11)
+    seqs = peer.sequence_array([(1, 1)])
+    assert seqs.tolist() == [11] and peer.sequences() == {(1, 1): 11}
+    seqs[0] = 14                 # compiled code took sequence 14: 12 and 13 lost
+    peer.took_counted(1, 2)
+    assert (c.received, c.dropped) == (3, 2) and peer.sequences() == {(1, 1): 14}
+    take(17)                     # counted against the array's 14: 15 and 16 lost
+    assert seqs[0] == 17 and (c.received, c.dropped) == (4, 4)
+    with pytest.raises(Se3SyncError, match="keeps an array already"):
+        peer.sequence_array([(2, 1)])
+    with pytest.raises(Se3SyncError, match="without a key"):
+        Peer(255, 190, Counters(), key=KEY).took_counted(1, 0)
+
+
 @pytest.mark.parametrize("signed", [False, True])
 def test_pack_command_is_pymavlinks_bytes(signed):
     """Random controls, times, ids and sequence numbers (zeros at the end dropped as MAVLink 2
