@@ -561,6 +561,10 @@ def take_datagram(data, addr, counters, on_packet, accept_from=None, fast=None) 
 # connect.
 _SO_ATTACH_REUSEPORT_CBPF = getattr(socket, "SO_ATTACH_REUSEPORT_CBPF",
                                     51 if sys.platform.startswith("linux") else None)
+# SO_TIMESTAMPNS (asm-generic's number, also its SCM_ message's): each datagram read with
+# recvmsg carries the kernel's arrival time, which orders one sender's datagrams across the two
+# sockets of a shared port that it reached around a peer socket's connect (`merge_backlog`)
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
 
 
 def steer_unclaimed(s: socket.socket, member: int = 0) -> bool:
@@ -576,6 +580,18 @@ def steer_unclaimed(s: socket.socket, member: int = 0) -> bool:
     fprog = struct.pack("@HP", 1, ctypes.addressof(prog))     # struct sock_fprog {len, filter*}
     try:
         s.setsockopt(socket.SOL_SOCKET, _SO_ATTACH_REUSEPORT_CBPF, fprog)
+        return True
+    except OSError:
+        return False
+
+
+def _stamp_arrivals(s: socket.socket) -> bool:
+    """Asks the kernel to keep each datagram's arrival time for s (SO_TIMESTAMPNS); False where
+    it cannot."""
+    if _SO_TIMESTAMPNS is None:
+        return False
+    try:
+        s.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         return True
     except OSError:
         return False
@@ -598,18 +614,23 @@ class UdpSocket:
 
     A port shared so has one catch-all (the first socket bound, without ``connect_to``) and its
     peers' connected sockets. Between its bind and its connect a peer's socket is an
-    unconnected member of the port's group, and the kernel would spread anyone's datagrams over
-    it and the catch-all: its readers, which take every datagram on it to be the peer's (the
-    compiled ones read no address), would then take another sender's datagram for the peer's.
-    So the catch-all steers every datagram that no connected socket claims to itself
-    (`steer_unclaimed`), and whatever still reached the new socket before its connect is read
-    at once with its true sender (``backlog``: `recv_all` returns it first; a reader that reads
-    no addresses defers to `recv_all` while it is there)."""
+    unconnected member of the port's group, and the kernel may hand it anyone's datagrams: its
+    readers, which take every datagram on it to be the peer's (the compiled ones read no
+    address), would then take another sender's datagram for the peer's. The catch-all steers
+    to itself what no connected socket claims (`steer_unclaimed`), but Linux applies that only
+    while no member is connected: once one is, every unclaimed datagram goes to the newest
+    unconnected member, the catch-all gets none of them until the connect (measured on 6.18).
+    So whatever reached the new socket before its connect is read at once with its true sender
+    (``backlog``: `recv_all` returns it first; a reader that reads no addresses defers to
+    `recv_all` while it is there). A sender's datagrams of that instant may then lie on both
+    sockets, and its earlier ones on the catch-all: `merge_backlog` puts them back in the order
+    they arrived (the kernel's arrival times), on the catch-all."""
 
     def __init__(self, endpoint: str, rcvbuf: int = 1 << 20, reuse_port: bool = False,
                  connect_to=None):
         self.endpoint = endpoint
         self.mode, addr = parse_endpoint(endpoint)
+        self.stamped = False       # arrival times kept by the kernel (`merge_backlog`)
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
@@ -622,6 +643,7 @@ class UdpSocket:
             # checking that the port is free: `AgentLink`)
             if reuse_port:
                 s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
+                self.stamped = _stamp_arrivals(s)
             try:
                 s.bind(addr)
                 if connect_to is not None:
@@ -647,8 +669,9 @@ class UdpSocket:
         self.sock = s
         self.local = s.getsockname()
         self.backlog = []     # [(data, addr)] read before anything else (see the class's doc)
+        self._backlog_ns = []  # …their arrival times (ns; None: unknown), `merge_backlog`'s
         if connect_to is not None:
-            self.backlog = self._read(4096)
+            self._backlog_ns, self.backlog = self._read_stamped(4096)
 
     def fileno(self) -> int:
         return self.sock.fileno()
@@ -676,9 +699,48 @@ class UdpSocket:
             return out + self._read(max(0, limit - len(out)))
         return self._read(limit)
 
+    def merge_backlog(self, peer: "UdpSocket", limit: int = 4096) -> None:
+        """The catch-all's part when its port's new ``peer`` socket has connected: what waits
+        here now (at most ``limit`` datagrams) and what reached ``peer`` before its connect
+        (its backlog, taken from it), merged in the order they arrived, kept behind this
+        socket's backlog for `recv_all`. Without arrival times, what waits here comes first."""
+        t_here, here = self._read_stamped(limit)
+        t_peer, there = peer._backlog_ns, peer.take_backlog()
+        peer._backlog_ns = []
+        items = list(zip(t_here, here)) + list(zip(t_peer, there))
+        if None not in t_here and None not in t_peer:
+            items.sort(key=lambda x: x[0])      # stable: one socket's order kept on a tie
+        self.backlog.extend(d for _, d in items)
+
+    def _read_stamped(self, limit: int):
+        """`_read` with each datagram's arrival time: ([ns or None], [(data, addr)])."""
+        if not self.stamped:
+            out = self._read(limit)
+            return [None] * len(out), out
+        ts, out = [], []
+        recvmsg = self.sock.recvmsg
+        space = socket.CMSG_SPACE(16)
+        for _ in range(limit):
+            try:
+                data, anc, _, addr = recvmsg(65535, space)
+            except BlockingIOError:
+                break
+            except OSError as exc:
+                if exc.errno in (errno.ECONNREFUSED, errno.EAGAIN):
+                    continue
+                break
+            t = None
+            for level, kind, raw in anc:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(raw) >= 16:
+                    sec, nsec = struct.unpack_from("qq", raw)
+                    t = sec * 1_000_000_000 + nsec
+            ts.append(t)
+            out.append((data, addr))
+        return ts, out
+
     def take_backlog(self) -> list:
         """What reached this socket before its connect, [(data, addr)], now taken from it."""
-        out, self.backlog = self.backlog, []
+        out, self.backlog, self._backlog_ns = self.backlog, [], []
         return out
 
     def _read(self, limit: int):

@@ -409,17 +409,11 @@ class MavlinkPlant:
             receive_datagrams(sock, c, on_packet, deadline=deadline, fast=fast)
         while fd in self._settle:
             # a source socket was opened while this catch-all was read: what its source sent
-            # before lies here, older than anything on the new socket: read it now, so that
-            # the next poll (the vehicles' sockets first) cannot take a newer state first
+            # before lies here (merged, `_source_socket`), older than anything on the new socket:
+            # read it now, so that the next poll (the vehicles' sockets first) cannot take a
+            # newer state first. Taking it may open more source sockets: hence the loop
             self._settle.discard(fd)
-            receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + 0.05)
-            # …then what reached a new source socket before its connect (`UdpSocket.backlog`:
-            # any vehicle's, each with its own address; its socket will not signal it). Taking
-            # it may open more source sockets: hence the loop
-            for (bfd, _), e in list(self._src_socks.items()):
-                if bfd == fd:
-                    for data, addr in e[0].take_backlog():
-                        take_datagram(data, addr, c, on_packet, fast=fast)
+            receive_datagrams(sock, c, on_packet, deadline=time.monotonic() + 0.05, fast=fast)
 
     def _handlers(self, fd: int, now: float) -> tuple:
         """(on_packet, fast) for the datagrams of socket ``fd`` read at ``now``: the reference
@@ -655,6 +649,11 @@ class MavlinkPlant:
             except OSError:
                 self.source_socket_errors += 1    # it stays on the catch-all (still checked)
                 return
+            # what reached the new socket before its connect (anyone's, `UdpSocket`) and what
+            # waits on the catch-all, in the order it arrived, for the catch-all's next read
+            # (the settle below): a vehicle's first states otherwise came out of order (its
+            # older ones refused, counted lost)
+            base.merge_backlog(s)
             fd = s.fileno()
             self._sock_by_fd[fd] = s
             self._route[fd] = self._route[bfd]
@@ -792,6 +791,10 @@ class MavlinkPlant:
             self._receive(fd, now, deadline)
         for cb in called:
             cb()
+        if self._settle:
+            # a source socket opened while another socket was read: its catch-all holds what
+            # came before it, to be read now, whether or not its own socket signalled
+            catch += [fd for fd in self._settle if fd not in catch]
         if catch:
             junk_deadline = min(max(deadline, time.monotonic()), time.monotonic() + self.junk_budget_s)
             for fd in catch:

@@ -286,7 +286,12 @@ class AgentLink:
         try:
             for j, a in self.addr.items():
                 if a[0] != "0.0.0.0":
-                    self._nsock[j] = UdpSocket(ep, reuse_port=True, connect_to=a)
+                    s = UdpSocket(ep, reuse_port=True, connect_to=a)
+                    # what reached it before its connect (anyone's: `UdpSocket`) and what waits
+                    # on the catch-all, in the order it arrived, for `poll_neighbours` to take
+                    # before anything newer on the neighbours' sockets
+                    self.sock.merge_backlog(s)
+                    self._nsock[j] = s
         except OSError as exc:
             self.close()
             raise Se3SyncError(f"network: agent {self.id}'s endpoint {host}:{port} cannot be "
@@ -356,7 +361,6 @@ class AgentLink:
             self._age_hist = np.zeros((m, AGE_BINS), np.int64)   # ages used (`age_rules`)
             self._ages_now = np.zeros(m, np.int64)
             self._drain = self._drain_neighbours
-            self._backlogged = any(s.backlog for s in self._nsock.values())
             self.drain_kernel = drain_samples    # (the ahead-of-time module's, in a test)
         # …and its mirror for what this agent sends (`sample_wire.pack_sample`), sent on the
         # neighbours' connected sockets by one compiled call (`bridge.mavlink.udp_io.send_all`)
@@ -606,27 +610,26 @@ class AgentLink:
         self._limit = self.current_step() + self.future_steps
         lim = self.drain_budget if limit is None else int(limit)
         deadline = time.monotonic() + self.poll_budget_s
+        n = self._take_backlogs() if self.sock.backlog else 0
         if self._drain is not None:
-            n = self._take_backlogs() if self._backlogged else 0
             return n + self._drain(lim, deadline)
-        n = 0
         for s in self._nsock.values():
             n += receive_datagrams(s, self.counters, self._on_packet, lim, deadline=deadline,
                                    accept_from=self._accept_from, fast=self._scan)
         return n
 
     def _take_backlogs(self) -> int:
-        """What reached the neighbours' sockets before their connect (`UdpSocket`): by the
-        reference path, with each datagram's true sender (the drain reads no addresses)."""
-        self._backlogged = False
+        """What the catch-all holds from before the neighbours' sockets were connected
+        (`UdpSocket`), older than anything on them: by the reference path, with each datagram's
+        true sender (the drain reads no addresses)."""
         n = 0
-        for s in self._nsock.values():
-            for data, addr in s.take_backlog():
-                take_datagram(data, addr, self.counters, self._on_packet, self._accept_from,
-                              self._scan)
-                n += 1
-        for j in self.neighbours:
-            self._resync(j)
+        for data, addr in self.sock.take_backlog():
+            take_datagram(data, addr, self.counters, self._on_packet, self._accept_from,
+                          self._scan)
+            n += 1
+        if self._drain is not None:
+            for j in self.neighbours:
+                self._resync(j)
         return n
 
     def poll_catch_all(self, limit: int | None = None) -> int:

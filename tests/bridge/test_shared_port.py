@@ -28,10 +28,10 @@ STRANGERS = 32
 class _Window:
     """While active, the first connect of a socket bound with SO_REUSEPORT (a peer socket being
     made) first has ``send()`` called: its datagrams then arrive between that socket's bind and
-    its connect. With ``forced`` the port's group hands them all to it meanwhile (its member
+    its connect (and ``after()``, if given, just after the connect). With ``forced`` the port's group hands them all to it meanwhile (its member
     ``forced``: the race's worst case, made certain); otherwise the kernel decides as it would."""
 
-    def __init__(self, monkeypatch, send, forced: int | None = None):
+    def __init__(self, monkeypatch, send, forced: int | None = None, after=None):
         self.send, self.forced, self.used = send, forced, False
         outer = self
 
@@ -44,6 +44,10 @@ class _Window:
                     outer.send(self.getsockname()[1])
                     if outer.forced is not None:
                         assert link.steer_unclaimed(self, 0)     # as UdpSocket left it
+                    super().connect(addr)
+                    if after is not None:
+                        after(self.getsockname()[1])    # …and ``after()``'s just after it
+                    return
                 super().connect(addr)
 
         mod = types.SimpleNamespace(**{k: getattr(socket, k) for k in dir(socket)
@@ -128,6 +132,44 @@ def test_what_reaches_a_peer_socket_before_its_connect_keeps_its_true_sender(mon
                 x.close()
 
 
+@pytest.mark.parametrize("stamped", [True, False], ids=["arrival times", "none"])
+def test_merge_backlog_keeps_a_senders_order_across_the_two_sockets(monkeypatch, stamped):
+    """One sender's datagrams around a peer socket's connect: a0 waits on the catch-all, a1 and
+    a2 reach the peer socket before its connect (forced there), a3 the catch-all after it.
+    `merge_backlog` gives them back on the catch-all as they arrived, a0…a3; without the
+    kernel's arrival times (documented fallback) the catch-all's come first: a0, a3, a1, a2."""
+    if not stamped:
+        monkeypatch.setattr(link, "_SO_TIMESTAMPNS", None)
+    x, peer = _udp(), _udp()
+    catch = s = None
+    try:
+        catch = UdpSocket("udpin:127.0.0.1:0", reuse_port=True)
+        port = catch.local[1]
+        assert catch.stamped is stamped
+        x.sendto(b"a0", ("127.0.0.1", port))
+
+        def window(to_port):
+            for d in (b"a1", b"a2"):
+                x.sendto(d, ("127.0.0.1", to_port))
+
+        w = _Window(monkeypatch, window, forced=1,
+                    after=lambda to_port: x.sendto(b"a3", ("127.0.0.1", to_port)))
+        s = UdpSocket(f"udpin:127.0.0.1:{port}", reuse_port=True, connect_to=peer.getsockname())
+        assert w.used and [d for d, _ in s.backlog] == [b"a1", b"a2"]
+        catch.merge_backlog(s)
+        assert s.backlog == [] and s.recv_all() == []
+        got = catch.recv_all()
+        assert all(a == x.getsockname() for _, a in got)
+        want = [b"a0", b"a1", b"a2", b"a3"] if stamped else [b"a0", b"a3", b"a1", b"a2"]
+        assert [d for d, _ in got] == want
+    finally:
+        for y in (x, peer):
+            y.close()
+        for y in (catch, s):
+            if y is not None:
+                y.close()
+
+
 def _odometry(peer: Peer) -> bytes:
     t = int(time.time() * 1e6)
     return bytes(peer.pack(peer.mav.odometry_encode(
@@ -181,6 +223,58 @@ def test_a_vehicles_state_read_from_another_vehicles_socket_keeps_its_vehicle(mo
         # that); a machine stalled past the stale rule's 0.1 s may still make a state stale
         assert st["received"] == 24 and set(st["rejected_by_reason"]) <= {"stale"}, st
         assert st["other_sources"] == {} and st["source_sockets"] == 6
+    finally:
+        p.close()
+        for s in socks:
+            s.close()
+
+
+@pytest.mark.parametrize("forced", [None, 2], ids=["kernel's choice", "forced onto it"])
+def test_a_vehicles_first_states_keep_their_order_across_a_new_source_socket(monkeypatch, forced):
+    """`connect` once counted a vehicle's first packets lost ("dropped 3" on a clean loopback
+    run, test_bridge_attacks): with one vehicle's socket connected already, Linux hands every
+    datagram nobody claims to the next vehicle's socket while it is bound but not connected,
+    not to the catch-all (6.18 does so on its own; ``forced`` makes it certain elsewhere).
+    Vehicle 3's first state landed there, its second on the catch-all just after the connect,
+    and the catch-all was read first: the first state was then refused as older, and a gap
+    counted. Now both are taken in the order they were sent, and nothing is counted lost."""
+    from bridge.mavlink.config import default_config
+    from bridge.mavlink.plant import MavlinkPlant
+    from cosim.scenario import load_scenario
+
+    sc = load_scenario("scenarios/hil_6uav.toml")
+    cfg = (sc.bridge or default_config(sc.n_agents)).with_endpoints(["udpin:127.0.0.1:0"] * 6)
+    p = MavlinkPlant(sc, cfg, connect_timeout=5, on_event=lambda s: None)
+    socks = [_udp() for _ in range(3)]
+    peers = [Peer(i + 1, 1, Counters()) for i in range(3)]
+    try:
+        port = p.socks[0].local[1]
+
+        def poll_until(received):
+            t_end = time.monotonic() + 10
+            while p.counters.received < received and time.monotonic() < t_end:
+                p.poll(0.01)
+
+        socks[0].sendto(_odometry(peers[0]), ("127.0.0.1", port))
+        poll_until(1)
+        assert p.stats()["source_sockets"] == 1          # vehicle 1's: connected
+        c1 = _odometry(peers[2])
+        time.sleep(0.002)
+        c2 = _odometry(peers[2])
+        w = _Window(monkeypatch, lambda to: socks[2].sendto(c1, ("127.0.0.1", to)), forced,
+                    after=lambda to: socks[2].sendto(c2, ("127.0.0.1", to)))
+        socks[1].sendto(_odometry(peers[1]), ("127.0.0.1", port))   # opens vehicle 2's socket
+        poll_until(4)
+        monkeypatch.undo()
+        assert w.used
+        time.sleep(0.002)
+        socks[2].sendto(_odometry(peers[2]), ("127.0.0.1", port))   # vehicle 3 streams on
+        poll_until(5)
+        st = p.stats()
+        assert st["received"] == 5 and st["rejected"] == 0, st
+        assert st["dropped"] == 0 and st["other_sources"] == {}, st
+        assert p.vehicles[2].tracker.n_odometry == 3
+        assert p.vehicles[2].peer.sequences() == {(3, 1): 2}
     finally:
         p.close()
         for s in socks:
