@@ -672,6 +672,10 @@ class UdpSocket:
         self._backlog_ns = []  # …their arrival times (ns; None: unknown), `merge_backlog`'s
         if connect_to is not None:
             self._backlog_ns, self.backlog = self._read_stamped(4096)
+            if self.stamped:
+                # its arrival times served that once; its every read after is the hot path
+                s.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 0)
+                self.stamped = False
 
     def fileno(self) -> int:
         return self.sock.fileno()
