@@ -21,6 +21,7 @@ from bridge.mavlink.link import Counters, Peer, free_base_port, mavlink2
 from bridge.mavlink.transport import wire_to_state
 from controller import Se3SyncError, layout
 from cosim.scenario import parse_scenario
+from _net import wait_queued
 
 ROOT = Path(__file__).resolve().parents[2]
 HIL = (ROOT / "scenarios" / "hil_6uav.toml").read_text()  # edges (1,2) (2,3) (3,4) (2,5) (5,6)
@@ -402,12 +403,15 @@ def test_a_poll_drains_by_time_not_by_count(closing):
     closing.append(rx)
     for _ in range(40):
         send_raw(sc, 1, b"\x00" + os.urandom(19), frm=None)     # junk from a stranger
-    time.sleep(0.05)
-    assert rx.poll() == 40 and rx.stats()["drain_capped"] == 0   # batches of 16 until empty
+    wait_queued(rx.sock.sock, 40, 20)
+    # time enough (its budget at h = 4 ms is 0.4 ms, which a busy machine's preemption alone
+    # can spend between two batches): batches of 16 until empty
+    rx.poll_budget_s = rx.junk_budget_s = 60.0
+    assert rx.poll() == 40 and rx.stats()["drain_capped"] == 0
     assert rx.stats()["malformed"] == 40                           # refused on the first byte
     for _ in range(40):
         send_raw(sc, 1, b"\x00" + os.urandom(19), frm=None)
-    time.sleep(0.05)
+    wait_queued(rx.sock.sock, 40, 20)
     rx.poll_budget_s = rx.junk_budget_s = 0.0                      # no time left: one batch
     assert rx.poll() == 16 and rx.stats()["drain_capped"] == 1
 

@@ -8,6 +8,7 @@ against pymavlink's bytes and against the plant's reference path, signed and not
 from __future__ import annotations
 
 import math
+import select
 import socket
 import time
 
@@ -18,6 +19,7 @@ from bridge.mavlink.link import Counters, Peer, mavlink2
 from bridge.mavlink.state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, pack_command, recv_state,
                                        scan_odometry)
 from _bridge import free_base_port, load
+from _net import wait_queued
 
 M = mavlink2
 NAN21 = [math.nan] + [0.0] * 20
@@ -216,7 +218,7 @@ def test_recv_state_reads_what_the_socket_holds():
         sent = [veh.honest(n) if n % 2 else veh.irregular(n) for n in range(60)] + [b""]
         for d in sent:
             a.send(d)
-        time.sleep(0.05)
+        wait_queued(b, [len(d) for d in sent])
         for d in sent:
             r = recv_state(b.fileno(), buf, 0, scratch, out, meta)
             want = scan_odometry(np.frombuffer(d, np.uint8), len(d), 0, scratch, out2, meta2)
@@ -231,7 +233,7 @@ def test_recv_state_reads_what_the_socket_holds():
         dead.close()
         b.connect(gone)
         b.send(b"x")
-        time.sleep(0.05)
+        select.select([b], [], [], 10.0)    # the error makes it readable
         assert recv_state(b.fileno(), buf, 0, scratch, out, meta) == -2
         assert recv_state(b.fileno(), buf, 0, scratch, out, meta) == 0
         assert recv_state(-1, buf, 0, scratch, out, meta) == -1      # EBADF: stop
