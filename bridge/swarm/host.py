@@ -199,14 +199,17 @@ def run_agents(run_agent, ids, kwargs_for) -> dict:
             for t in threads:
                 t.start()
             while True:
+                # cleared before the threads are looked at: one that ends after this wakes the
+                # wait below, one that ended before (even before the first look: an agent that
+                # fails at once) is seen now
                 ended.clear()
-                if all(t.finished for t in threads):
-                    break
-                ended.wait()
                 if not host.stop.is_set() and any(
                         isinstance(t.result, BaseException) and not isinstance(t.result, KeyboardInterrupt)
                         for t in threads if t.finished):
                     host.stop_all()
+                if all(t.finished for t in threads):
+                    break
+                ended.wait()
             for t in threads:
                 t.join()
     finally:

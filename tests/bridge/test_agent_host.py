@@ -51,6 +51,34 @@ def test_an_agent_that_fails_stops_the_others_which_still_finish():
                           "summary": f"agent_{i}.json"}
 
 
+def test_an_agent_that_fails_before_the_host_first_looks_still_stops_the_others(monkeypatch):
+    """The host's main thread descheduled between starting the agents and its first look at
+    them, while one fails at once: it still stops the others (it waited for an agent to end,
+    and the others waited for a stop: they ran until they ended on their own). The delay is
+    made certain here: the host's first clear of its "an agent ended" event comes after the
+    failing agent has set it."""
+    import types
+
+    from bridge.swarm import host as host_mod
+
+    class LateLook(threading.Event):
+        looked = False
+
+        def clear(self):
+            if not self.looked:
+                self.looked = True
+                assert self.wait(WAIT_S), "no agent ended"
+            super().clear()
+
+    monkeypatch.setattr(host_mod, "threading",
+                        types.SimpleNamespace(**{**vars(threading), "Event": LateLook}))
+    started = time.monotonic()
+    out = run_agents(_stand_in(fail=(2,), registered=[]), [1, 2, 3], lambda i: {})
+    assert isinstance(out[2], RuntimeError)
+    assert all(out[i]["interrupted"] and out[i]["host_stop"] for i in (1, 3)), out
+    assert time.monotonic() - started < WAIT_S
+
+
 def test_a_signal_stops_every_agent_and_is_noted():
     registered = []
 
