@@ -38,6 +38,7 @@ from pymavlink.dialects.v20 import common as mavlink2  # noqa: E402
 from controller.errors import Se3SyncError  # noqa: E402
 
 from . import codec  # noqa: E402
+from .sequence import seq_last, seq_step  # noqa: E402
 
 MAGIC_V2 = 0xFD
 MAGIC_V1 = 0xFE
@@ -50,6 +51,9 @@ REJECT_REASONS = ("unsigned", "bad_signature", "replay", "wrong_system", "not_fo
                   "unknown_message", "stale", "out_of_order", "nan", "non_unit_quaternion",
                   "bad_frame", "bad_command", "not_commander", "future", "other_source",
                   "wrong_address", "wrong_link", "no_stream_slot", "rate_limited")
+# refusals of a packet that passed the link's checks for being old, not for what it claims: it
+# came, so its sequence number counts as come (`Counters.arrived_since`), not as a loss
+LATE_REASONS = frozenset(("stale", "out_of_order", "duplicate"))
 NEW_STREAM_UNITS = 6_000_000   # pymavlink's rule: a new signing stream at most 60 s (10 µs units) behind
 LOOPBACK_HOSTS = ("localhost",)
 
@@ -72,10 +76,13 @@ class Counters:
         self.drain_max = 0           # most datagrams read in one pass over a socket
         self.drain_capped = 0        # passes that stopped at the per-pass budget (the rest waits)
         self.n_rejected = 0          # sum of `rejected` (kept, not summed per packet)
+        self.n_late = 0              # …of which for LATE_REASONS
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
         self.n_rejected += 1
+        if reason in LATE_REASONS:
+            self.n_late += 1
         if self.scope is not None:
             self.scope[reason] += 1
 
@@ -96,6 +103,17 @@ class Counters:
         """Packets refused so far (rejected or malformed): a handler accepted a packet iff this
         did not change while it ran."""
         return self.malformed + self.n_rejected
+
+    def mark(self) -> tuple[int, int]:
+        """Where the counts stand (refusals, late ones) before a handler runs."""
+        return self.malformed + self.n_rejected, self.n_late
+
+    def arrived_since(self, mark) -> bool:
+        """Since ``mark`` nothing was refused, or only for being old (LATE_REASONS): the packet
+        the handler had passed the link's checks and came; its sequence number counts
+        (`Peer.commit`), and a stall that leaves a backlog of old states is not reported as
+        that many lost (it was: ``dropped`` 1622 beside ``stale`` 1622 after a 1 s stall)."""
+        return self.malformed + self.n_rejected - mark[0] == self.n_late - mark[1]
 
 
 class TLog:
@@ -188,27 +206,24 @@ class Peer:
 
     # ------------------------------------------------------------------ in
     def _count_seq(self, sysid, compid, seq) -> None:
+        """One more packet of (sysid, compid) numbered ``seq``: losses counted as `seq_step`
+        counts them (a gap, less what comes late)."""
         key = (sysid, compid)
         slot = self._seq_slot.get(key) if self._seq_slot else None
         if slot is not None:
-            last = int(self._seq_arr[slot])
-            last = None if last < 0 else last
+            st, lost = seq_step(int(self._seq_arr[slot]), seq)
+            self._seq_arr[slot] = st
         else:
-            last = self._last_seq.get(key)
-        if last is not None:
-            gap = (seq - last - 1) & 0xFF
-            if gap < 128:  # larger "gaps" are duplicates/reordering, not losses
-                self.counters.dropped += gap
-        if slot is not None:
-            self._seq_arr[slot] = seq
-        else:
-            self._last_seq[key] = seq
+            st, lost = seq_step(self._last_seq.get(key, -1), seq)
+            self._last_seq[key] = st
+        self.counters.dropped += lost
 
     def sequence_array(self, keys) -> np.ndarray:
-        """From now on the last sequence number of each of ``keys`` ((system, component)) lives
-        in the returned int64 array (−1: none yet), in that order, where compiled code that
-        takes packets itself (`bridge.swarm.sample_wire.drain_samples`) counts them as
-        `_count_seq` does; the rest of this peer reads and moves the same numbers."""
+        """From now on the sequence state (`bridge.mavlink.sequence`) of each of ``keys``
+        ((system, component)) lives in the returned int64 array (−1: none yet), in that order,
+        where compiled code that takes packets itself (`bridge.swarm.sample_wire.drain_samples`)
+        counts them as `_count_seq` does; the rest of this peer reads and moves the same
+        numbers."""
         if self._seq_slot:
             raise Se3SyncError("Peer.sequence_array: this peer keeps an array already")
         keys = [tuple(int(x) for x in k) for k in keys]
@@ -218,19 +233,20 @@ class Peer:
         return arr
 
     def sequences(self) -> dict:
-        """{(system, component): the last sequence number counted} (what `commit` and `took`
+        """{(system, component): the newest sequence number counted} (what `commit` and `took`
         have recorded, wherever it is kept)."""
-        out = dict(self._last_seq)
+        out = {k: seq_last(v) for k, v in self._last_seq.items()}
         for k, i in self._seq_slot.items():
             if self._seq_arr[i] >= 0:
-                out[k] = int(self._seq_arr[i])
+                out[k] = seq_last(int(self._seq_arr[i]))
         return out
 
     def commit(self) -> None:
         """The latest packet this peer passed was accepted in full by the application (target,
-        contents): only now does its signing stream's replay window move to its timestamp (and
-        the own timestamp with it, as pymavlink does), and only now does its sequence number
-        count for losses. A packet refused anywhere leaves both as they were."""
+        contents), or refused by it only for being old (`Counters.arrived_since`: it came):
+        only now does its signing stream's replay window move to its timestamp (and the own
+        timestamp with it, as pymavlink does), and only now does its sequence number count
+        (`seq_step`). A packet refused for anything else leaves both as they were."""
         if self._pending_seq is not None:
             self._count_seq(*self._pending_seq)
             self._pending_seq = None
@@ -295,7 +311,7 @@ class Peer:
 
     def _accepted(self, pkt: bytes, seq: int, sysid: int, compid: int, signed: bool) -> None:
         self.last_signed = signed and self.key is not None
-        # Sequence gaps count as losses only on packets the application accepts in full
+        # Sequence numbers count only on packets the application takes or finds merely old
         # (`commit`), and with a key only on signed ones (a spoofed unsigned HEARTBEAT or a
         # packet replayed from another link would otherwise interleave a foreign sequence).
         self._pending_seq = (sysid, compid, seq) if (self.key is None or signed) else None

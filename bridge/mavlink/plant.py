@@ -443,7 +443,7 @@ class MavlinkPlant:
                     else:
                         self._other_source(v, addr, evidence=signed)
                 return
-            n0 = c.refusals()
+            m0 = c.mark()
             if row is not None:
                 # the state stream's common case, checked and decoded by `fast` below
                 seq, sysid, compid, t_us, _, _ = self._scan_meta.tolist()
@@ -458,10 +458,12 @@ class MavlinkPlant:
             else:
                 m = v.peer.accept(pkt)
                 used = m is not None and self._dispatch(v, m, now)
-            if c.refusals() == n0:
+            if c.arrived_since(m0):
                 # authentic and refused by nothing (a fallback message ignored while ODOMETRY
-                # comes is not refused): its sequence number counts, its signature's window moves
+                # comes is not refused), or only for being old (a state read after a stall):
+                # its sequence number counts, its signature's window moves
                 v.peer.commit()
+            if c.refusals() == m0[0]:
                 # with a key only a signed packet sets the vehicle's source or keeps it alive:
                 # an unsigned HEARTBEAT (allow_unsigned_heartbeat) from anyone would otherwise
                 # take the slot and lock the genuine, signed vehicle out as `other_source`

@@ -26,6 +26,7 @@ from controller.jit import jit
 from controller.layout import S_R
 
 from . import codec
+from .sequence import seq_step
 from .state import C_MIN, C_OFFSET, C_START, FUTURE_US, OFFSET_WINDOW_S, QUAT_TOL
 from .udp_io import (EAGAIN, ECONNREFUSED, EINTR, EWOULDBLOCK, MSG_DONTWAIT, errno, recv,
                      send_all)
@@ -183,6 +184,12 @@ T_ITER, T_READS, T_TAKEN, T_DROPPED = range(4)
 TAKE_SLOTS = 4
 
 
+# the link's rule, compiled into the readers that count sequence numbers themselves (numba's
+# cache of a caller does not see an edit of sequence.py: the kernels' tests, which compare with
+# the link, would)
+_seq_step = jit(seq_step, inline=True)
+
+
 @jit(error_model="python")
 def take_states(fd, buf, scratch, out, meta, sysid, compid, limit, now, stale_us, clock, stamp,
                 seqs, wire, tot):
@@ -192,7 +199,7 @@ def take_states(fd, buf, scratch, out, meta, sysid, compid, limit, now, stale_us
     (its time checks on ``clock`` and ``stamp``, the tracker's own arrays, at wall time ``now``;
     ``stale_us``: its stale_after·1e6), what the tracker and the link record: the wire row into
     ``wire``, the clock and stamp moved, the sequence number counted in ``seqs[0]`` (the peer's
-    `sequence_array`, −1: none yet) as `Peer.commit` counts it, tot[T_TAKEN] and tot[T_DROPPED]
+    `sequence_array`'s state) as `Peer.commit` counts it, tot[T_TAKEN] and tot[T_DROPPED]
     added to. Anything else the reference path decides, with every refusal: the call returns
     TAKE_SCANNED (a scanned ODOMETRY in buf, ``out`` and ``meta`` as `recv_state` leaves them)
     or TAKE_OTHER (any other datagram) with nothing of it recorded, TAKE_STOP when the socket
@@ -235,12 +242,9 @@ def take_states(fd, buf, scratch, out, meta, sysid, compid, limit, now, stale_us
         stamp[0] = np.uint64(t)
         for k in range(13):
             wire[k] = out[k]
-        seq = meta[0]
-        if seqs[0] >= 0:
-            gap = (seq - seqs[0] - 1) & 0xFF
-            if gap < 128:       # larger "gaps" are duplicates or reordering (`Peer._count_seq`)
-                tot[T_DROPPED] += gap
-        seqs[0] = seq
+        st, lost = _seq_step(seqs[0], meta[0])
+        seqs[0] = st
+        tot[T_DROPPED] += lost
         tot[T_TAKEN] += 1
     return TAKE_FULL
 

@@ -782,6 +782,7 @@ class AgentLink:
             got = self.peer.accept_fields(pkt, _TYPES)
             if got is None:
                 return
+            m0 = c.mark()
             mid, f = got
             if mid == ID_ODOMETRY:
                 ok = self._on_odometry(j, f)
@@ -790,6 +791,8 @@ class AgentLink:
             if ok:
                 self.peer.commit()
                 self._packets[j] += 1
+            elif c.arrived_since(m0):
+                self.peer.commit()      # a resent or overtaken sample's: it came, no loss
         finally:
             c.scope = None
 

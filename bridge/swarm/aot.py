@@ -104,7 +104,8 @@ EXPORTS = {
 SOURCES = ("controller/jit.py", "controller/_kernels.py", "controller/_agent_kernels.py",
            "controller/layout.py", "bridge/swarm/sample_wire.py", "bridge/mavlink/udp_io.py",
            "bridge/mavlink/codec.py", "bridge/mavlink/state_wire.py",
-           "bridge/mavlink/state.py", "cosim/log/cdr.py", "bridge/swarm/aot.py")
+           "bridge/mavlink/state.py", "bridge/mavlink/sequence.py", "cosim/log/cdr.py",
+           "bridge/swarm/aot.py")
 
 
 class AotError(Exception):

@@ -31,7 +31,7 @@ import numpy as np
 
 from bridge.mavlink import codec
 from bridge.mavlink.state import QUAT_TOL
-from bridge.mavlink.state_wire import QUAT_MARGIN, _crc, _u64, row_to_state
+from bridge.mavlink.state_wire import QUAT_MARGIN, _crc, _seq_step, _u64, row_to_state
 from controller.jit import jit
 from controller.kernels import FRESH, quat_of
 from controller.layout import S_OMEGA, S_P, S_R, S_V
@@ -166,7 +166,7 @@ def drain_samples(q0, k0, fds, sysids, n_thetas, h_us, limit, signed, batch, now
     (``n_thetas[q]`` ≥ 0 edges owned; −1: none) and that is newer than held_step[q], as
     `AgentLink._take_sample` takes it: the sample into held_step[q], held[q] (scan_sample's
     ``out``) and held_t[q] = ``now``, counts[q] += (packets, 1), its packets' sequence numbers
-    through last_seq[q] (−1: none yet) as `Peer._count_seq` counts them, and the `D_*` totals.
+    through last_seq[q] (the peer's sequence states) as `Peer._count_seq` counts them, and the `D_*` totals.
     Returns −1 once every socket is empty; 3q when the datagram in buf[:totals[D_LEN]] (from
     neighbour q, the totals[D_K]-th of its batch) is for the reference path; 3q + 1 when
     socket q gave ``batch`` datagrams (the caller's deadline decides whether to read on);
@@ -202,12 +202,9 @@ def drain_samples(q0, k0, fds, sysids, n_thetas, h_us, limit, signed, batch, now
                                 (held_step[q] < 0 or s > held_step[q]) else 0)
             npk = 2 if nt > 0 else 1
             for p in range(npk):
-                sq = seqs[p]
-                if last_seq[q] >= 0:
-                    gap = (sq - last_seq[q] - 1) & 0xFF
-                    if gap < 128:        # larger "gaps" are duplicates or reordering
-                        totals[D_DROPPED] += gap
-                last_seq[q] = sq
+                st, lost = _seq_step(last_seq[q], seqs[p])
+                last_seq[q] = st
+                totals[D_DROPPED] += lost
             totals[D_DATAGRAMS] += 1
             totals[D_RECEIVED] += npk
             counts[q, 0] += npk

@@ -804,7 +804,7 @@ class VehicleServer:
                 m = v.peer.accept(pkt)
             if m is None:
                 return
-            n0 = c.refusals()
+            m0 = c.mark()
             try:
                 # with a key, every packet that got here is signed with it (or an unsigned
                 # HEARTBEAT that allow_unsigned_heartbeat lets in, which commands nothing)
@@ -812,10 +812,12 @@ class VehicleServer:
             except (ValueError, TypeError, OverflowError):  # e.g. int(nan) of a parameter
                 c.reject("bad_command")
                 return
-            if c.refusals() == n0:
+            if c.refusals() == m0[0]:
                 v.peer.commit()
                 if commander:
                     self._accepted(v, addr)
+            elif c.arrived_since(m0):
+                v.peer.commit()         # overtaken by a newer command: it came, no loss
 
         return receive_datagrams(v.sock, c, on_packet)
 

@@ -20,6 +20,7 @@ from bridge.mavlink.state_wire import (COMMAND_BYTES, ODOMETRY_SIZE, pack_comman
                                        scan_odometry)
 from _bridge import free_base_port, load
 from _net import wait_queued
+from bridge.mavlink.sequence import seq_last, seq_step
 
 M = mavlink2
 NAN21 = [math.nan] + [0.0] * 20
@@ -276,8 +277,11 @@ def test_take_states_equals_the_trackers_checks():
         if not scan_odometry(np.frombuffer(data, np.uint8), len(data), 0, scratch, out, meta):
             return              # not a state the row path takes: both sides' glue skips it
         seq, sysid, compid, t_us, _, _ = meta.tolist()
-        if peer.accepted(data, seq, sysid, compid) and tr.on_odometry_row(out, t_us, now):
-            peer.commit()
+        m0 = peer.counters.mark()
+        if peer.accepted(data, seq, sysid, compid):
+            tr.on_odometry_row(out, t_us, now)
+            if peer.counters.arrived_since(m0):     # taken, or refused as old: it came
+                peer.commit()
 
     try:
         for s in (a, b):
@@ -368,12 +372,15 @@ def test_counts_taken_in_compiled_code_stay_one_set():
     take(10)
     take(11)
     seqs = peer.sequence_array([(1, 1)])
-    assert seqs.tolist() == [11] and peer.sequences() == {(1, 1): 11}
-    seqs[0] = 14                 # compiled code took sequence 14: 12 and 13 lost
-    peer.took_counted(1, 2)
+    assert seq_last(int(seqs[0])) == 11 and peer.sequences() == {(1, 1): 11}
+    seqs[0], lost = seq_step(int(seqs[0]), 14)   # compiled code took 14: 12 and 13 lost
+    assert lost == 2
+    peer.took_counted(1, lost)
     assert (c.received, c.dropped) == (3, 2) and peer.sequences() == {(1, 1): 14}
     take(17)                     # counted against the array's 14: 15 and 16 lost
-    assert seqs[0] == 17 and (c.received, c.dropped) == (4, 4)
+    assert seq_last(int(seqs[0])) == 17 and (c.received, c.dropped) == (4, 4)
+    take(15)                     # late, not lost after all
+    assert seq_last(int(seqs[0])) == 17 and (c.received, c.dropped) == (5, 3)
     with pytest.raises(Se3SyncError, match="keeps an array already"):
         peer.sequence_array([(2, 1)])
     with pytest.raises(Se3SyncError, match="without a key"):
