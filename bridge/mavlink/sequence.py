@@ -3,9 +3,11 @@
 A sender numbers its packets modulo 256. A gap in the numbers is counted as that many packets
 lost; a number that comes late (reordered on the way, or read after newer ones) fills a gap
 counted before, and is taken off the count; a number that comes twice counts once. The last
-``SEQ_WINDOW`` numbers before the newest are remembered for that; a number further back than
-that, or 128 or more ahead (no gap is that long on a link that works), is the sender starting
-again (a restart), counted as nothing.
+``SEQ_WINDOW`` numbers before the newest are remembered for that. A number further back than
+that (up to 127 behind: modulo 256, anything further is ahead) is left out: a packet that
+late, or a sender that started again, cannot be told apart from one number, and moving the
+newest back to it would count the way forward again as lost (a sample resent 45 packets late
+made 45). A sender that starts again is counted on once its numbers are within reach again.
 
 The state of one sender is one int64 (kept in a dict by `bridge.mavlink.link.Peer`, in an
 array by the compiled readers, `bridge.mavlink.state_wire` and `bridge.swarm.sample_wire`):
@@ -43,7 +45,7 @@ def seq_step(state: int, seq: int):
         if seen & bit:
             return state, 0           # came already (or was never counted lost)
         return state | (bit << 8), -1
-    return seq | (_ALL << 8), 0       # far behind: the sender started again
+    return state, 0                   # far behind: left out (see the module's doc)
 
 
 def seq_last(state: int):

@@ -184,9 +184,9 @@ T_ITER, T_READS, T_TAKEN, T_DROPPED = range(4)
 TAKE_SLOTS = 4
 
 
-# the link's rule, compiled into the readers that count sequence numbers themselves (numba's
-# cache of a caller does not see an edit of sequence.py: the kernels' tests, which compare with
-# the link, would)
+# the link's rule, compiled into the readers that count sequence numbers themselves. numba's
+# on-disk cache of those readers does not see an edit of sequence.py (clear __pycache__ or
+# NUMBA_CACHE_DIR after one); the ahead-of-time module's key does (`bridge.swarm.aot.SOURCES`)
 _seq_step = jit(seq_step, inline=True)
 
 
