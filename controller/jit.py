@@ -134,6 +134,29 @@ def _load_numba_without_blas_probe():
         linalg.ensure_blas = probe
 
 
+def _cache_writes_may_fail() -> None:
+    """A compiled kernel whose on-disk cache cannot be written (a full disk, a size limit, a
+    read-only tree) runs from memory: numba raises the OSError out of the call that compiled it
+    (a command on a full disk ended in numba's traceback, not its one-line error about the output
+    it could not write). numba already removes its half-written file; the next process compiles
+    again. (numba forgives only Windows' sharing errors here, `_guard_against_spurious_io_errors`.)"""
+    try:
+        from numba.core import caching
+        save = caching.Cache.save_overload
+    except (ImportError, AttributeError):      # another numba layout: as it is
+        return
+    if getattr(save, "_se3sync", False):
+        return
+
+    def save_overload(self, sig, data):
+        try:
+            save(self, sig, data)
+        except OSError:
+            pass
+    save_overload._se3sync = True
+    caching.Cache.save_overload = save_overload
+
+
 _NUMBA = []     # numba, once imported here
 _AOT = []       # the ahead-of-time module and its names, once `use_aot` chose it
 
@@ -146,6 +169,7 @@ def numba_module():
                                "to be imported (controller.jit.use_aot)")
         numba = _import_numba()
         _load_numba_without_blas_probe()
+        _cache_writes_may_fail()
         _NUMBA.append(numba)
     return _NUMBA[0]
 

@@ -24,11 +24,14 @@ import math
 import os
 from concurrent.futures import ThreadPoolExecutor
 
-import numba
 import numpy as np
 import scipy.sparse as sp
 
+from controller.jit import numba_module
+
 from .stability_sparse import _tree_order
+
+numba = numba_module()     # as the kernels load it (on-disk cache writes that may fail)
 
 # Largest phase step of one pivot block between neighbouring frequencies; above it the interval
 # is halved. With 0.5 the counts equalled dense eigvals on every case compared (12-agent tree at

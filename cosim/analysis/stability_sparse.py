@@ -26,14 +26,16 @@ Two ways to get the spectral radius (`method` in the result):
 """
 from __future__ import annotations
 
-# the inertia counts are compiled, like the kernels (numba, on-disk cache)
-import numba
 import numpy as np
 
 from controller.errors import Se3SyncError
+from controller.jit import numba_module
 
 from ..signals import interruptible
 from .linear import edge_jacobian, law_of
+
+# the inertia counts are compiled, like the kernels (numba as the kernels load it, on-disk cache)
+numba = numba_module()
 
 __all__ = ["modal_blocks", "laplacian_eigenvalues", "sparse_loop", "spectral_radius_fast",
            "analyse_fast", "Linearisation", "DENSE_MAX"]

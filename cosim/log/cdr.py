@@ -134,9 +134,7 @@ def _scatter(*args):
         aot = jit.aot_module()
         f = getattr(aot, "cdr_scatter", None) if aot is not None else None
         if f is None:
-            import numba
-
-            f = numba.njit(cache=True, nogil=True)(_scatter_py)
+            f = jit.numba_module().njit(cache=True, nogil=True)(_scatter_py)
         _compiled.append(f)
     _compiled[0](*args)
 
