@@ -54,6 +54,7 @@ from cosim.threads import AGENT_THREADS, limit_process
 
 from .agent_link import VERDICTS, AgentLink
 from .sample_wire import held_rows
+from .tick import T_AGAIN, T_CHANGED, T_FAILSAFE, T_HOLD, TICK_SLOTS, Workspace, agent_tick
 from bridge.mavlink.config import check_endpoint, default_config, read_key_file
 from bridge.mavlink.link import require_key_or_insecure
 from bridge.live import feed_logger
@@ -246,10 +247,11 @@ class AgentNode:
         self.hold_steps = 0
         self.transitions: list = []        # (step, neighbour, new verdict of the age rule)
         self.used = {j: (None, None) for j in self.neighbours}   # (sample step, age)
-        self._last_verdicts = [0] * len(self.neighbours)   # (`VERDICTS` indices)
+        self._last_verdict = np.zeros(len(self.neighbours), np.int64)   # (`VERDICTS` indices)
         self.own_samples: list = []
         self.compiled = bool(compiled) and type(self.stepper) is AgentStepper
         self._held_values = None
+        self._ws = None
         if self.compiled:
             self._tables()
         self.plant = _NeighbourhoodPlant(self)
@@ -259,6 +261,7 @@ class AgentNode:
             # the owned θ live in the controller's θ from now on (the stepper's stay at θ(0))
             for k, r in self._own_rows:
                 th[r] = self.stepper.theta[k]
+            self._ws = self._workspace()
             self._calls = self._agent_step_calls(self._S, self.h)
         self.sample_every = None
         self._closed = False
@@ -289,9 +292,40 @@ class AgentNode:
         self._held_values = None if self.lockstep else self.link.held_values
         cols = [(q, r, 13 + self.link.owned_by[j].index(k))
                 for q, (j, pairs) in enumerate(self._rx_rows) for k, r in pairs]
-        self._rx_index = tuple(np.array([c[i] for c in cols], np.int64) for i in range(3))
+        self._rx_q, self._rx_r, self._rx_c = (np.array([c[i] for c in cols], np.int64)
+                                              for i in range(3))
+        self._rx_index = (self._rx_q, self._rx_r, self._rx_c)
         self._verdict = np.zeros(len(self.neighbours), np.int64)
         self._pub = {k: 0.0 for k in self.owned}     # θ after the jump, as published
+
+    def _workspace(self):
+        """The arrays of the step's compiled part moved into one `Workspace` (`agent_tick`:
+        one call of 3 arrays rather than three of 36), or None where the step is not that call:
+        lockstep, a link that keeps its samples as objects or does not publish compiled."""
+        link = self.link
+        slots = {name: (name, owner, attr) for name, owner, attr in link.workspace_slots()}
+        if self.lockstep or self._held_values is None or not slots or not self.neighbours:
+            return None
+        ctl = self.controller
+        for name, owner, attr in (
+                ("verdict", self, "_verdict"), ("mode", self, "_mode"), ("rx", self, "_rx"),
+                ("rx_q", self, "_rx_q"), ("rx_r", self, "_rx_r"), ("rx_c", self, "_rx_c"),
+                ("last_verdict", self, "_last_verdict"), ("S", self, "_S"),
+                ("ea", self, "_ea"), ("eb", self, "_eb"), ("owned", self, "_owned_mask"),
+                ("nbr", self, "_nbr"), ("P", None, self.stepper.P), ("theta", ctl, "theta"),
+                ("theta_prev", ctl, "theta_prev"), ("theta_jump", ctl, "theta_jump"),
+                ("mu", ctl, "mu"), ("jumped", ctl, "jumped"), ("term", self, "_termbuf"),
+                ("rel", self, "_relrows"), ("u", ctl, "u"), ("own_r", self, "_own_r"),
+                ("out", self, "_tick_out")):
+            slots[name] = (name, owner, attr)
+        self._tick_out = np.zeros(2, np.int64)
+        ws = Workspace(slots[name] for name, _ in TICK_SLOTS)
+        self._rx_index = (self._rx_q, self._rx_r, self._rx_c)
+        self._held_values = link.held_values
+        self._tick_args = (bool(self.stepper.hybrid), self.h,
+                           -1 if link.max_age_steps is None else int(link.max_age_steps),
+                           int(link.hold_steps), int(link.future_steps), int(link.h_us))
+        return ws
 
     # ------------------------------------------------------------------ set-up
     @property
@@ -578,25 +612,42 @@ class AgentNode:
         mode = self._mode
         rx = self._rx
         fs = hold = False
+        ticked = False
         if self._held_values is not None:
-            # the link's arrays: the age rule and the held θ in one compiled call
-            ages = link.age_rules(n, self._verdict, mode, rx, self._rx_index).tolist()
-            self._used_at = (n, link.held_steps.tolist(), ages)
-            vs = self._verdict.tolist()
-            if vs != self._last_verdicts:      # a neighbour's verdict changed
+            ws = self._ws
+            if ws is not None and S is self._S and h == self.h and n >= 0:
+                # the age rule, the law and the publish in one compiled call (`agent_tick`)
+                hybrid, h_, max_age, hold_n, future, h_us = self._tick_args
+                sysid, seq = link.tick_header
+                flags = agent_tick(n, ws.I, ws.F, ws.B, hybrid, h_, max_age, hold_n, future,
+                                   n * h_us, sysid, seq)
+                ticked = not flags & T_AGAIN
+                ages = link.finish_age_rules(n, self._verdict, mode) if not ticked \
+                    else link.ages_now
+            else:
+                # the link's arrays: the age rule and the held θ in one compiled call
+                ages = link.age_rules(n, self._verdict, mode, rx, self._rx_index)
+            self._used_at = (n, link.held_steps.tolist(), ages.tolist())
+            if ticked:
+                changed = flags & T_CHANGED
+                fs = bool(flags & T_FAILSAFE)
+                hold = bool(flags & T_HOLD)
+            else:
+                vs = self._verdict.tolist()
+                changed = vs != self._last_verdict.tolist()
+                if changed:
+                    self._last_verdict[:] = vs
+                fs = 2 in vs
+                hold = 1 in vs
+            if changed:      # a neighbour's verdict changed
                 state = self._state
-                for j, v in zip(self.neighbours, vs):
+                for j, v in zip(self.neighbours, self._verdict.tolist()):
                     m = VERDICTS[v]
                     if m != state[j]:
                         state[j] = m
                         self.transitions.append((n, j, m))
                         if len(self.transitions) > 1000:
                             del self.transitions[:500]
-                self._last_verdicts = vs
-            if 2 in vs:
-                fs = True
-            if 1 in vs:
-                hold = True
         elif not self.lockstep:
             state = self._state
             q = 0
@@ -646,6 +697,9 @@ class AgentNode:
                     rx[r] = th[k]
                 link.age_steps(j, n)   # 0 in lockstep: counted for the link statistics
             agent_step(*call[1])
+        elif ticked:
+            n_jumps, nf = self._tick_out.tolist()
+            link.published(n, nf, S, ctl.theta_jump, self._own_r)
         else:
             n_jumps = agent_step(*call[3 if fs else 2])
             link.publish_rows(n, S, ctl.theta_jump, self._own_r)
@@ -862,6 +916,9 @@ def _warm_up(node: AgentNode) -> None:
         if node._held_values is not None:
             held_rows(node._S.copy(), node._S[:1].copy(), node.link.held_steps.copy(),
                       node._held_values.copy())
+        if node._ws is not None:
+            hybrid, h, max_age, hold, future, _ = node._tick_args
+            agent_tick(0, *node._ws.detached(), hybrid, h, max_age, hold, future, 0, 1, 0)
     node.link.warm_up()
     node.vehicle.warm_up()
     loc = node.local

@@ -485,30 +485,44 @@ class AgentLink:
             ok += self._send(j, data, n_msgs)
         return ok
 
-    def publish_rows(self, n: int, S, theta, rows) -> int:
-        """`publish` of sample n with the own row S[0] (S: C-ordered rows in scenario frames)
-        and θ of owned edge q (`owned` order) at theta[rows[q]]. On an unsigned link in the NED
-        world with compiled sends and no emulated delay, gathering θ, encoding and sending are
-        one compiled call (`sample_wire.publish_sample`: the same bytes); otherwise `publish`."""
+    @property
+    def publishes_compiled(self) -> bool:
+        """An unsigned link in the NED world with compiled sends and no emulated delay: a
+        sample is gathered, encoded and sent by one compiled call (`publish_rows`,
+        `bridge.swarm.tick.agent_tick`)."""
         fast = self._fast_publish
         if fast is None:
             fast = self._fast_publish = (
                 self._pack is not None and self._sfds is not None and not self._emu
                 and self.world == "ned" and not self.peer.mav.signing.sign_outgoing)
-        if not fast or n < 0:
+        return fast
+
+    def publish_rows(self, n: int, S, theta, rows) -> int:
+        """`publish` of sample n with the own row S[0] (S: C-ordered rows in scenario frames)
+        and θ of owned edge q (`owned` order) at theta[rows[q]]. Where `publishes_compiled`,
+        gathering θ, encoding and sending are one compiled call (`sample_wire.publish_sample`:
+        the same bytes); otherwise `publish`."""
+        if not self.publishes_compiled or n < 0:
             return self.publish(n, S[0], {k: float(theta[r]) for k, r in zip(self.owned, rows)})
         mav = self.peer.mav
-        st = self._pst
         nf = publish_sample(self._pbuf, stamp_us(n, self.h_us), S, theta, rows, self._pth,
                             mav.srcSystem, mav.seq, self._pf32, self._ends, self._sfds,
-                            self._sok, st)
-        if nf < 0:      # a value beyond float32: the reference path raises as struct.pack does
+                            self._sok, self._pst)
+        return self.published(n, nf, S, theta, rows)
+
+    def published(self, n: int, nf: int, S, theta, rows) -> int:
+        """What `publish_rows` records of sample n that `publish_sample` framed as ``nf``
+        frames and sent (its sockets' outcomes in the link's arrays); returns the neighbours
+        reached. ``nf`` < 0 (a value beyond float32, nothing sent): the reference path raises
+        as struct.pack does."""
+        if nf < 0:
             return self.publish(n, S[0], {k: float(theta[r]) for k, r in zip(self.owned, rows)})
+        mav = self.peer.mav
         mav.seq = (mav.seq + nf) & 0xFF
         if n > self._last_published:
             self._last_published = n
             self._published += 1
-        ok = int(st[0])
+        ok = int(self._pst[0])
         m = len(self.neighbours)
         self.counters.sent += ok * nf
         if ok == m:
@@ -518,6 +532,23 @@ class AgentLink:
             for j, y in zip(self.neighbours, self._sok.tolist()):
                 self._sent[j] += y
         return ok
+
+    def workspace_slots(self) -> list:
+        """The link's arrays that `bridge.swarm.tick.Workspace` may move, as (slot, owner,
+        attribute) for `TICK_SLOTS`' names: the drain's held samples and ages, the publish's
+        buffers. Empty unless the link drains and `publishes_compiled`."""
+        if self._drain is None or not self.publishes_compiled:
+            return []
+        return [(name, self, attr) for name, attr in (
+            ("held_step", "_hstep"), ("ages", "_ages_now"), ("hist", "_age_hist"),
+            ("held", "_hrow"), ("pbuf", "_pbuf"), ("pth", "_pth"), ("pf32", "_pf32"),
+            ("ends", "_ends"), ("sfds", "_sfds"), ("sok", "_sok"), ("pst", "_pst"))]
+
+    @property
+    def tick_header(self) -> tuple:
+        """(system id, next sequence number) of the samples this link sends."""
+        mav = self.peer.mav
+        return mav.srcSystem, mav.seq
 
     def _pack_sample(self, n: int, S_row, theta_owned):
         """`encode_sample` and `Peer.pack` of sample n compiled (`sample_wire.pack_sample`, the
@@ -1019,13 +1050,25 @@ class AgentLink:
         if age_rules(n, self._hstep, -1 if self.max_age_steps is None else self.max_age_steps,
                      self.hold_steps, self.future_steps, ages, verdict, mode, self._age_hist,
                      self._hrow, rx, q_, r_, c_):
-            for q, j in enumerate(self.neighbours):    # what the kernel left to this path
-                s, age = int(self._hstep[q]), int(ages[q])
-                if s >= 0 and (max(age, 0) >= AGE_BINS - 1 or age < -self.future_steps):
-                    self._ages[j][max(age, 0)] += 1
-                    v = VERDICTS.index(self._verdict(s, n))
-                    verdict[q] = v
-                    mode[q] = FRESH if v == 0 else FRESH + 1
+            self.finish_age_rules(n, verdict, mode)
+        return ages
+
+    @property
+    def ages_now(self) -> np.ndarray:
+        """The ages the last `age_rules` found (where `held_steps` is not −1)."""
+        return self._ages_now
+
+    def finish_age_rules(self, n: int, verdict, mode) -> np.ndarray:
+        """What `age_rules` leaves to Python when its kernel says so: the ages past its
+        histogram and the samples stamped too far ahead, recorded and judged here."""
+        ages = self._ages_now
+        for q, j in enumerate(self.neighbours):
+            s, age = int(self._hstep[q]), int(ages[q])
+            if s >= 0 and (max(age, 0) >= AGE_BINS - 1 or age < -self.future_steps):
+                self._ages[j][max(age, 0)] += 1
+                v = VERDICTS.index(self._verdict(s, n))
+                verdict[q] = v
+                mode[q] = FRESH if v == 0 else FRESH + 1
         return ages
 
     def _age_counts(self, j: int) -> Counter:

@@ -83,6 +83,8 @@ EXPORTS = {
                        "i8(u1[::1], i8, f8[:, ::1], f8[::1], i8[::1], f8[::1], i8, i8, f4[::1], "
                        "i8[::1], i8[::1], i8[::1], i8[::1])"),
     "held_rows": ("bridge.swarm.sample_wire", "void(f8[:, ::1], f8[:, ::1], i8[::1], f8[:, ::1])"),
+    "agent_tick": ("bridge.swarm.tick",
+                   "i8(i8, i8[::1], f8[::1], u1[::1], b1, f8, i8, i8, i8, i8, i8, i8)"),
     "rot_to_quat_rows": ("controller._kernels", "void(f8[:, ::1], f8[:, ::1])"),
     "network_U": ("controller._kernels",
                   "void(f8[:, ::1], f8[::1], i8[:, ::1], f8[::1], f8[::1])"),
@@ -102,7 +104,7 @@ EXPORTS = {
 
 # what the module is compiled from: every source its kernels read (constants included)
 SOURCES = ("controller/jit.py", "controller/_kernels.py", "controller/_agent_kernels.py",
-           "controller/layout.py", "bridge/swarm/sample_wire.py", "bridge/mavlink/udp_io.py",
+           "controller/layout.py", "bridge/swarm/sample_wire.py", "bridge/swarm/tick.py", "bridge/mavlink/udp_io.py",
            "bridge/mavlink/codec.py", "bridge/mavlink/state_wire.py",
            "bridge/mavlink/state.py", "bridge/mavlink/sequence.py", "cosim/log/cdr.py",
            "bridge/swarm/aot.py")

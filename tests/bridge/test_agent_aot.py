@@ -474,6 +474,15 @@ def test_held_rows_equals_the_jit(ahead):
         _both(held_rows, ahead.held_rows, args, f"held_rows {trial}")
 
 
+def test_agent_tick_equals_the_jit(ahead):
+    from bridge.swarm.tick import agent_tick
+    from test_tick import hil_node, random_ticks
+
+    with hil_node() as node:
+        for trial, args in enumerate(random_ticks(node, 200, 17)):
+            _both(agent_tick, ahead.agent_tick, args, f"agent_tick {trial}")
+
+
 def test_the_cdr_scatter_equals_numbas(ahead):
     """The CDR log's scatter (an agent's `--log-encoding cdr`) against numba's JIT of it."""
     import numba
