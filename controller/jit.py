@@ -157,6 +157,77 @@ def _cache_writes_may_fail() -> None:
     caching.Cache.save_overload = save_overload
 
 
+# every source a compiled kernel's machine code can depend on: the modules that define kernels
+# (jit, njit) and, transitively, every module of ours they import from (their constants and the
+# functions they inline). tests/controller/test_jit_cache.py checks that it covers that closure.
+KERNEL_SOURCES = (
+    "controller/__init__.py", "controller/_agent_kernels.py", "controller/_kernels.py",
+    "controller/errors.py", "controller/jit.py", "controller/kernels.py", "controller/layout.py",
+    "controller/se3.py",
+    "cosim/__init__.py", "cosim/analysis/delay_count.py", "cosim/analysis/linear.py",
+    "cosim/analysis/stability_sparse.py", "cosim/controllers.py", "cosim/fastloop.py",
+    "cosim/initial.py", "cosim/laws/decoupled.py", "cosim/log/cdr.py", "cosim/log/cdr_decode.py",
+    "cosim/network_step.py", "cosim/plugins.py", "cosim/registry.py", "cosim/scenario.py",
+    "cosim/signals.py",
+    "bridge/mavlink/__init__.py", "bridge/mavlink/airframes.py", "bridge/mavlink/codec.py",
+    "bridge/mavlink/config.py", "bridge/mavlink/frames.py", "bridge/mavlink/link.py",
+    "bridge/mavlink/mapping.py", "bridge/mavlink/output.py", "bridge/mavlink/sequence.py",
+    "bridge/mavlink/state.py", "bridge/mavlink/state_wire.py", "bridge/mavlink/transport.py",
+    "bridge/mavlink/udp_io.py", "bridge/swarm/sample_wire.py", "bridge/swarm/tick.py",
+    "plant_fmu/__init__.py", "plant_fmu/build.py", "plant_fmu/fast.py", "plant_fmu/layout.py",
+)
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+_PACKAGES = ("controller", "cosim", "bridge", "plant_fmu")    # whose kernels get the stamp
+_STAMP = []     # the sources' digest, once computed
+
+
+def sources_stamp(root: str = _ROOT, sources=KERNEL_SOURCES) -> bytes:
+    """SHA-256 of `KERNEL_SOURCES` (each path and its bytes; a missing one as missing)."""
+    import hashlib
+    h = hashlib.sha256()
+    for rel in sources:
+        h.update(rel.encode() + b"\0")
+        try:
+            with open(os.path.join(root, rel), "rb") as f:
+                h.update(f.read())
+        except OSError:
+            h.update(b"\0missing")
+        h.update(b"\0")
+    return h.digest()
+
+
+def _cache_stamps_cover_every_source() -> None:
+    """A kernel's on-disk cache is valid for the sources it was compiled from, all of them.
+
+    numba keeps a function's machine code with the digest of the function's own file only, but
+    the code also holds what the function inlines from other files and the constants it reads
+    there: editing `controller/_kernels.py` (the paper's geometry) left `agent_step` (in
+    `_agent_kernels.py`) running the old law from the cache, silently, until the cache was
+    cleared by hand. For a function in one of our files the stamp numba compares is now that
+    file's digest and `sources_stamp`'s together: an edit of any of `KERNEL_SOURCES` compiles
+    our kernels again (a few seconds at the next run), never runs old machine code. Functions of
+    other packages keep numba's stamp."""
+    try:
+        from numba.core import caching
+        mixin = caching._SourceFileBackedLocatorMixin
+        own = mixin.get_source_stamp
+    except (ImportError, AttributeError):      # another numba layout: as it is
+        return
+    if getattr(own, "_se3sync", False):
+        return
+
+    def get_source_stamp(self):
+        st = own(self)
+        ours = tuple(os.path.join(_ROOT, p) + os.sep for p in _PACKAGES)
+        if not os.path.abspath(str(getattr(self, "_py_file", ""))).startswith(ours):
+            return st
+        if not _STAMP:
+            _STAMP.append(sources_stamp(_ROOT, KERNEL_SOURCES))
+        return (st, _STAMP[0])
+    get_source_stamp._se3sync = True
+    mixin.get_source_stamp = get_source_stamp
+
+
 _NUMBA = []     # numba, once imported here
 _AOT = []       # the ahead-of-time module and its names, once `use_aot` chose it
 
@@ -170,6 +241,7 @@ def numba_module():
         numba = _import_numba()
         _load_numba_without_blas_probe()
         _cache_writes_may_fail()
+        _cache_stamps_cover_every_source()
         _NUMBA.append(numba)
     return _NUMBA[0]
 

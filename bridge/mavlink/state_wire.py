@@ -184,9 +184,8 @@ T_ITER, T_READS, T_TAKEN, T_DROPPED = range(4)
 TAKE_SLOTS = 4
 
 
-# the link's rule, compiled into the readers that count sequence numbers themselves. numba's
-# on-disk cache of those readers does not see an edit of sequence.py (clear __pycache__ or
-# NUMBA_CACHE_DIR after one); the ahead-of-time module's key does (`bridge.swarm.aot.SOURCES`)
+# the link's rule, compiled into the readers that count sequence numbers themselves (an edit of
+# sequence.py compiles them again: `controller.jit.KERNEL_SOURCES`)
 _seq_step = jit(seq_step, inline=True)
 
 

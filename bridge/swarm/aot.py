@@ -102,12 +102,9 @@ EXPORTS = {
                     "i8[::1], i8[::1], u4[:, ::1])"),
 }
 
-# what the module is compiled from: every source its kernels read (constants included)
-SOURCES = ("controller/jit.py", "controller/_kernels.py", "controller/_agent_kernels.py",
-           "controller/layout.py", "bridge/swarm/sample_wire.py", "bridge/swarm/tick.py", "bridge/mavlink/udp_io.py",
-           "bridge/mavlink/codec.py", "bridge/mavlink/state_wire.py",
-           "bridge/mavlink/state.py", "bridge/mavlink/sequence.py", "cosim/log/cdr.py",
-           "bridge/swarm/aot.py")
+# what the module is compiled from: every source its kernels read (constants included), the
+# same list that keeps numba's on-disk caches honest (`controller.jit.KERNEL_SOURCES`), and this
+SOURCES = (*jit.KERNEL_SOURCES, "bridge/swarm/aot.py")
 
 
 class AotError(Exception):
@@ -118,9 +115,7 @@ def key() -> str:
     """16 hex digits naming one build: the sources, the exports and the tools' versions."""
     from importlib.metadata import version
 
-    h = hashlib.sha256()
-    for rel in SOURCES:
-        h.update(rel.encode() + b"\0" + (ROOT / rel).read_bytes() + b"\0")
+    h = hashlib.sha256(jit.sources_stamp(str(ROOT), SOURCES))
     for dist in ("numba", "numpy", "pymavlink"):
         try:
             h.update(f"{dist}={version(dist)}\0".encode())

@@ -39,3 +39,116 @@ def test_a_cache_that_cannot_be_written_leaves_the_kernel_running(tmp_path):
                        env=env, preexec_fn=limited, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0 and r.stdout.strip() == "42.0", r.stderr
     assert not [p for p in cache.rglob("*") if ".tmp." in p.name]
+
+
+CALLEE = '''
+from controller.jit import jit
+
+STEP = {step}
+
+
+@jit(inline=True)
+def bump(x):
+    return x + STEP
+'''
+
+CALLER = '''
+from controller.jit import jit
+from pkg.callee import bump
+
+
+@jit
+def twice_bumped(x):
+    return 2.0 * bump(x)
+'''
+
+RUN = '''
+import sys
+from controller import jit
+jit._ROOT = sys.argv[1]
+jit._PACKAGES = ("pkg",)
+jit.KERNEL_SOURCES = ("pkg/__init__.py", "pkg/callee.py", "pkg/caller.py")
+from pkg.caller import twice_bumped
+print(twice_bumped(1.0))
+'''
+
+
+def test_an_edit_of_what_a_kernel_inlines_compiles_it_again(tmp_path):
+    """A cached kernel (`twice_bumped`, in caller.py) inlines a function and reads a constant
+    of another file (callee.py). After that file is edited the next process runs the new code,
+    not the cached machine code: numba's own stamp is the caller's file only (this answered
+    4.0 again after STEP went from 1 to 2, as agent_step answered the old law after an edit of
+    controller/_kernels.py)."""
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "caller.py").write_text(CALLER)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONDONTWRITEBYTECODE": "1",
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    env.pop("NUMBA_DISABLE_JIT", None)
+
+    def answer():
+        r = subprocess.run([sys.executable, "-c", RUN, str(tmp_path)], cwd=tmp_path, env=env,
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        return float(r.stdout)
+
+    (pkg / "callee.py").write_text(CALLEE.format(step=1.0))
+    assert answer() == 4.0
+    assert list((tmp_path / "cache").rglob("*.nbi"))      # cached: the next process loads it
+    assert answer() == 4.0
+    (pkg / "callee.py").write_text(CALLEE.format(step=2.0))
+    assert answer() == 6.0
+
+
+def test_the_stamp_covers_every_source_a_kernel_depends_on():
+    """`controller.jit.KERNEL_SOURCES` holds every module that defines a compiled kernel (jit,
+    njit) and every module of ours that those import from, transitively (their constants and
+    inlined functions are in the machine code)."""
+    import ast
+
+    from controller.jit import KERNEL_SOURCES
+
+    pkgs = ("controller", "cosim", "bridge", "plant_fmu")
+
+    def module_file(mod):
+        p = ROOT.joinpath(*mod.split("."))
+        for f in (p.with_suffix(".py"), p / "__init__.py"):
+            if f.is_file():
+                return f.relative_to(ROOT).as_posix()
+        return None
+
+    def imported(rel):
+        path = ROOT / rel
+        package = rel[:-3].split("/")[:-1]       # (an __init__'s package is its folder)
+        out = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package[:len(package) - node.level + 1]
+                    mod = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    mod = node.module or ""
+                if mod.split(".")[0] not in pkgs:
+                    continue
+                out.add(mod)
+                out.update(f"{mod}.{a.name}" for a in node.names)
+            elif isinstance(node, ast.Import):
+                out.update(a.name for a in node.names if a.name.split(".")[0] in pkgs)
+        return {f for f in map(module_file, out) if f is not None}
+
+    kernels = set()
+    for pkg in pkgs:
+        for f in (ROOT / pkg).rglob("*.py"):
+            text = f.read_text()
+            if "@jit" in text or "njit(" in text or "@njit" in text:
+                kernels.add(f.relative_to(ROOT).as_posix())
+    assert "controller/_kernels.py" in kernels and "bridge/swarm/tick.py" in kernels
+    seen, todo = set(), sorted(kernels)
+    while todo:
+        rel = todo.pop()
+        if rel not in seen:
+            seen.add(rel)
+            todo.extend(imported(rel))
+    assert not seen - set(KERNEL_SOURCES), sorted(seen - set(KERNEL_SOURCES))
