@@ -196,6 +196,35 @@ def sources_stamp(root: str = _ROOT, sources=KERNEL_SOURCES) -> bytes:
     return h.digest()
 
 
+_DEPENDS: dict = {}     # source file -> whether its kernels may inline ours
+
+
+def _of_ours(v) -> bool:
+    """``v`` (a module, or what a module imported: a function, a kernel, a class) is ours."""
+    try:
+        name = v.__name__ if isinstance(v, type(sys)) else getattr(v, "__module__", "")
+        return isinstance(name, str) and name.partition(".")[0] in _PACKAGES
+    except Exception:       # noqa: BLE001 - an object whose attributes raise: not ours
+        return False
+
+
+def _depends_on_ours(path: str) -> bool:
+    """A file of our packages, or a module that imports from them (a law of the user's own
+    whose step calls our kernels: `docs/architecture.md`, the compiled seam). Other packages'
+    files keep numba's stamp: their caches are not ours to invalidate."""
+    hit = _DEPENDS.get(path)
+    if hit is None:
+        hit = path.startswith(tuple(os.path.join(_ROOT, p) + os.sep for p in _PACKAGES))
+        if not hit:
+            for m in list(sys.modules.values()):
+                f = getattr(m, "__file__", None)
+                if f and os.path.abspath(f) == path:
+                    hit = any(_of_ours(v) for v in list(vars(m).values()))
+                    break
+        _DEPENDS[path] = hit
+    return hit
+
+
 def _cache_stamps_cover_every_source() -> None:
     """A kernel's on-disk cache is valid for the sources it was compiled from, all of them.
 
@@ -203,10 +232,11 @@ def _cache_stamps_cover_every_source() -> None:
     the code also holds what the function inlines from other files and the constants it reads
     there: editing `controller/_kernels.py` (the paper's geometry) left `agent_step` (in
     `_agent_kernels.py`) running the old law from the cache, silently, until the cache was
-    cleared by hand. For a function in one of our files the stamp numba compares is now that
-    file's digest and `sources_stamp`'s together: an edit of any of `KERNEL_SOURCES` compiles
-    our kernels again (a few seconds at the next run), never runs old machine code. Functions of
-    other packages keep numba's stamp."""
+    cleared by hand. For a function in one of our files, or in a module that imports from them
+    (a law of the user's own), the stamp numba compares is now that file's digest and
+    `sources_stamp`'s together: an edit of any of `KERNEL_SOURCES` compiles those kernels again
+    (a few seconds at the next run), never runs old machine code. Functions of other packages
+    keep numba's stamp."""
     try:
         from numba.core import caching
         mixin = caching._SourceFileBackedLocatorMixin
@@ -218,8 +248,7 @@ def _cache_stamps_cover_every_source() -> None:
 
     def get_source_stamp(self):
         st = own(self)
-        ours = tuple(os.path.join(_ROOT, p) + os.sep for p in _PACKAGES)
-        if not os.path.abspath(str(getattr(self, "_py_file", ""))).startswith(ours):
+        if not _depends_on_ours(os.path.abspath(str(getattr(self, "_py_file", "")))):
             return st
         if not _STAMP:
             _STAMP.append(sources_stamp(_ROOT, KERNEL_SOURCES))

@@ -152,3 +152,45 @@ def test_the_stamp_covers_every_source_a_kernel_depends_on():
             seen.add(rel)
             todo.extend(imported(rel))
     assert not seen - set(KERNEL_SOURCES), sorted(seen - set(KERNEL_SOURCES))
+
+
+USER_LAW = '''
+from numba import njit
+from pkg.callee import bump
+
+
+@njit(cache=True)
+def users_step(x):
+    return 3.0 * bump(x)
+'''
+
+RUN_USER = RUN.replace("from pkg.caller import twice_bumped\nprint(twice_bumped(1.0))",
+                       "from pkg.caller import twice_bumped\nimport userlaw\n"
+                       "print(userlaw.users_step(1.0))")
+
+
+def test_a_users_kernel_that_calls_ours_is_compiled_again_after_ours_change(tmp_path):
+    """A law of the user's own, outside our packages, compiled with numba's njit and calling
+    one of our kernels (the compiled seam of docs/architecture.md): after our file changes, its
+    next process runs the new code too."""
+    pkg = tmp_path / "pkg"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "caller.py").write_text(CALLER)
+    (tmp_path / "userlaw.py").write_text(USER_LAW)
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONDONTWRITEBYTECODE": "1",
+           "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    env.pop("NUMBA_DISABLE_JIT", None)
+
+    def answer():
+        r = subprocess.run([sys.executable, "-c", RUN_USER, str(tmp_path)], cwd=tmp_path,
+                           env=env, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        return float(r.stdout)
+
+    (pkg / "callee.py").write_text(CALLEE.format(step=1.0))
+    assert answer() == 6.0
+    assert answer() == 6.0
+    (pkg / "callee.py").write_text(CALLEE.format(step=2.0))
+    assert answer() == 9.0
