@@ -73,12 +73,10 @@ print(twice_bumped(1.0))
 '''
 
 
-def test_an_edit_of_what_a_kernel_inlines_compiles_it_again(tmp_path):
-    """A cached kernel (`twice_bumped`, in caller.py) inlines a function and reads a constant
-    of another file (callee.py). After that file is edited the next process runs the new code,
-    not the cached machine code: numba's own stamp is the caller's file only (this answered
-    4.0 again after STEP went from 1 to 2, as agent_step answered the old law after an edit of
-    controller/_kernels.py)."""
+def _project(tmp_path, script: str):
+    """A package ``pkg`` (callee.py, caller.py) taken for ours by `controller.jit`, with numba's
+    cache in tmp_path/cache: (a call of ``script`` in a fresh process, its printed number;
+    a function that writes callee.py with STEP)."""
     pkg = tmp_path / "pkg"
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
@@ -89,16 +87,29 @@ def test_an_edit_of_what_a_kernel_inlines_compiles_it_again(tmp_path):
     env.pop("NUMBA_DISABLE_JIT", None)
 
     def answer():
-        r = subprocess.run([sys.executable, "-c", RUN, str(tmp_path)], cwd=tmp_path, env=env,
-                           capture_output=True, text=True, timeout=300)
+        r = subprocess.run([sys.executable, "-c", script, str(tmp_path)], cwd=tmp_path,
+                           env=env, capture_output=True, text=True, timeout=300)
         assert r.returncode == 0, r.stderr
         return float(r.stdout)
 
-    (pkg / "callee.py").write_text(CALLEE.format(step=1.0))
+    def set_step(step: float) -> None:
+        (pkg / "callee.py").write_text(CALLEE.format(step=step))
+
+    return answer, set_step
+
+
+def test_an_edit_of_what_a_kernel_inlines_compiles_it_again(tmp_path):
+    """A cached kernel (`twice_bumped`, in caller.py) inlines a function and reads a constant
+    of another file (callee.py). After that file is edited the next process runs the new code,
+    not the cached machine code: numba's own stamp is the caller's file only (this answered
+    4.0 again after STEP went from 1 to 2, as agent_step answered the old law after an edit of
+    controller/_kernels.py)."""
+    answer, set_step = _project(tmp_path, RUN)
+    set_step(1.0)
     assert answer() == 4.0
     assert list((tmp_path / "cache").rglob("*.nbi"))      # cached: the next process loads it
     assert answer() == 4.0
-    (pkg / "callee.py").write_text(CALLEE.format(step=2.0))
+    set_step(2.0)
     assert answer() == 6.0
 
 
@@ -173,24 +184,10 @@ def test_a_users_kernel_that_calls_ours_is_compiled_again_after_ours_change(tmp_
     """A law of the user's own, outside our packages, compiled with numba's njit and calling
     one of our kernels (the compiled seam of docs/architecture.md): after our file changes, its
     next process runs the new code too."""
-    pkg = tmp_path / "pkg"
-    pkg.mkdir()
-    (pkg / "__init__.py").write_text("")
-    (pkg / "caller.py").write_text(CALLER)
     (tmp_path / "userlaw.py").write_text(USER_LAW)
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache"),
-           "PYTHONDONTWRITEBYTECODE": "1",
-           "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
-    env.pop("NUMBA_DISABLE_JIT", None)
-
-    def answer():
-        r = subprocess.run([sys.executable, "-c", RUN_USER, str(tmp_path)], cwd=tmp_path,
-                           env=env, capture_output=True, text=True, timeout=300)
-        assert r.returncode == 0, r.stderr
-        return float(r.stdout)
-
-    (pkg / "callee.py").write_text(CALLEE.format(step=1.0))
+    answer, set_step = _project(tmp_path, RUN_USER)
+    set_step(1.0)
     assert answer() == 6.0
     assert answer() == 6.0
-    (pkg / "callee.py").write_text(CALLEE.format(step=2.0))
+    set_step(2.0)
     assert answer() == 9.0
